@@ -1,0 +1,5 @@
+import sys
+
+from difftex.cli import main
+
+sys.exit(main())

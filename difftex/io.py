@@ -1,0 +1,164 @@
+"""Atomic file output and checked image input.
+
+Every output is written to a temporary file in the target folder and renamed into place, so an
+interrupted run never leaves a half-written file that a rerun (or Snakemake) would take as done.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import os
+import tempfile
+from pathlib import Path
+from typing import Any, Iterator
+
+import numpy as np
+
+from difftex.errors import DifftexError
+
+
+@contextlib.contextmanager
+def atomic_path(path: str | os.PathLike, suffix: str | None = None) -> Iterator[Path]:
+    """Yield a temporary path beside ``path``; rename it onto ``path`` only if the block succeeds.
+
+    The temporary name keeps ``path``'s extension (or ``suffix``) because writers such as
+    OpenImageIO and numpy choose the format from it.
+    """
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    ext = suffix if suffix is not None else "".join(path.suffixes[-1:])
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=f".part{ext}", dir=path.parent)
+    os.close(fd)
+    tmp_path = Path(tmp)
+    try:
+        yield tmp_path
+        os.replace(tmp_path, path)
+    finally:
+        if tmp_path.exists():
+            tmp_path.unlink()
+
+
+def write_text(path: str | os.PathLike, text: str) -> None:
+    with atomic_path(path) as tmp:
+        tmp.write_text(text)
+
+
+def _json_default(obj: Any) -> Any:
+    if isinstance(obj, np.generic):
+        return obj.item()
+    if isinstance(obj, np.ndarray):
+        return obj.tolist()
+    if isinstance(obj, Path):
+        return str(obj)
+    raise TypeError(f"not JSON serialisable: {type(obj).__name__}")
+
+
+def write_json(path: str | os.PathLike, data: Any) -> None:
+    write_text(path, json.dumps(data, indent=2, default=_json_default) + "\n")
+
+
+def read_json(path: str | os.PathLike) -> Any:
+    path = Path(path)
+    try:
+        return json.loads(path.read_text())
+    except FileNotFoundError:
+        raise DifftexError(f"{path}: file not found") from None
+    except json.JSONDecodeError as exc:
+        raise DifftexError(f"{path}: not valid JSON ({exc.msg} at line {exc.lineno})") from None
+
+
+def write_npz(path: str | os.PathLike, **arrays: np.ndarray) -> None:
+    """Compressed npz, written atomically."""
+    with atomic_path(path, suffix=".npz") as tmp:
+        np.savez_compressed(tmp, **arrays)
+
+
+def read_npz(path: str | os.PathLike) -> dict[str, np.ndarray]:
+    path = Path(path)
+    try:
+        with np.load(path, allow_pickle=False) as data:
+            return {k: data[k] for k in data.files}
+    except FileNotFoundError:
+        raise DifftexError(f"{path}: file not found") from None
+    except (OSError, ValueError) as exc:
+        raise DifftexError(f"{path}: unreadable npz ({exc})") from None
+
+
+def read_image(path: str | os.PathLike, expected_size: tuple[int, int] | None = None) -> np.ndarray:
+    """Read an image as float32 RGB in [0, 1] (H, W, 3) with OpenImageIO.
+
+    8/16-bit integer formats are normalised by OIIO; float formats (EXR) are kept linear as stored.
+    ``expected_size`` is (width, height): a mismatch is an error naming the file.
+    """
+    import OpenImageIO as oiio
+
+    path = Path(path)
+    if not path.is_file():
+        raise DifftexError(f"{path}: image file not found")
+    inp = oiio.ImageInput.open(str(path))
+    if inp is None:
+        raise DifftexError(f"{path}: cannot open image ({oiio.geterror().strip() or 'unknown format'})")
+    try:
+        spec = inp.spec()
+        if expected_size is not None and (spec.width, spec.height) != tuple(expected_size):
+            raise DifftexError(
+                f"{path}: image is {spec.width}x{spec.height} but its camera says "
+                f"{expected_size[0]}x{expected_size[1]}"
+            )
+        pixels = inp.read_image(0, 0, 0, spec.nchannels, oiio.FLOAT)
+        if pixels is None or not isinstance(pixels, np.ndarray):
+            raise DifftexError(f"{path}: corrupt image ({inp.geterror().strip() or 'read failed'})")
+        err = inp.geterror()
+        if err:
+            raise DifftexError(f"{path}: corrupt image ({err.strip().splitlines()[0]})")
+    finally:
+        inp.close()
+    pixels = pixels.reshape(spec.height, spec.width, spec.nchannels)
+    if spec.nchannels == 1:
+        pixels = np.repeat(pixels, 3, axis=2)
+    elif spec.nchannels == 2:  # grey + alpha
+        pixels = np.repeat(pixels[:, :, :1], 3, axis=2)
+    else:
+        pixels = pixels[:, :, :3]
+    if not np.isfinite(pixels).all():
+        raise DifftexError(f"{path}: image holds NaN or infinite values")
+    return np.ascontiguousarray(pixels, dtype=np.float32)
+
+
+def image_size(path: str | os.PathLike) -> tuple[int, int]:
+    """(width, height) from the header alone."""
+    import OpenImageIO as oiio
+
+    inp = oiio.ImageInput.open(str(path))
+    if inp is None:
+        raise DifftexError(f"{path}: cannot open image ({oiio.geterror().strip() or 'unknown format'})")
+    spec = inp.spec()
+    inp.close()
+    return spec.width, spec.height
+
+
+def write_image(path: str | os.PathLike, pixels: np.ndarray, bits: int = 8) -> None:
+    """Write float RGB(A) in [0, 1] as 8/16-bit PNG/JPEG/TIFF or float EXR, atomically."""
+    import OpenImageIO as oiio
+
+    path = Path(path)
+    arr = np.asarray(pixels, dtype=np.float32)
+    if arr.ndim == 2:
+        arr = arr[:, :, None]
+    h, w, c = arr.shape
+    if path.suffix.lower() == ".exr":
+        fmt = oiio.HALF
+    else:
+        fmt = {8: oiio.UINT8, 16: oiio.UINT16}[bits]
+        arr = np.clip(arr, 0.0, 1.0)
+    with atomic_path(path) as tmp:
+        out = oiio.ImageOutput.create(str(tmp))
+        if out is None:
+            raise DifftexError(f"{path}: cannot write image ({oiio.geterror().strip()})")
+        spec = oiio.ImageSpec(w, h, c, fmt)
+        if not out.open(str(tmp), spec) or not out.write_image(np.ascontiguousarray(arr)):
+            err = out.geterror()
+            out.close()
+            raise DifftexError(f"{path}: cannot write image ({err.strip()})")
+        out.close()
