@@ -1,0 +1,192 @@
+"""Calibrated photos: a COLMAP model read with pycolmap, projection with every COLMAP camera model.
+
+Lens distortion is always honoured: projection goes through ``pycolmap.Camera.img_from_cam``
+(and back through ``cam_from_img``), which implements every COLMAP camera model. Pinhole
+models take a closed-form path that gives the same numbers without the per-call overhead.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from difftex.errors import DifftexError
+
+IMAGE_SUFFIXES = {".jpg", ".jpeg", ".png", ".tif", ".tiff", ".exr", ".bmp"}
+_PINHOLE = {"SIMPLE_PINHOLE", "PINHOLE"}
+# Points closer than this (in camera z, scene units) count as behind the camera.
+_MIN_DEPTH = 1e-6
+
+
+@dataclass(frozen=True, eq=False)
+class Photo:
+    """One registered photo: intrinsics (a pycolmap camera) and the cam_from_world pose."""
+
+    name: str
+    image_path: Path
+    camera: object  # pycolmap.Camera; typed loosely so the dataclass stays picklable-free of pycolmap
+    R: np.ndarray  # (3, 3) rotation, cam_from_world
+    t: np.ndarray  # (3,) translation, cam_from_world
+    width: int
+    height: int
+    model: str = field(default="PINHOLE")
+
+    @property
+    def center(self) -> np.ndarray:
+        return -self.R.T @ self.t
+
+    @property
+    def up(self) -> np.ndarray:
+        """The world direction that appears upwards in the photo (-y of the camera)."""
+        return -self.R[1]
+
+    @property
+    def forward(self) -> np.ndarray:
+        return self.R[2]
+
+    @property
+    def is_pinhole(self) -> bool:
+        return self.model in _PINHOLE
+
+    def K(self) -> np.ndarray:
+        return np.asarray(self.camera.calibration_matrix(), dtype=np.float64)
+
+    def to_camera(self, X: np.ndarray) -> np.ndarray:
+        """World points (..., 3) to camera coordinates (..., 3)."""
+        return np.asarray(X, dtype=np.float64) @ self.R.T + self.t
+
+    def project_camera(self, Xc: np.ndarray) -> np.ndarray:
+        """Camera-frame points (N, 3) with z > 0 to pixels (N, 2), distortion included."""
+        Xc = np.asarray(Xc, dtype=np.float64).reshape(-1, 3)
+        if self.is_pinhole:
+            K = self.K()
+            uv = Xc[:, :2] / Xc[:, 2:3]
+            return uv @ K[:2, :2].T + K[:2, 2]
+        if len(Xc) == 0:
+            return np.zeros((0, 2))
+        return np.asarray(self.camera.img_from_cam(Xc), dtype=np.float64).reshape(-1, 2)
+
+    def project(self, X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """World points (..., 3) -> (pixels (..., 2), depth (...)).
+
+        Points behind the camera get NaN pixels and their (non-positive) depth.
+        """
+        X = np.asarray(X, dtype=np.float64)
+        shape = X.shape[:-1]
+        Xc = self.to_camera(X.reshape(-1, 3))
+        depth = Xc[:, 2]
+        pix = np.full((len(Xc), 2), np.nan)
+        front = depth > _MIN_DEPTH
+        if front.any():
+            pix[front] = self.project_camera(Xc[front])
+        return pix.reshape(*shape, 2), depth.reshape(shape)
+
+    def unproject(self, pix: np.ndarray) -> np.ndarray:
+        """Pixels (..., 2) -> unit ray directions in world coordinates (..., 3)."""
+        pix = np.asarray(pix, dtype=np.float64)
+        shape = pix.shape[:-1]
+        flat = pix.reshape(-1, 2)
+        if self.is_pinhole:
+            K = self.K()
+            xy = (flat - K[:2, 2]) / np.array([K[0, 0], K[1, 1]])
+        else:
+            xy = np.asarray(self.camera.cam_from_img(flat), dtype=np.float64).reshape(-1, 2)
+        d = np.concatenate([xy, np.ones((len(xy), 1))], axis=1) @ self.R  # R^T d
+        d /= np.linalg.norm(d, axis=1, keepdims=True)
+        return d.reshape(*shape, 3)
+
+    def in_image(self, pix: np.ndarray, margin: float = 0.0) -> np.ndarray:
+        x, y = pix[..., 0], pix[..., 1]
+        with np.errstate(invalid="ignore"):
+            return (
+                np.isfinite(x)
+                & (x >= margin)
+                & (y >= margin)
+                & (x <= self.width - margin)
+                & (y <= self.height - margin)
+            )
+
+
+def _rigid(image) -> tuple[np.ndarray, np.ndarray]:
+    cfw = image.cam_from_world() if callable(image.cam_from_world) else image.cam_from_world
+    return np.asarray(cfw.rotation.matrix(), dtype=np.float64), np.asarray(cfw.translation, dtype=np.float64)
+
+
+def read_reconstruction(sparse_dir: str | Path):
+    """pycolmap.Reconstruction from a binary or text COLMAP model, with one-line errors."""
+    import pycolmap
+
+    sparse_dir = Path(sparse_dir)
+    if not sparse_dir.is_dir():
+        raise DifftexError(f"{sparse_dir}: COLMAP model folder not found")
+    names = {p.name for p in sparse_dir.iterdir()}
+    if not ({"cameras.bin", "images.bin"} <= names or {"cameras.txt", "images.txt"} <= names):
+        raise DifftexError(f"{sparse_dir}: no COLMAP model (cameras/images .bin or .txt) in this folder")
+    try:
+        return pycolmap.Reconstruction(str(sparse_dir))
+    except Exception as exc:  # pycolmap raises bare RuntimeErrors with multi-line C++ context
+        first = str(exc).strip().splitlines()[-1] if str(exc).strip() else type(exc).__name__
+        raise DifftexError(f"{sparse_dir}: unreadable COLMAP model ({first})") from None
+
+
+def load_photos(sparse_dir: str | Path, images_dir: str | Path, check_images: bool = True) -> list[Photo]:
+    """All registered images of a COLMAP model, sorted by name.
+
+    A NaN pose, a bad camera, a missing image file or an image whose size disagrees with its
+    camera is an error naming the image (header only is read here; pixels are read on use).
+    """
+    from difftex.io import image_size
+
+    rec = read_reconstruction(sparse_dir)
+    images_dir = Path(images_dir)
+    if check_images and not images_dir.is_dir():
+        raise DifftexError(f"{images_dir}: images folder not found")
+    photos = []
+    for image in rec.images.values():
+        if hasattr(image, "has_pose") and not image.has_pose:
+            continue  # unregistered image: COLMAP keeps it in the model without a pose
+        cam = rec.cameras[image.camera_id]
+        R, t = _rigid(image)
+        path = images_dir / image.name
+        if not (np.isfinite(R).all() and np.isfinite(t).all()):
+            raise DifftexError(f"{path}: pose in {sparse_dir} is not finite (NaN or inf)")
+        if abs(np.linalg.det(R) - 1.0) > 1e-3:
+            raise DifftexError(f"{path}: rotation in {sparse_dir} is not a rotation (det {np.linalg.det(R):.3f})")
+        params = np.asarray(cam.params, dtype=np.float64)
+        if not np.isfinite(params).all() or cam.width <= 0 or cam.height <= 0 or cam.has_bogus_params(0.1, 10.0, 10.0):
+            raise DifftexError(f"{path}: camera {cam.camera_id} ({cam.model_name}) has invalid parameters {params.tolist()}")
+        if check_images:
+            if not path.is_file():
+                raise DifftexError(f"{path}: image listed in {sparse_dir} is missing")
+            size = image_size(path)
+            if size != (cam.width, cam.height):
+                raise DifftexError(
+                    f"{path}: image is {size[0]}x{size[1]} but camera {cam.camera_id} says {cam.width}x{cam.height}"
+                )
+        photos.append(
+            Photo(
+                name=image.name,
+                image_path=path,
+                camera=cam,
+                R=R,
+                t=t,
+                width=int(cam.width),
+                height=int(cam.height),
+                model=str(cam.model_name),
+            )
+        )
+    if not photos:
+        raise DifftexError(f"{sparse_dir}: COLMAP model has no registered images")
+    return sorted(photos, key=lambda p: p.name)
+
+
+def scene_up(photos: list[Photo]) -> np.ndarray:
+    """Unit 'up' of the scene: photos are taken upright, so their up vectors agree on it."""
+    ups = np.stack([p.up for p in photos])
+    up = ups.mean(axis=0)
+    norm = np.linalg.norm(up)
+    if norm < 1e-6:  # cameras disagree (e.g. nadir-only set): fall back to the first photo's up
+        return ups[0] / np.linalg.norm(ups[0])
+    return up / norm

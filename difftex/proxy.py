@@ -1,0 +1,406 @@
+"""Proxy models as planar polygons: loading OBJ/PLY/OFF/GLB, coplanar grouping of triangle meshes.
+
+OBJ and OFF are parsed here because trimesh triangulates n-gons on load and the polygons are
+the unit of work; PLY and glTF/GLB go through trimesh and their triangles are grouped back
+into planar polygons (connected, coplanar within an angle and a distance tolerance).
+"""
+
+from __future__ import annotations
+
+import logging
+import re
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from difftex.errors import DifftexError
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True, eq=False)
+class Polygon:
+    """A planar polygon: outer boundary counter-clockwise seen from outside, holes clockwise."""
+
+    id: str
+    outer: np.ndarray  # (n, 3)
+    holes: tuple[np.ndarray, ...] = field(default=())
+
+    @property
+    def normal(self) -> np.ndarray:
+        return newell_normal(self.outer)
+
+    @property
+    def centroid(self) -> np.ndarray:
+        return self.outer.mean(axis=0)
+
+    @property
+    def offset(self) -> float:
+        """d in the plane equation n . X = d."""
+        return float(self.normal @ self.outer.mean(axis=0))
+
+    @property
+    def area(self) -> float:
+        a = polygon_area(self.outer)
+        return a - sum(polygon_area(h) for h in self.holes)
+
+    @property
+    def diameter(self) -> float:
+        return float(np.linalg.norm(np.ptp(self.outer, axis=0)))
+
+    def plane_basis(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(origin, b1, b2): an orthonormal in-plane basis with b1 x b2 = normal."""
+        n = self.normal
+        a = np.eye(3)[int(np.argmin(np.abs(n)))]
+        b1 = np.cross(a, n)
+        b1 /= np.linalg.norm(b1)
+        b2 = np.cross(n, b1)
+        return self.outer[0], b1, b2
+
+    def to_plane(self, X: np.ndarray) -> np.ndarray:
+        o, b1, b2 = self.plane_basis()
+        d = np.asarray(X, dtype=np.float64) - o
+        return np.stack([d @ b1, d @ b2], axis=-1)
+
+
+@dataclass(frozen=True, eq=False)
+class Proxy:
+    polygons: list[Polygon]
+    path: Path
+
+    def __len__(self) -> int:
+        return len(self.polygons)
+
+    def by_id(self, pid: str) -> Polygon:
+        for p in self.polygons:
+            if p.id == pid:
+                return p
+        raise DifftexError(f"{self.path}: no polygon with id '{pid}'")
+
+    @property
+    def ids(self) -> list[str]:
+        return [p.id for p in self.polygons]
+
+
+def newell_normal(loop: np.ndarray) -> np.ndarray:
+    """Unit normal of a (possibly non-convex) loop; right-hand rule on the vertex order."""
+    v = np.asarray(loop, dtype=np.float64)
+    w = np.roll(v, -1, axis=0)
+    n = np.array(
+        [
+            np.sum((v[:, 1] - w[:, 1]) * (v[:, 2] + w[:, 2])),
+            np.sum((v[:, 2] - w[:, 2]) * (v[:, 0] + w[:, 0])),
+            np.sum((v[:, 0] - w[:, 0]) * (v[:, 1] + w[:, 1])),
+        ]
+    )
+    norm = np.linalg.norm(n)
+    return n / norm if norm > 0 else n
+
+
+def polygon_area(loop: np.ndarray) -> float:
+    v = np.asarray(loop, dtype=np.float64)
+    w = np.roll(v, -1, axis=0)
+    return 0.5 * float(np.linalg.norm(np.cross(v, w).sum(axis=0)))
+
+
+def planarity_deviation(points: np.ndarray) -> float:
+    """Largest distance of a point from the least-squares plane."""
+    p = np.asarray(points, dtype=np.float64)
+    c = p - p.mean(axis=0)
+    if len(p) < 4:
+        return 0.0
+    n = np.linalg.svd(c, full_matrices=False)[2][-1]
+    return float(np.abs(c @ n).max())
+
+
+_SAFE = re.compile(r"[^A-Za-z0-9_-]+")
+
+
+def _safe_id(name: str) -> str:
+    return _SAFE.sub("_", name).strip("_")
+
+
+# ---------------------------------------------------------------------------------------------
+# Readers: each returns (vertices (V,3), faces [list of index lists], names [group per face])
+
+
+def _read_obj(path: Path):
+    verts, faces, names = [], [], []
+    group = ""
+    for lineno, raw in enumerate(path.read_text(errors="replace").splitlines(), 1):
+        parts = raw.split("#", 1)[0].split()
+        if not parts:
+            continue
+        key = parts[0]
+        try:
+            if key == "v":
+                verts.append([float(x) for x in parts[1:4]])
+            elif key in ("g", "o"):
+                group = " ".join(parts[1:])
+            elif key == "f":
+                idx = []
+                for tok in parts[1:]:
+                    i = int(tok.split("/")[0])
+                    idx.append(i - 1 if i > 0 else len(verts) + i)
+                faces.append(idx)
+                names.append(group)
+        except (ValueError, IndexError):
+            raise DifftexError(f"{path}:{lineno}: malformed OBJ line '{raw.strip()}'") from None
+    return np.asarray(verts, dtype=np.float64).reshape(-1, 3), faces, names
+
+
+def _read_off(path: Path):
+    tokens = []
+    for raw in path.read_text(errors="replace").splitlines():
+        tokens.extend(raw.split("#", 1)[0].split())
+    try:
+        if not tokens or not tokens[0].endswith("OFF"):
+            raise ValueError("missing OFF header")
+        nv, nf = int(tokens[1]), int(tokens[2])
+        pos = 4
+        verts = np.array(tokens[pos : pos + 3 * nv], dtype=np.float64).reshape(nv, 3)
+        pos += 3 * nv
+        faces = []
+        for _ in range(nf):
+            k = int(tokens[pos])
+            faces.append([int(x) for x in tokens[pos + 1 : pos + 1 + k]])
+            pos += 1 + k  # colour values after the indices are not supported (rare in proxies)
+    except (ValueError, IndexError) as exc:
+        raise DifftexError(f"{path}: malformed OFF file ({exc})") from None
+    return verts, faces, [""] * len(faces)
+
+
+def _read_trimesh(path: Path):
+    import trimesh
+
+    try:
+        scene = trimesh.load(str(path), force="scene", process=False)
+    except Exception as exc:
+        raise DifftexError(f"{path}: cannot read mesh ({str(exc).splitlines()[0] if str(exc) else type(exc).__name__})") from None
+    verts, faces, names = [], [], []
+    offset = 0
+    # dump() applies the scene graph transforms, so glTF nodes land in the world frame.
+    for name, geom in zip(scene.graph.nodes_geometry, scene.dump()):
+        if not hasattr(geom, "faces"):
+            continue
+        verts.append(np.asarray(geom.vertices, dtype=np.float64))
+        faces.extend((np.asarray(geom.faces) + offset).tolist())
+        names.extend([str(name)] * len(geom.faces))
+        offset += len(geom.vertices)
+    if not verts:
+        return np.zeros((0, 3)), [], []
+    return np.concatenate(verts), faces, names
+
+
+# ---------------------------------------------------------------------------------------------
+# Coplanar grouping of triangles
+
+
+def _group_triangles(verts, tris, angle_tol_deg, dist_tol_rel):
+    """Connected components of triangles whose normals and planes agree; returns lists of tri ids."""
+    tris = np.asarray(tris, dtype=np.int64)
+    p = verts[tris]
+    n = np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0])
+    area2 = np.linalg.norm(n, axis=1)
+    ok = area2 > 1e-14 * max(1.0, float(np.ptp(verts, axis=0).max()) ** 2)
+    n[ok] /= area2[ok, None]
+    # shared-edge adjacency
+    edges = {}
+    for t, tri in enumerate(tris):
+        if not ok[t]:
+            continue
+        for a, b in ((tri[0], tri[1]), (tri[1], tri[2]), (tri[2], tri[0])):
+            edges.setdefault((min(a, b), max(a, b)), []).append(t)
+    neigh = [[] for _ in range(len(tris))]
+    for ts in edges.values():
+        for a in ts:
+            for b in ts:
+                if a != b:
+                    neigh[a].append(b)
+    cos_tol = np.cos(np.radians(angle_tol_deg))
+    scale = float(np.linalg.norm(np.ptp(verts, axis=0))) or 1.0
+    dist_tol = dist_tol_rel * scale
+    seen = np.zeros(len(tris), bool)
+    groups = []
+    for seed in range(len(tris)):
+        if seen[seed] or not ok[seed]:
+            continue
+        n0, d0 = n[seed], float(n[seed] @ p[seed, 0])
+        stack, group = [seed], []
+        seen[seed] = True
+        while stack:
+            t = stack.pop()
+            group.append(t)
+            for u in neigh[t]:
+                if seen[u] or n[u] @ n0 < cos_tol or np.abs(p[u] @ n0 - d0).max() > dist_tol:
+                    continue
+                seen[u] = True
+                stack.append(u)
+        groups.append(sorted(group))
+    return groups
+
+
+def _boundary_loops(tris: np.ndarray) -> list[list[int]]:
+    """Closed loops of edges used by exactly one triangle, following triangle orientation."""
+    count = {}
+    for tri in tris:
+        for a, b in ((tri[0], tri[1]), (tri[1], tri[2]), (tri[2], tri[0])):
+            count[(a, b)] = count.get((a, b), 0) + 1
+    nxt = {}
+    for (a, b) in count:
+        if (b, a) not in count:
+            nxt.setdefault(a, []).append(b)
+    loops, used = [], set()
+    for start in sorted(nxt):
+        for first in nxt[start]:
+            if (start, first) in used:
+                continue
+            loop, a, b = [start], start, first
+            used.add((a, b))
+            while b != start and len(loop) <= len(count):
+                loop.append(b)
+                cands = [c for c in nxt.get(b, []) if (b, c) not in used]
+                if not cands:
+                    break
+                a, b = b, cands[0]
+                used.add((a, b))
+            if b == start and len(loop) >= 3:
+                loops.append(loop)
+    return loops
+
+
+def _simplify_loop(loop: np.ndarray, tol: float) -> np.ndarray:
+    """Drop vertices that lie on the straight line through their neighbours (triangulation leftovers)."""
+    pts = list(loop)
+    changed = True
+    while changed and len(pts) > 3:
+        changed = False
+        for i in range(len(pts)):
+            a, b, c = pts[i - 1], pts[i], pts[(i + 1) % len(pts)]
+            ac = c - a
+            L = np.linalg.norm(ac)
+            if L == 0 or np.linalg.norm(np.cross(b - a, ac)) / L < tol:
+                del pts[i]
+                changed = True
+                break
+    return np.asarray(pts)
+
+
+def _polygons_from_triangles(verts, tris, angle_tol_deg, dist_tol_rel):
+    out = []
+    for group in _group_triangles(verts, tris, angle_tol_deg, dist_tol_rel):
+        gt = np.asarray(tris, dtype=np.int64)[group]
+        loops = [verts[np.asarray(lp)] for lp in _boundary_loops(gt)]
+        if not loops:
+            continue
+        pn = np.cross(verts[gt[:, 1]] - verts[gt[:, 0]], verts[gt[:, 2]] - verts[gt[:, 0]]).sum(axis=0)
+        pn /= np.linalg.norm(pn) or 1.0
+        scale = float(np.linalg.norm(np.ptp(verts[gt.ravel()], axis=0)))
+        loops = [_simplify_loop(lp, 1e-9 * max(scale, 1e-12)) for lp in loops]
+        areas = [polygon_area(lp) for lp in loops]
+        k = int(np.argmax(areas))
+        outer = loops[k]
+        if newell_normal(outer) @ pn < 0:
+            outer = outer[::-1]
+        holes = []
+        for i, lp in enumerate(loops):
+            if i != k:
+                holes.append(lp if newell_normal(lp) @ pn < 0 else lp[::-1])
+        out.append((outer, tuple(holes), group[0]))
+    return out
+
+
+# ---------------------------------------------------------------------------------------------
+
+
+def load_proxy(
+    path: str | Path,
+    angle_tol_deg: float = 1.0,
+    dist_tol_rel: float = 1e-3,
+) -> Proxy:
+    """Planar polygons of a proxy model.
+
+    n-gon faces are kept as they are; triangles are grouped into coplanar connected polygons.
+    A non-planar n-gon (deviation above ``dist_tol_rel`` of its diameter) is an error naming it;
+    degenerate polygons (zero area, collinear) are skipped with a warning.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise DifftexError(f"{path}: proxy file not found")
+    suffix = path.suffix.lower()
+    if suffix == ".obj":
+        verts, faces, names = _read_obj(path)
+    elif suffix == ".off":
+        verts, faces, names = _read_off(path)
+    elif suffix in (".ply", ".glb", ".gltf", ".stl"):
+        verts, faces, names = _read_trimesh(path)
+    else:
+        raise DifftexError(f"{path}: unsupported proxy format '{suffix}' (use OBJ, PLY, OFF, GLB or glTF)")
+    if not np.isfinite(verts).all():
+        raise DifftexError(f"{path}: proxy has non-finite vertex coordinates")
+    for f in faces:
+        if any(i < 0 or i >= len(verts) for i in f):
+            raise DifftexError(f"{path}: face refers to vertex {max(f) + 1} but the file has {len(verts)} vertices")
+
+    # (outer, holes, name, order key)
+    raw: list[tuple[np.ndarray, tuple, str, int]] = []
+    tri_by_group: dict[str, list[tuple[int, list[int]]]] = {}
+    for fi, (face, name) in enumerate(zip(faces, names)):
+        if len(face) == 3:
+            tri_by_group.setdefault(name, []).append((fi, face))
+        elif len(face) > 3:
+            raw.append((verts[np.asarray(face)], (), name, fi))
+    for name, items in tri_by_group.items():
+        fids = [fi for fi, _ in items]
+        for outer, holes, first in _polygons_from_triangles(verts, [f for _, f in items], angle_tol_deg, dist_tol_rel):
+            raw.append((outer, holes, name, fids[first]))
+    raw.sort(key=lambda r: r[3])
+
+    kept = []
+    for i, (outer, holes, name, _) in enumerate(raw):
+        label = name or f"face {i}"
+        diam = float(np.linalg.norm(np.ptp(outer, axis=0)))
+        area = polygon_area(outer) - sum(polygon_area(h) for h in holes)
+        if diam == 0 or area <= 1e-10 * diam * diam:
+            log.warning("%s: polygon '%s' is degenerate (area %.3g), skipped", path, label, area)
+            continue
+        dev = planarity_deviation(np.concatenate([outer, *holes]) if holes else outer)
+        if dev > dist_tol_rel * diam:
+            raise DifftexError(
+                f"{path}: polygon '{label}' is not planar (max deviation {dev:.4g} from its plane, "
+                f"tolerance {dist_tol_rel * diam:.4g})"
+            )
+        kept.append((outer, holes, name))
+    if not kept:
+        raise DifftexError(f"{path}: proxy has no usable polygons")
+
+    names = [_safe_id(n) for _, _, n in kept]
+    counts = {n: names.count(n) for n in names}
+    ids = []
+    for i, n in enumerate(names):
+        ids.append(n if n and counts[n] == 1 else f"poly{i:04d}")
+    if len(set(ids)) != len(ids):  # a group named like a fallback id ("poly0003"); fall back wholesale
+        ids = [f"poly{i:04d}" for i in range(len(kept))]
+    polys = [Polygon(id=pid, outer=o, holes=h) for pid, (o, h, _) in zip(ids, kept)]
+    return Proxy(polygons=polys, path=path)
+
+
+def write_proxy_obj(path: str | Path, polygons: list[Polygon], header: str = "") -> None:
+    """One ``g <id>`` group and one n-gon face per polygon (holes cannot be expressed in OBJ)."""
+    from difftex.io import write_text
+
+    lines = [f"# {line}" for line in header.splitlines()] if header else []
+    lines.append(f"# {len(polygons)} planar polygons; vertex order counter-clockwise seen from outside")
+    faces, nv = [], 0
+    for p in polygons:
+        if p.holes:
+            raise DifftexError(f"{path}: polygon '{p.id}' has holes, which OBJ n-gons cannot hold")
+        for v in p.outer:
+            lines.append(f"v {v[0]:.9g} {v[1]:.9g} {v[2]:.9g}")
+        faces.append((p.id, list(range(nv + 1, nv + 1 + len(p.outer)))))
+        nv += len(p.outer)
+    for pid, idx in faces:
+        lines.append(f"g {pid}")
+        lines.append("f " + " ".join(map(str, idx)))
+    write_text(path, "\n".join(lines) + "\n")
