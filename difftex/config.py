@@ -1,0 +1,82 @@
+"""Stage parameters: one dataclass per stage, read from a section of a YAML/JSON config file.
+
+The workflow's config/config.yaml holds every section (validated by workflow/schemas); each
+stage command reads only its own sections, so a change to one stage's parameters reruns only
+that stage and what follows.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, TypeVar
+
+from difftex.errors import DifftexError
+
+T = TypeVar("T")
+
+
+def from_dict(cls: type[T], data: dict[str, Any] | None, where: str = "") -> T:
+    """Build a config dataclass, rejecting unknown keys with a message naming them."""
+    data = dict(data or {})
+    names = {f.name for f in dataclasses.fields(cls)}
+    unknown = sorted(set(data) - names)
+    if unknown:
+        raise DifftexError(f"{where or cls.__name__}: unknown key(s) {', '.join(unknown)} (known: {', '.join(sorted(names))})")
+    try:
+        return cls(**data)
+    except (TypeError, ValueError) as exc:
+        raise DifftexError(f"{where or cls.__name__}: {exc}") from None
+
+
+def read_config(path: str | Path | None) -> dict[str, Any]:
+    """The whole config file as a dict ({} when no file is given)."""
+    if path is None:
+        return {}
+    import yaml
+
+    path = Path(path)
+    if not path.is_file():
+        raise DifftexError(f"{path}: config file not found")
+    try:
+        data = yaml.safe_load(path.read_text()) or {}
+    except yaml.YAMLError as exc:
+        raise DifftexError(f"{path}: not valid YAML ({str(exc).splitlines()[0]})") from None
+    if not isinstance(data, dict):
+        raise DifftexError(f"{path}: config must be a mapping of sections")
+    return data
+
+
+def section(path: str | Path | None, name: str, cls: type[T]) -> T:
+    data = read_config(path).get(name) or {}
+    return from_dict(cls, data, where=f"{path}: section '{name}'" if path else name)
+
+
+@dataclass(frozen=True)
+class TextureConfig:
+    """Texture resolution, shared by visibility (texel masks) and optimization (target level)."""
+
+    long_side: int | None = 2048  # texels on the longest side of each polygon's map (256...4096)
+    density: float | None = None  # texels per scene unit; overrides long_side when set
+
+    def __post_init__(self):
+        if self.density is None and self.long_side is None:
+            raise ValueError("set long_side or density")
+        if self.density is None and not 1 <= int(self.long_side) <= 8192:
+            raise ValueError(f"long_side must be in 1..8192, got {self.long_side}")
+
+
+@dataclass(frozen=True)
+class FilterConfig:
+    blur_ratio: float = 0.3  # drop a photo whose sharpness is below this share of the set's median
+    max_angle_deg: float = 80.0  # per polygon, drop photos that see it more obliquely than this
+    min_pixels: int = 16  # a photo "sees" a polygon with at least this many pixels at analysis size
+    analysis_long_side: int = 640  # id buffers for filtering are computed at this photo size
+    sharpness_long_side: int = 1024  # photos are downscaled to this before the Laplacian
+
+
+@dataclass(frozen=True)
+class VisibilityConfig:
+    min_texels: int = 16  # a candidate photo must see at least this many texels of the polygon
+    max_photos: int | None = None  # keep at most this many photos per polygon (best Q_a first)

@@ -1,0 +1,303 @@
+"""Visibility of proxy polygons in photos: a per-photo polygon-id buffer, texel masks, a_k^i.
+
+The id buffer is made by casting each pixel's ray against every proxy polygon (exact ray-plane
+intersection plus an exact point-in-polygon test with shapely) and keeping the nearest hit.
+Rasterising with a GPU library would be faster, but the rays must follow COLMAP's distortion
+models, which a rasteriser's straight edges cannot, and CI has no GPU.
+
+From the id buffer, for polygon i and photo k:
+- a_k^i (photo space): pixels whose nearest proxy surface is polygon i, seen from its front;
+- texel visibility: texel centre in front of the camera, inside the image, front-facing, and
+  its pixel in the id buffer belongs to polygon i (so it is not hidden by another polygon).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from difftex.camera import Photo
+from difftex.errors import DifftexError
+from difftex.mapping import UVFrame, map_texels, texel_mask, uv_frame
+from difftex.proxy import Polygon, Proxy
+
+NO_POLYGON = -1
+
+
+@dataclass(frozen=True, eq=False)
+class _PlanarPolygons:
+    """Polygons prepared for ray casting: planes, in-plane bases and shapely outlines."""
+
+    normals: np.ndarray  # (P, 3)
+    offsets: np.ndarray  # (P,)
+    origins: np.ndarray  # (P, 3)
+    b1: np.ndarray  # (P, 3)
+    b2: np.ndarray  # (P, 3)
+    shapes: list  # shapely Polygons in (b1, b2) coordinates
+    vertices: list  # (n, 3) arrays, outer + holes, for projected bounding boxes
+
+
+def prepare(proxy: Proxy) -> _PlanarPolygons:
+    import shapely
+
+    normals, offsets, origins, b1s, b2s, shapes, verts = [], [], [], [], [], [], []
+    for p in proxy.polygons:
+        o, b1, b2 = p.plane_basis()
+        outer = p.to_plane(p.outer)
+        holes = [p.to_plane(h) for h in p.holes]
+        shp = shapely.Polygon(outer, holes)
+        if not shp.is_valid:
+            shp = shapely.make_valid(shp)
+        shapely.prepare(shp)
+        normals.append(p.normal)
+        offsets.append(p.offset)
+        origins.append(o)
+        b1s.append(b1)
+        b2s.append(b2)
+        shapes.append(shp)
+        verts.append(np.concatenate([p.outer, *p.holes]) if p.holes else p.outer)
+    return _PlanarPolygons(
+        np.array(normals), np.array(offsets), np.array(origins), np.array(b1s), np.array(b2s), shapes, verts
+    )
+
+
+def _candidate_box(photo: Photo, verts: np.ndarray, pad: float) -> tuple[int, int, int, int] | None:
+    """Image-space box that can contain the polygon, or None if it cannot be in the photo.
+
+    A polygon crossing the camera plane can cover any pixel, so it gets the whole image.
+    """
+    pix, depth = photo.project(verts)
+    if (depth <= 0).all():
+        return None
+    if (depth <= 0).any():
+        return 0, 0, photo.width, photo.height
+    x0, y0 = np.floor(pix.min(axis=0) - pad).astype(int)
+    x1, y1 = np.ceil(pix.max(axis=0) + pad).astype(int)
+    x0, y0 = max(x0, 0), max(y0, 0)
+    x1, y1 = min(x1, photo.width), min(y1, photo.height)
+    if x0 >= x1 or y0 >= y1:
+        return None
+    return int(x0), int(y0), int(x1), int(y1)
+
+
+def id_buffer(
+    proxy: Proxy | _PlanarPolygons,
+    photo: Photo,
+    stride: int = 1,
+    chunk: int = 1 << 18,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Nearest proxy polygon per pixel (index into proxy.polygons, or -1) and its ray distance.
+
+    ``stride`` > 1 samples every stride-th pixel centre (for cheap photo filtering); the result
+    then has shape (ceil(H/stride), ceil(W/stride)).
+    """
+    import shapely
+
+    pp = proxy if isinstance(proxy, _PlanarPolygons) else prepare(proxy)
+    ys = np.arange(0, photo.height, stride) + 0.5 * stride if stride > 1 else np.arange(photo.height) + 0.5
+    xs = np.arange(0, photo.width, stride) + 0.5 * stride if stride > 1 else np.arange(photo.width) + 0.5
+    ys = np.minimum(ys, photo.height - 0.5)
+    xs = np.minimum(xs, photo.width - 0.5)
+    H, W = len(ys), len(xs)
+    ids = np.full((H, W), NO_POLYGON, dtype=np.int32)
+    dist = np.full((H, W), np.inf)
+    C = photo.center
+    # One ray per pixel, shared by all polygons (unprojecting is the costly part with distortion).
+    gx, gy = np.meshgrid(xs, ys)
+    all_rays = photo.unproject(np.stack([gx, gy], axis=-1)).astype(np.float32)
+    del gx, gy
+    # Distortion can bend a straight polygon edge outwards by a few pixels; pad the boxes.
+    pad = 0.02 * max(photo.width, photo.height) if not photo.is_pinhole else 2.0
+    for j in range(len(pp.shapes)):
+        box = _candidate_box(photo, pp.vertices[j], pad)
+        if box is None:
+            continue
+        x0, y0, x1, y1 = box
+        cols = np.nonzero((xs >= x0) & (xs <= x1))[0]
+        rows = np.nonzero((ys >= y0) & (ys <= y1))[0]
+        if len(cols) == 0 or len(rows) == 0:
+            continue
+        n, d = pp.normals[j], pp.offsets[j]
+        h_cam = d - n @ C  # signed distance of the plane from the camera centre along n
+        rr, cc = np.meshgrid(rows, cols, indexing="ij")
+        rr, cc = rr.ravel(), cc.ravel()
+        for s in range(0, len(rr), chunk):
+            r, c = rr[s : s + chunk], cc[s : s + chunk]
+            rays = all_rays[r, c].astype(np.float64)
+            denom = rays @ n
+            with np.errstate(divide="ignore", invalid="ignore"):
+                lam = h_cam / denom
+            hit = (lam > 0) & np.isfinite(lam) & (lam < dist[r, c])
+            if not hit.any():
+                continue
+            r, c, lam, rays = r[hit], c[hit], lam[hit], rays[hit]
+            X = C + lam[:, None] * rays - pp.origins[j]
+            inside = shapely.contains_xy(pp.shapes[j], X @ pp.b1[j], X @ pp.b2[j])
+            r, c = r[inside], c[inside]
+            ids[r, c] = j
+            dist[r, c] = lam[inside]
+    return ids, dist
+
+
+@dataclass(frozen=True, eq=False)
+class PolygonVisibility:
+    """Which texels of one polygon each candidate photo sees, and where (a_k^i) in the photo."""
+
+    polygon_id: str
+    frame: UVFrame
+    texel_mask: np.ndarray  # (H, W) bool
+    photos: list[str]  # candidate photo names, K of them
+    texel_visible: np.ndarray  # (K, H, W) bool
+    a_bbox: np.ndarray  # (K, 4) int: x0, y0, x1, y1 (exclusive) of a_k^i in photo pixels
+    a_masks: list[np.ndarray]  # K crops (y1-y0, x1-x0) bool of a_k^i
+
+    def a_mask_full(self, k: int, width: int, height: int) -> np.ndarray:
+        m = np.zeros((height, width), bool)
+        x0, y0, x1, y1 = self.a_bbox[k]
+        m[y0:y1, x0:x1] = self.a_masks[k]
+        return m
+
+    @property
+    def coverage(self) -> float:
+        """Share of the polygon's texels seen by at least one candidate photo."""
+        if not self.texel_mask.any():
+            return 0.0
+        seen = self.texel_visible.any(axis=0) if len(self.photos) else np.zeros_like(self.texel_mask)
+        return float((seen & self.texel_mask).sum() / self.texel_mask.sum())
+
+
+def polygon_visibility(
+    proxy: Proxy,
+    index: int,
+    frame: UVFrame,
+    photos: list[Photo],
+    id_buffers: dict[str, np.ndarray],
+    min_texels: int = 1,
+) -> PolygonVisibility:
+    """Texel and photo-space visibility of polygon ``index`` in the given photos.
+
+    ``id_buffers`` maps photo name to its full-resolution id buffer. Photos that see fewer
+    than ``min_texels`` texels are left out of the candidates.
+    """
+    poly = proxy.polygons[index]
+    tmask = texel_mask(poly, frame)
+    names, vis, boxes, crops = [], [], [], []
+    for ph in photos:
+        ids = id_buffers[ph.name]
+        m = map_texels(frame, ph)
+        ok = m.valid & tmask
+        if ok.any():
+            px = np.clip(np.floor(m.pix[..., 0][ok]).astype(int), 0, ph.width - 1)
+            py = np.clip(np.floor(m.pix[..., 1][ok]).astype(int), 0, ph.height - 1)
+            seen = np.zeros_like(ok)
+            seen[ok] = ids[py, px] == index
+        else:
+            seen = ok
+        if seen.sum() < min_texels:
+            continue
+        a = ids == index
+        if (poly.normal @ (ph.center - poly.centroid)) <= 0:
+            continue  # seen from behind: nothing of this face's outside is in the photo
+        ys, xs = np.nonzero(a)
+        if len(ys):
+            x0, y0, x1, y1 = xs.min(), ys.min(), xs.max() + 1, ys.max() + 1
+        else:
+            x0 = y0 = x1 = y1 = 0
+        names.append(ph.name)
+        vis.append(seen)
+        boxes.append((x0, y0, x1, y1))
+        crops.append(a[y0:y1, x0:x1])
+    K = len(names)
+    return PolygonVisibility(
+        polygon_id=poly.id,
+        frame=frame,
+        texel_mask=tmask,
+        photos=names,
+        texel_visible=np.stack(vis) if K else np.zeros((0, *frame.shape), bool),
+        a_bbox=np.asarray(boxes, dtype=np.int64).reshape(K, 4),
+        a_masks=crops,
+    )
+
+
+def save_visibility(path, vis: PolygonVisibility) -> None:
+    """Compressed npz; boolean masks are bit-packed (a 2048^2 mask is 512 KiB before zlib)."""
+    import json
+
+    from difftex.io import write_npz
+
+    H, W = vis.frame.shape
+    sizes = np.array([m.size for m in vis.a_masks], dtype=np.int64)
+    a_flat = np.concatenate([m.ravel() for m in vis.a_masks]) if vis.a_masks else np.zeros(0, bool)
+    write_npz(
+        path,
+        polygon_id=np.array(vis.polygon_id),
+        frame=np.array(json.dumps(vis.frame.to_dict())),
+        texel_mask=np.packbits(vis.texel_mask.ravel()),
+        photos=np.array(vis.photos, dtype=str),
+        texel_visible=np.packbits(vis.texel_visible.reshape(len(vis.photos), -1), axis=1),
+        a_bbox=vis.a_bbox,
+        a_sizes=sizes,
+        a_masks=np.packbits(a_flat),
+        shape=np.array([H, W]),
+    )
+
+
+def load_visibility(path) -> PolygonVisibility:
+    import json
+
+    from difftex.io import read_npz
+
+    d = read_npz(path)
+    try:
+        H, W = (int(x) for x in d["shape"])
+        frame = UVFrame.from_dict(json.loads(str(d["frame"])))
+        photos = [str(x) for x in d["photos"]]
+        K = len(photos)
+        tv = np.unpackbits(d["texel_visible"], axis=1, count=H * W).astype(bool).reshape(K, H, W) if K else np.zeros((0, H, W), bool)
+        flat = np.unpackbits(d["a_masks"], count=int(d["a_sizes"].sum())).astype(bool)
+        crops, pos = [], 0
+        for k in range(K):
+            x0, y0, x1, y1 = (int(v) for v in d["a_bbox"][k])
+            n = (y1 - y0) * (x1 - x0)
+            crops.append(flat[pos : pos + n].reshape(y1 - y0, x1 - x0))
+            pos += n
+        return PolygonVisibility(
+            polygon_id=str(d["polygon_id"]),
+            frame=frame,
+            texel_mask=np.unpackbits(d["texel_mask"], count=H * W).astype(bool).reshape(H, W),
+            photos=photos,
+            texel_visible=tv,
+            a_bbox=d["a_bbox"].astype(np.int64).reshape(K, 4),
+            a_masks=crops,
+        )
+    except (KeyError, ValueError) as exc:
+        raise DifftexError(f"{path}: not a difftex visibility file ({exc})") from None
+
+
+def visible_texels_at(vis: PolygonVisibility, frame: UVFrame) -> np.ndarray:
+    """(K, h, w) texel visibility resampled to another level of the same UV frame.
+
+    A coarse texel counts as seen when most of the fine texels it covers are seen; a finer level
+    takes its nearest coarse texel.
+    """
+    K = len(vis.photos)
+    H, W = vis.frame.shape
+    h, w = frame.shape
+    if (h, w) == (H, W):
+        return vis.texel_visible.copy()
+    if K == 0:
+        return np.zeros((0, h, w), bool)
+    import torch
+    import torch.nn.functional as F
+
+    t = torch.from_numpy(vis.texel_visible.astype(np.float32))[:, None]
+    if h <= H and w <= W:
+        out = F.adaptive_avg_pool2d(t, (h, w)) > 0.5
+    else:
+        out = F.interpolate(t, size=(h, w), mode="nearest") > 0.5
+    return out[:, 0].numpy()
+
+
+def polygon_frames(proxy: Proxy, up: np.ndarray, long_side: int | None, density: float | None) -> list[UVFrame]:
+    return [uv_frame(p, up, long_side=long_side, density=density) for p in proxy.polygons]
