@@ -151,9 +151,12 @@ def q_front(view_dirs: np.ndarray, normal: np.ndarray, mask: np.ndarray | None =
             weights: np.ndarray | None = None) -> float:
     """Viewing-angle frontality: weighted mean over covered texels of max(0, v . n), in [0, 1]."""
     dirs, w = _coverage("Q_front", view_dirs, mask, weights)
-    n, ok = _unit(np.asarray(normal, np.float64).reshape(3))
+    normal = np.asarray(normal, np.float64)
+    if normal.size != 3:
+        raise DifftexError(f"Q_front: the normal must have 3 components, got shape {normal.shape}")
+    n, ok = _unit(normal.reshape(3))
     if not ok:
-        raise DifftexError("Q_front: the polygon normal is zero")
+        raise DifftexError("Q_front: the polygon normal is zero or not finite")
     return float(np.average(np.clip(dirs @ n, 0.0, 1.0), weights=w))
 
 

@@ -136,6 +136,8 @@ def test_q_front_frontal_and_inclined_fields():
     sixty = [math.sin(math.radians(60)), 0, math.cos(math.radians(60))]
     assert metrics.q_front(field(sixty), n) == pytest.approx(0.5)
     assert metrics.q_front(field([0, 0.3, -1]), n) == 0.0  # seen from behind
+    with pytest.raises(DifftexError, match="normal"):
+        metrics.q_front(field([0, 0, 1]), [0, 0, 0])
 
 
 def test_q_vc_constant_and_symmetric_fields():
@@ -322,6 +324,19 @@ def test_classic_lpips_matches_reference_package(reference_packages, tmp_path):
     value, used = metrics.lpips(a, b, variant="auto", alexnet_path=path)
     assert used == "lpips"
     assert value == pytest.approx(expected, rel=1e-5)
+
+
+@needs_stlpips
+@pytest.mark.gpu
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
+def test_stlpips_cuda_matches_cpu():
+    a, b = texture(64, seed=4), blur(texture(64, seed=4), 1.5)
+    mask = np.zeros((64, 64), bool)
+    mask[8:40, 16:60] = True
+    for m in (None, mask):
+        cpu = metrics.lpips(a, b, m, variant="stlpips")[0]
+        gpu = metrics.lpips(a, b, m, variant="stlpips", device="cuda")[0]
+        assert gpu == pytest.approx(cpu, rel=1e-4, abs=1e-6)
 
 
 @needs_stlpips
