@@ -94,7 +94,7 @@ class Photo:
         else:
             xy = np.asarray(self.camera.cam_from_img(flat), dtype=np.float64).reshape(-1, 2)
         d = np.concatenate([xy, np.ones((len(xy), 1))], axis=1) @ self.R  # R^T d
-        d /= np.linalg.norm(d, axis=1, keepdims=True)
+        d /= np.sqrt(np.einsum("ij,ij->i", d, d))[:, None]
         return d.reshape(*shape, 3)
 
     def in_image(self, pix: np.ndarray, margin: float = 0.0) -> np.ndarray:

@@ -101,7 +101,7 @@ def id_buffer(
     xs = np.minimum(xs, photo.width - 0.5)
     H, W = len(ys), len(xs)
     ids = np.full((H, W), NO_POLYGON, dtype=np.int32)
-    dist = np.full((H, W), np.inf)
+    dist = np.full((H, W), np.inf, dtype=np.float32)
     C = photo.center
     # One ray per pixel, shared by all polygons (unprojecting is the costly part with distortion).
     gx, gy = np.meshgrid(xs, ys)
@@ -114,29 +114,28 @@ def id_buffer(
         if box is None:
             continue
         x0, y0, x1, y1 = box
-        cols = np.nonzero((xs >= x0) & (xs <= x1))[0]
-        rows = np.nonzero((ys >= y0) & (ys <= y1))[0]
-        if len(cols) == 0 or len(rows) == 0:
+        c0, c1 = np.searchsorted(xs, x0), np.searchsorted(xs, x1, side="right")
+        r0, r1 = np.searchsorted(ys, y0), np.searchsorted(ys, y1, side="right")
+        if c0 >= c1 or r0 >= r1:
             continue
-        n, d = pp.normals[j], pp.offsets[j]
-        h_cam = d - n @ C  # signed distance of the plane from the camera centre along n
-        rr, cc = np.meshgrid(rows, cols, indexing="ij")
-        rr, cc = rr.ravel(), cc.ravel()
-        for s in range(0, len(rr), chunk):
-            r, c = rr[s : s + chunk], cc[s : s + chunk]
-            rays = all_rays[r, c].astype(np.float64)
-            denom = rays @ n
+        n, d = pp.normals[j].astype(np.float32), pp.offsets[j]
+        h_cam = np.float32(d - pp.normals[j] @ C)  # signed distance of the plane from the camera centre
+        step = max(1, chunk // (c1 - c0))
+        for ra in range(r0, r1, step):
+            rb = min(r1, ra + step)
+            rays = all_rays[ra:rb, c0:c1]
             with np.errstate(divide="ignore", invalid="ignore"):
-                lam = h_cam / denom
-            hit = (lam > 0) & np.isfinite(lam) & (lam < dist[r, c])
+                lam = h_cam / (rays @ n)
+            hit = (lam > 0) & np.isfinite(lam) & (lam < dist[ra:rb, c0:c1])
             if not hit.any():
                 continue
-            r, c, lam, rays = r[hit], c[hit], lam[hit], rays[hit]
-            X = C + lam[:, None] * rays - pp.origins[j]
+            hr, hc = np.nonzero(hit)
+            lh = lam[hr, hc].astype(np.float64)
+            X = C + lh[:, None] * rays[hr, hc].astype(np.float64) - pp.origins[j]
             inside = shapely.contains_xy(pp.shapes[j], X @ pp.b1[j], X @ pp.b2[j])
-            r, c = r[inside], c[inside]
-            ids[r, c] = j
-            dist[r, c] = lam[inside]
+            hr, hc = hr[inside] + ra, hc[inside] + c0
+            ids[hr, hc] = j
+            dist[hr, hc] = lh[inside]
     return ids, dist
 
 
@@ -235,7 +234,7 @@ def save_visibility(path, vis: PolygonVisibility) -> None:
         frame=np.array(json.dumps(vis.frame.to_dict())),
         texel_mask=np.packbits(vis.texel_mask.ravel()),
         photos=np.array(vis.photos, dtype=str),
-        texel_visible=np.packbits(vis.texel_visible.reshape(len(vis.photos), -1), axis=1),
+        texel_visible=np.packbits(vis.texel_visible.reshape(len(vis.photos), H * W), axis=1),
         a_bbox=vis.a_bbox,
         a_sizes=sizes,
         a_masks=np.packbits(a_flat),
@@ -301,3 +300,67 @@ def visible_texels_at(vis: PolygonVisibility, frame: UVFrame) -> np.ndarray:
 
 def polygon_frames(proxy: Proxy, up: np.ndarray, long_side: int | None, density: float | None) -> list[UVFrame]:
     return [uv_frame(p, up, long_side=long_side, density=density) for p in proxy.polygons]
+
+
+def scene_visibility(
+    proxy: Proxy,
+    photos: list[Photo],
+    up: np.ndarray,
+    candidates: dict[str, list[str]],
+    long_side: int | None,
+    density: float | None,
+    min_texels: int = 16,
+    max_photos: int | None = None,
+    progress: bool = True,
+) -> list[PolygonVisibility]:
+    """Visibility of every polygon in its candidate photos (photo names per polygon id).
+
+    Photos are processed one at a time (one full-resolution id buffer in memory), so memory
+    does not grow with the number of photos beyond the packed per-polygon masks.
+    """
+    from rich.progress import track
+
+    pp = prepare(proxy)
+    frames = polygon_frames(proxy, up, long_side, density)
+    masks = [texel_mask(p, f) for p, f in zip(proxy.polygons, frames)]
+    wanted = {pid: set(names) for pid, names in candidates.items()}
+    parts: list[list] = [[] for _ in proxy.polygons]  # (name, seen, box, crop, mean_cos)
+    used = [ph for ph in photos if any(ph.name in s for s in wanted.values())]
+    for ph in track(used, description="visibility", disable=not progress, transient=True):
+        ids, _ = id_buffer(pp, ph)
+        for i, poly in enumerate(proxy.polygons):
+            if ph.name not in wanted.get(poly.id, ()):
+                continue
+            single = polygon_visibility(proxy, i, frames[i], [ph], {ph.name: ids}, min_texels=min_texels)
+            if not single.photos:
+                continue
+            seen = single.texel_visible[0]
+            ty, tx = np.nonzero(seen)
+            v = ph.center - frames[i].texel_to_world(tx + 0.5, ty + 0.5)
+            mean_cos = float((v @ poly.normal / np.linalg.norm(v, axis=-1)).mean()) if len(tx) else 0.0
+            parts[i].append((ph.name, np.packbits(seen.ravel()), single.a_bbox[0], single.a_masks[0], mean_cos))
+    out = []
+    for i, poly in enumerate(proxy.polygons):
+        items = parts[i]
+        if max_photos is not None and len(items) > max_photos:
+            items = sorted(items, key=lambda it: -it[4])[:max_photos]
+            items = sorted(items, key=lambda it: it[0])
+        H, W = frames[i].shape
+        K = len(items)
+        tv = (
+            np.stack([np.unpackbits(it[1], count=H * W).astype(bool).reshape(H, W) for it in items])
+            if K
+            else np.zeros((0, H, W), bool)
+        )
+        out.append(
+            PolygonVisibility(
+                polygon_id=poly.id,
+                frame=frames[i],
+                texel_mask=masks[i],
+                photos=[it[0] for it in items],
+                texel_visible=tv,
+                a_bbox=np.asarray([it[2] for it in items], dtype=np.int64).reshape(K, 4),
+                a_masks=[it[3] for it in items],
+            )
+        )
+    return out

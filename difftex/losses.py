@@ -1,0 +1,165 @@
+"""The DiffTex objective for one polygon (paper eq. 5-10), on a slot layout of the weights.
+
+Layout: each texel keeps ``K`` candidate *slots*; slot ``j`` of texel ``t`` refers to photo
+``idx[j, t]`` (or -1). Parameters ``theta`` (K, H, W) are raw weights in [0, 1]; the blend
+weights are ``W = a * theta / sum_j(a * theta)`` with ``a`` the activation mask a_k^i mapped to
+texel space. Every sum over texels is divided by the polygon's texel count ``n_tex`` so that the
+paper's balance (alpha, beta, omega) does not change with the resolution level.
+
+Render loss comes in two forms: the texel-space form compares U with every photo mapped into
+texel space (fast); the render-space form renders the textured polygon into each photo's pixels
+(what the paper does with nvdiffrast) by bilinear lookup of U at each pixel's texel coordinate.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+import torch.nn.functional as F
+
+# Floor added to theta before normalising: a texel whose raw weights all reach 0 falls back to
+# the uniform blend of its active candidates instead of 0/0.
+THETA_FLOOR = 1e-6
+
+
+def blend_weights(theta: torch.Tensor, active: torch.Tensor) -> torch.Tensor:
+    """W (K, H, W): active raw weights normalised per texel (all zero where nothing is active)."""
+    a = active.to(theta.dtype)
+    w = (theta.clamp(0.0, 1.0) + THETA_FLOOR) * a
+    return w / w.sum(0, keepdim=True).clamp_min(THETA_FLOOR)
+
+
+def compose(W: torch.Tensor, colours: torch.Tensor) -> torch.Tensor:
+    """U_i(t) = sum_k W_k(t) I_k(f_k(t)); colours (K, 3, H, W) -> (3, H, W)."""
+    return (W[:, None] * colours).sum(0)
+
+
+def render_loss_texel(U, colours, active, Q, n_tex: float) -> torch.Tensor:
+    """Texel-space L_Render data term: sum_k ||a_k Q_k (U - I^_k)||^2 over texels."""
+    r = (active.to(U.dtype) * Q)[:, None] * (U[None] - colours)
+    return (r * r).sum() / n_tex
+
+
+def sparsity_loss(theta, active, n_tex: float) -> torch.Tensor:
+    """The L1 term of eq. 5 on the raw weights (on normalised weights it would be constant)."""
+    return (theta.clamp_min(0.0) * active.to(theta.dtype)).sum() / n_tex
+
+
+@dataclass
+class PixelSet:
+    """Render-mode data of one photo at one level: its a_k^i pixels (downscaled to texel size)."""
+
+    grid: torch.Tensor  # (1, n, 1, 2) texel coordinates normalised for grid_sample
+    colour: torch.Tensor  # (n, 3) photo colours at those pixels
+    texel: torch.Tensor  # (n,) flat index of the nearest texel
+    slot: torch.Tensor  # (n,) slot of this photo at that texel, -1 if it is not a candidate there
+    scale: float  # visible texels / pixels: puts a photo's pixel sum on the texel-sum scale
+
+
+def render_view(U: torch.Tensor, support: torch.Tensor, grid: torch.Tensor) -> torch.Tensor:
+    """R_k at the given pixels: bilinear lookup of U (3, H, W), normalised by the support.
+
+    Texels outside the polygon (or with no source) carry no colour; dividing by the bilinearly
+    sampled support keeps pixels at the polygon's border from blending with black.
+    """
+    s = support.to(U.dtype)[None]
+    num = F.grid_sample((U * s)[None], grid, mode="bilinear", padding_mode="zeros", align_corners=False)
+    den = F.grid_sample(s[None], grid, mode="bilinear", padding_mode="zeros", align_corners=False)
+    return (num[0, :, :, 0] / den[0, :, :, 0].clamp_min(1e-6)).T  # (n, 3)
+
+
+def render_loss_pixels(U, support, pixel_sets: list[PixelSet], active, Q, n_tex: float) -> torch.Tensor:
+    """Render-space L_Render data term: sum_k ||a_k Q (R_k - I_k)||^2 over a_k^i pixels."""
+    K = active.shape[0]
+    a_flat = active.reshape(K, -1).to(U.dtype)
+    q_flat = Q.reshape(K, -1)
+    total = U.new_zeros(())
+    for ps in pixel_sets:
+        if ps.colour.shape[0] == 0:
+            continue
+        ok = ps.slot >= 0
+        j = ps.slot.clamp_min(0)
+        wq = a_flat[j, ps.texel] * q_flat[j, ps.texel] * ok.to(U.dtype)
+        R = render_view(U, support, ps.grid)
+        r = wq[:, None] * (R - ps.colour)
+        total = total + ps.scale * (r * r).sum()
+    return total / n_tex
+
+
+def guidance_direction(view_dirs: torch.Tensor, normal: torch.Tensor) -> torch.Tensor:
+    """v~_i = 0.5 sum v_k / |sum v_k| - 0.5 n_i (eq. 6), v_k the photos' viewing directions."""
+    s = view_dirs.sum(0)
+    return 0.5 * s / s.norm().clamp_min(1e-12) - 0.5 * normal
+
+
+def persp_cost(view_field: torch.Tensor, v_tilde: torch.Tensor) -> torch.Tensor:
+    """|V^_k - v~_i|^2 per slot and texel; view_field (K, 3, H, W) camera-to-texel unit vectors."""
+    d = view_field - v_tilde.view(1, 3, 1, 1)
+    return (d * d).sum(1)
+
+
+def persp_loss(W, cost, n_tex: float) -> torch.Tensor:
+    """L_Persp = sum_k ||W_k . V_k . V_k||_1 with V_k = a^_k (V^_k - v~) (eq. 7); a is inside W."""
+    return (W * cost).sum() / n_tex
+
+
+@dataclass
+class NeighbourMatch:
+    """Slot correspondence between texel o and its neighbour q (up or left) for L_Para.
+
+    ``match[j]`` at o is the slot of q holding the same photo as slot j of o (-1: none);
+    ``q_alone[l]`` at o marks slots of q whose photo is not among o's slots.
+    Arrays are cropped so that o and q line up: o = [:, 1:, :], q = [:, :-1, :] for "up".
+    """
+
+    match: torch.Tensor  # (K, h', w') long
+    q_alone: torch.Tensor  # (K, h', w') bool
+    pair_ok: torch.Tensor  # (h', w') bool: both texels inside the polygon
+
+
+def neighbour_match(idx: torch.Tensor, mask: torch.Tensor, axis: int) -> NeighbourMatch:
+    """Build the slot correspondence for the up (axis=1) or left (axis=2) neighbour."""
+    K = idx.shape[0]
+    if axis == 1:
+        io, iq = idx[:, 1:, :], idx[:, :-1, :]
+        ok = mask[1:, :] & mask[:-1, :]
+    else:
+        io, iq = idx[:, :, 1:], idx[:, :, :-1]
+        ok = mask[:, 1:] & mask[:, :-1]
+    match = torch.full_like(io, -1)
+    q_in_o = torch.zeros(io.shape, dtype=torch.bool, device=idx.device)
+    # K x K comparisons, done slot by slot to keep the temporary at (h, w).
+    for l in range(K):
+        same = (io == iq[l : l + 1]) & (io >= 0)
+        match = torch.where(same & (match < 0), torch.full_like(match, l), match)
+        q_in_o[l] = same.any(0)
+    q_alone = (~q_in_o) & (iq >= 0)
+    return NeighbourMatch(match=match, q_alone=q_alone, pair_ok=ok)
+
+
+def _crop(x: torch.Tensor, axis: int, which: str) -> torch.Tensor:
+    if axis == 1:
+        return x[..., 1:, :] if which == "o" else x[..., :-1, :]
+    return x[..., :, 1:] if which == "o" else x[..., :, :-1]
+
+
+def para_loss(W, U, active, G, matches: dict[int, NeighbourMatch], lambda_s: float, n_tex: float) -> torch.Tensor:
+    """L_Para (eq. 8-10) over up and left neighbours, summed over photos.
+
+    C = m_k(t_o) D(t_o, t_q) + lambda_s, D = S(|U(t_o) - U(t_q)|) (1 + G(t_o)). The edge weight
+    D is treated as a constant (detached): it says where a change of source is expensive, and
+    letting its gradient act would blur U instead of moving the seams.
+    """
+    overlap = (active.sum(0, keepdim=True) >= 2) & active  # m_k: another mapped photo overlaps
+    total = W.new_zeros(())
+    for axis, nm in matches.items():
+        Wo, Wq = _crop(W, axis, "o"), _crop(W, axis, "q")
+        Uo, Uq = _crop(U, axis, "o").detach(), _crop(U, axis, "q").detach()
+        D = torch.sigmoid((Uo - Uq).norm(dim=0)) * (1.0 + _crop(G, axis, "o"))
+        m = _crop(overlap, axis, "o").to(W.dtype)
+        Wq_same = torch.gather(Wq, 0, nm.match.clamp_min(0)) * (nm.match >= 0).to(W.dtype)
+        C = m * D[None] + lambda_s
+        term = (C * (Wo - Wq_same).abs()).sum(0) + lambda_s * (Wq * nm.q_alone.to(W.dtype)).sum(0)
+        total = total + (term * nm.pair_ok.to(W.dtype)).sum()
+    return total / n_tex
