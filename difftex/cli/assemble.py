@@ -1,0 +1,113 @@
+"""difftex assemble: per-polygon textures -> atlas pages, OBJ + MTL + PNG and GLB."""
+
+from __future__ import annotations
+
+NAME = "assemble"
+HELP = "pack per-polygon textures into atlas pages and write the textured model (OBJ, GLB)"
+
+
+def add_arguments(parser) -> None:
+    parser.add_argument("--scene", required=True, help="scene folder (its proxy model is written unchanged)")
+    parser.add_argument("--textures", required=True, help="folder with <polygon id>/texture.png")
+    parser.add_argument(
+        "--visibility",
+        help="folder with <polygon id>.npz (UV frames) and summary.json (default: visibility/ beside --textures)",
+    )
+    parser.add_argument("--config", help="YAML config; section 'assemble' is read")
+    parser.add_argument("--out-dir", required=True, help="output folder (model.obj/.mtl, atlas PNGs, model.glb, summary.json)")
+    parser.add_argument("--name", default="model", help="base name of the output files (default: model)")
+
+
+def _read_frame_and_mask(path):
+    """Only the UV frame and texel mask of a visibility file (the per-photo masks are not needed)."""
+    import json
+
+    import numpy as np
+
+    from difftex.errors import DifftexError
+    from difftex.mapping import UVFrame
+
+    try:
+        with np.load(path, allow_pickle=False) as d:
+            frame = UVFrame.from_dict(json.loads(str(d["frame"])))
+            H, W = (int(x) for x in d["shape"])
+            mask = np.unpackbits(d["texel_mask"], count=H * W).astype(bool).reshape(H, W)
+    except (OSError, KeyError, ValueError) as exc:
+        raise DifftexError(f"{path}: not a difftex visibility file ({exc})") from None
+    return frame, mask
+
+
+def run(args) -> int:
+    import time
+    from pathlib import Path
+
+    import numpy as np
+    from rich.console import Console
+    from rich.progress import track
+
+    from difftex.assemble import AssembleConfig, PolygonTexture, assemble
+    from difftex.config import section
+    from difftex.errors import DifftexError
+    from difftex.io import read_image, read_json, write_json
+    from difftex.proxy import load_proxy
+    from difftex.scene import find_proxy
+
+    t0 = time.time()
+    console = Console(stderr=True)
+    cfg = section(args.config, "assemble", AssembleConfig)
+    scene = Path(args.scene)
+    if not scene.is_dir():
+        raise DifftexError(f"{scene}: scene folder not found")
+    textures = Path(args.textures)
+    vis_dir = Path(args.visibility) if args.visibility else textures.parent / "visibility"
+    proxy = load_proxy(find_proxy(scene))
+
+    info = {}
+    vsum = vis_dir / "summary.json"
+    if vsum.is_file():
+        for p in read_json(vsum).get("polygons", []):
+            info[str(p["id"])] = p
+    unknown = sorted(set(info) - set(proxy.ids))
+    if unknown:
+        raise DifftexError(f"{vsum}: polygon id(s) {', '.join(unknown[:5])} are not in {proxy.path} (stale results?)")
+
+    items = []
+    for poly in track(proxy.polygons, description="loading textures", console=console, transient=True):
+        meta = info.get(poly.id, {})
+        coverage = float(meta.get("coverage", 0.0))
+        n_photos = len(meta.get("photos", []))
+        npz = vis_dir / f"{poly.id}.npz"
+        frame = mask = tex = None
+        if npz.is_file():
+            frame, mask = _read_frame_and_mask(npz)
+        png = textures / poly.id / "texture.png"
+        if frame is not None and png.is_file() and coverage > 0:
+            tex = read_image(png)
+            if tex.shape[:2] != mask.shape:
+                # a texture at another resolution than the visibility level: resample the mask
+                iy = (np.arange(tex.shape[0]) + 0.5) * mask.shape[0] / tex.shape[0]
+                ix = (np.arange(tex.shape[1]) + 0.5) * mask.shape[1] / tex.shape[1]
+                mask = mask[np.minimum(iy.astype(int), mask.shape[0] - 1)][:, np.minimum(ix.astype(int), mask.shape[1] - 1)]
+        items.append(PolygonTexture(polygon=poly, frame=frame, texture=tex, mask=mask if tex is not None else None, coverage=coverage if tex is not None else 0.0, photos=n_photos))
+
+    out_dir = Path(args.out_dir)
+    with console.status(f"packing {len(items)} textures and writing the model"):
+        summary = assemble(items, out_dir, cfg, name=args.name)
+    summary = {"scene": scene.resolve().name, "scene_path": str(scene.resolve()), **summary, "seconds": round(time.time() - t0, 2)}
+    write_json(out_dir / "summary.json", summary)
+
+    n_tex = sum(1 for p in summary["polygons"] if p["textured"])
+    console.print(f"{n_tex}/{len(items)} polygons textured, {len(summary['atlas_pages'])} atlas page(s)")
+    if summary["untextured"]:
+        console.print(f"untextured (grey): {', '.join(summary['untextured'])}")
+    chk = summary.get("check")
+    if chk:
+        ok = not chk["missing_polygons"] and chk["max_area_rel_error"] < 1e-4
+        console.print(
+            f"GLB check: {chk['glb_polygons']} polygons reloaded, max colour difference {chk['max_color_error']:.4f}"
+            + ("" if ok else f", MISSING {chk['missing_polygons']} / area error {chk['max_area_rel_error']:.2g}")
+        )
+        if not ok:
+            raise DifftexError(f"{out_dir / summary['glb']}: reloaded model does not match the proxy")
+    print(out_dir / summary.get("glb", summary["obj"]))
+    return 0
