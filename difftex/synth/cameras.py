@@ -129,8 +129,6 @@ def write_colmap(sparse_dir: Path, intr: list[Intrinsics], views: list[View], po
     """
     import pycolmap
 
-    from difftex.io import atomic_path
-
     rec = pycolmap.Reconstruction()
     for c in intr:
         rec.add_camera_with_trivial_rig(c.pycolmap())
@@ -155,14 +153,18 @@ def write_colmap(sparse_dir: Path, intr: list[Intrinsics], views: list[View], po
             rec.add_point3D(xyz[pi], tr, rgb[pi])
     sparse_dir = Path(sparse_dir)
     sparse_dir.mkdir(parents=True, exist_ok=True)
-    # pycolmap writes several files; write them into a temporary folder and move each one atomically.
-    with atomic_path(sparse_dir / "model.tmpdir", suffix="") as tmp:
-        tmp.unlink(missing_ok=True)
-        tmp.mkdir()
+    # pycolmap writes several files: write them into a temporary folder, then move each into place
+    # (a rename each), so an interrupted run never leaves a half-written model file.
+    import shutil
+    import tempfile
+
+    tmp = Path(tempfile.mkdtemp(prefix=".colmap.", dir=sparse_dir))
+    try:
         rec.write_text(str(tmp))
         for f in sorted(tmp.iterdir()):
             f.replace(sparse_dir / f.name)
-        tmp.rmdir()
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
 
 
 def undistort_canvas(intr: Intrinsics) -> tuple[int, int]:

@@ -79,7 +79,7 @@ def build_scene(variant: str, model: DetailedModel, ground: np.ndarray, ground_s
     T = mi.ScalarTransform4f
     d: dict = {"type": "scene", "integrator": integrator or {"type": "path", "max_depth": lighting["max_depth"]}}
     d["sky"] = {"type": "constant", "radiance": {"type": "rgb", "value": lighting["sky"]}}
-    if lighting.get("sun_irradiance", 0) > 0:
+    if max(lighting.get("sun_irradiance", [0.0])) > 0:
         d["sun"] = {"type": "directional", "direction": list(-np.asarray(lighting["sun_dir"])),
                     "irradiance": {"type": "rgb", "value": lighting["sun_irradiance"]}}
     for i, part in enumerate(model.parts):
