@@ -1,0 +1,361 @@
+#!/usr/bin/env bash
+# End-to-end test of the SLURM profile on a throw-away single-node SLURM cluster.
+#
+#   bash tests/slurm/run_slurm_e2e.sh                 # tiny fan-out workflow (tests/slurm/Snakefile)
+#   bash tests/slurm/run_slurm_e2e.sh --real          # difftex Snakefile on `difftex synth --preset tiny`,
+#                                                     # once through SLURM, once locally, textures compared
+#   bash tests/slurm/run_slurm_e2e.sh --snakefile F [--target T] [--config K=V ...] [--configfile C]
+#
+# Steps: install the Debian packages if missing (apt-get, needs root), write a slurm.conf
+# for this machine (`slurmd -C`), start munged, slurmctld, slurmd, wait for the node to be
+# idle, run snakemake with workflow/profiles/slurm, check the results, and stop every daemon
+# it started in an EXIT trap (also on failure or Ctrl-C).
+#
+# No accounting daemon: the cluster uses AccountingStorageType=accounting_storage/none, where
+# `sacct` cannot answer, so snakemake polls with `squeue` (--slurm-status-command squeue) and
+# MinJobAge keeps finished jobs visible to squeue long enough. See docs/cluster.md.
+#
+# Options:
+#   --real               run the real difftex workflow (needs ./Snakefile and `difftex synth`)
+#   --snakefile F        Snakefile to run (default tests/slurm/Snakefile)
+#   --target T           target file/rule (repeatable; default: the workflow's first rule)
+#   --config K=V         passed to snakemake --config (repeatable)
+#   --configfile C       passed to snakemake --configfile
+#   --tolerance X        --real: max allowed abs difference of texture values in [0,1] (default 0.02)
+#   --keep               keep the work directory and the cluster logs
+#   --timeout S          give up on the snakemake run after S seconds (default 1800)
+set -euo pipefail
+
+REPO="$(cd "$(dirname "${BASH_SOURCE[0]}")/../.." && pwd)"
+MODE=tiny
+SNAKEFILE=""
+TARGETS=()
+CONFIG=()
+CONFIGFILE=""
+TOLERANCE=0.02
+KEEP=0
+RUN_TIMEOUT=1800
+
+while [[ $# -gt 0 ]]; do
+    case "$1" in
+        --real) MODE=real ;;
+        --snakefile) SNAKEFILE="$(realpath "$2")"; MODE=custom; shift ;;
+        --target) TARGETS+=("$2"); shift ;;
+        --config) CONFIG+=("$2"); shift ;;
+        --configfile) CONFIGFILE="$(realpath "$2")"; shift ;;
+        --tolerance) TOLERANCE="$2"; shift ;;
+        --keep) KEEP=1 ;;
+        --timeout) RUN_TIMEOUT="$2"; shift ;;
+        -h|--help) sed -n '2,/^set -euo/p' "$0" | sed '$d' | sed 's/^# \{0,1\}//'; exit 0 ;;
+        *) echo "run_slurm_e2e.sh: unknown argument '$1' (see --help)" >&2; exit 2 ;;
+    esac
+    shift
+done
+
+log() { printf '[slurm-e2e %s] %s\n' "$(date -u +%H:%M:%S)" "$*" >&2; }
+die() { log "FAIL: $*"; exit 1; }
+now() { date +%s.%N; }
+elapsed() { awk -v a="$1" -v b="$(now)" 'BEGIN { printf "%.1f", b - a }'; }
+
+if [[ -f "$REPO/.venv/bin/activate" && -z "${VIRTUAL_ENV:-}" ]]; then
+    # shellcheck disable=SC1091
+    . "$REPO/.venv/bin/activate"
+fi
+command -v snakemake >/dev/null || die "snakemake not on PATH (activate the project's venv)"
+
+T_TOTAL=$(now)
+
+# --- 1. Debian packages --------------------------------------------------------------
+# slurmctld + slurmd + slurm-client (sbatch/squeue/sinfo/scontrol) + munge (authentication).
+# No slurmdbd/MariaDB: squeue is enough for snakemake's status polling (see header).
+PACKAGES=(slurmctld slurmd slurm-client munge)
+T_INSTALL=$(now)
+if ! command -v slurmctld >/dev/null || ! command -v slurmd >/dev/null \
+    || ! command -v sbatch >/dev/null || ! command -v munged >/dev/null; then
+    SUDO=""
+    [[ $(id -u) -eq 0 ]] || SUDO="sudo"
+    log "installing ${PACKAGES[*]} (apt-get)"
+    $SUDO apt-get update -qq
+    DEBIAN_FRONTEND=noninteractive $SUDO apt-get install -y -qq --no-install-recommends "${PACKAGES[@]}" >/dev/null
+fi
+INSTALL_S=$(elapsed "$T_INSTALL")
+[[ $(id -u) -eq 0 ]] || die "the test cluster's daemons must be started as root"
+
+# --- 2. cluster state + cleanup trap --------------------------------------------------
+STATE="$(mktemp -d /tmp/difftex-slurm.XXXXXX)"
+WORK="$(mktemp -d /tmp/difftex-slurm-work.XXXXXX)"
+chmod 755 "$STATE" "$WORK"
+# The config must sit at the default path: the plugin's job step strips SLURM_* variables
+# (SLURM_CONF included) before it calls srun inside the job. An existing one is put back
+# by the trap.
+SLURM_CONF_FILE=/etc/slurm/slurm.conf
+unset SLURM_CONF_BACKUP
+# A job inherits the submitting shell's environment (--export=ALL): make sure no stale
+# SLURM_* from an enclosing allocation leaks into the test.
+unset SLURM_CONF SLURM_JOB_ID SLURM_JOBID SLURM_PARTITION SLURM_ACCOUNT || true
+STARTED_MUNGE=0
+T_SHUTDOWN=""
+
+stop_pidfile() {  # stop the daemon whose pid is in $1, wait up to 10 s, then SIGKILL
+    local pf="$1" pid
+    [[ -s "$pf" ]] || return 0
+    pid="$(cat "$pf")"
+    kill -0 "$pid" 2>/dev/null || return 0
+    kill "$pid" 2>/dev/null || true
+    for _ in $(seq 50); do kill -0 "$pid" 2>/dev/null || return 0; sleep 0.2; done
+    kill -9 "$pid" 2>/dev/null || true
+}
+
+cleanup() {
+    local rc=$?
+    T_SHUTDOWN=$(now)
+    set +e
+    if [[ -s "$STATE/slurmctld.pid" ]]; then
+        # cancel anything still queued, then stop both daemons
+        scancel --full --quiet --partition=cpu,gpu 2>/dev/null
+        stop_pidfile "$STATE/slurmd.pid"
+        stop_pidfile "$STATE/slurmctld.pid"
+    fi
+    if [[ -n "${SLURM_CONF_BACKUP:-}" ]]; then
+        mv -f "$SLURM_CONF_BACKUP" "$SLURM_CONF_FILE"
+    elif grep -qs 'written by tests/slurm/run_slurm_e2e.sh' "$SLURM_CONF_FILE"; then
+        rm -f "$SLURM_CONF_FILE"
+    fi
+    if [[ $STARTED_MUNGE -eq 1 ]]; then
+        stop_pidfile "$STATE/munge/munged.pid"
+    fi
+    log "cluster stopped in $(elapsed "$T_SHUTDOWN") s"
+    if [[ $rc -ne 0 ]]; then
+        for f in "$STATE"/slurmctld.log "$STATE"/slurmd.log; do
+            [[ -f "$f" ]] && { log "--- tail of $f"; tail -n 20 "$f" >&2; }
+        done
+        find "$WORK" -path '*slurm_logs*' -name '*.log' 2>/dev/null | head -n 3 | while read -r f; do
+            log "--- tail of $f"; tail -n 20 "$f" >&2
+        done
+    fi
+    if [[ $KEEP -eq 1 ]]; then
+        log "kept: cluster state $STATE, work dir $WORK"
+    else
+        rm -rf "$STATE" "$WORK"
+    fi
+    log "total $(elapsed "$T_TOTAL") s (install ${INSTALL_S} s, cluster start ${START_S:-?} s, run ${RUN_S:-?} s), exit $rc"
+    exit $rc
+}
+trap cleanup EXIT
+trap 'exit 130' INT TERM
+
+# --- 3. munge -------------------------------------------------------------------------
+T_START=$(now)
+if munge -n 2>/dev/null | unmunge >/dev/null 2>&1; then
+    log "using the munged already running"
+else
+    [[ -s /etc/munge/munge.key ]] || { log "creating /etc/munge/munge.key"; mungekey --create --force; }
+    chown munge:munge /etc/munge/munge.key
+    chmod 400 /etc/munge/munge.key
+    install -d -o munge -g munge -m 755 /run/munge
+    install -d -o munge -g munge -m 700 /var/log/munge /var/lib/munge
+    install -d -o munge -g munge -m 700 "$STATE/munge"
+    runuser -u munge -- munged --pid-file="$STATE/munge/munged.pid" --log-file="$STATE/munge/munged.log"
+    STARTED_MUNGE=1
+    for _ in $(seq 50); do munge -n 2>/dev/null | unmunge >/dev/null 2>&1 && break; sleep 0.1; done
+    munge -n | unmunge >/dev/null || die "munged does not answer"
+fi
+
+# --- 4. slurm.conf for this one machine -------------------------------------------------
+HOST="$(hostname -s)"
+NODE_LINE="$(slurmd -C | head -n 1)"   # NodeName=<host> CPUs=.. ... RealMemory=..
+[[ "$NODE_LINE" == NodeName=* ]] || die "slurmd -C printed no node line: $NODE_LINE"
+mkdir -p "$STATE/ctld" "$STATE/slurmd" "$(dirname "$SLURM_CONF_FILE")"
+if [[ -e "$SLURM_CONF_FILE" ]] && ! grep -qs 'written by tests/slurm/run_slurm_e2e.sh' "$SLURM_CONF_FILE"; then
+    SLURM_CONF_BACKUP="$STATE/slurm.conf.orig"
+    cp -p "$SLURM_CONF_FILE" "$SLURM_CONF_BACKUP"
+    log "moved the existing $SLURM_CONF aside; it is restored on exit"
+fi
+cat > "$SLURM_CONF_FILE" <<EOF
+# single-node test cluster written by tests/slurm/run_slurm_e2e.sh
+ClusterName=difftex-e2e
+SlurmctldHost=$HOST
+# unusual ports so that a real cluster daemon on this machine is not disturbed
+SlurmctldPort=16817
+SlurmdPort=16818
+AuthType=auth/munge
+SlurmUser=root
+SlurmdUser=root
+StateSaveLocation=$STATE/ctld
+SlurmdSpoolDir=$STATE/slurmd
+SlurmctldPidFile=$STATE/slurmctld.pid
+SlurmdPidFile=$STATE/slurmd.pid
+SlurmctldLogFile=$STATE/slurmctld.log
+SlurmdLogFile=$STATE/slurmd.log
+SlurmctldDebug=info
+SlurmdDebug=info
+# containers (gVisor, docker) have no usable cgroups: track processes via /proc
+ProctrackType=proctrack/linuxproc
+TaskPlugin=task/none
+JobAcctGatherType=jobacct_gather/none
+# no slurmdbd: sacct cannot answer, snakemake polls with squeue instead
+AccountingStorageType=accounting_storage/none
+JobCompType=jobcomp/none
+# finished jobs stay visible to 'squeue --states=all' for 10 minutes; the plugin only
+# trusts squeue when MinJobAge >= 3 x its first status-check delay
+MinJobAge=600
+ReturnToService=2
+SchedulerType=sched/backfill
+SelectType=select/cons_tres
+SelectTypeParameters=CR_Core_Memory
+MpiDefault=none
+InactiveLimit=0
+KillWait=5
+Waittime=0
+$NODE_LINE State=UNKNOWN
+# partition names match workflow/profiles/slurm/partitions.yaml; this machine has no GPU,
+# the gpu partition only exists so that the profile's partition file is valid here
+PartitionName=cpu Nodes=$HOST Default=YES MaxTime=INFINITE State=UP
+PartitionName=gpu Nodes=$HOST Default=NO MaxTime=INFINITE State=UP
+EOF
+
+slurmctld -c -f "$SLURM_CONF_FILE" || die "slurmctld did not start (see $STATE/slurmctld.log)"
+slurmd -f "$SLURM_CONF_FILE" || die "slurmd did not start (see $STATE/slurmd.log)"
+state=""
+for _ in $(seq 120); do
+    state="$(sinfo -h -N -n "$HOST" -p cpu -o '%T' 2>/dev/null | head -n 1 || true)"
+    [[ "$state" == idle ]] && break
+    sleep 0.5
+done
+[[ "$state" == idle ]] || die "node $HOST not idle after 60 s (state '$state')"
+START_S=$(elapsed "$T_START")
+log "cluster up in ${START_S} s: $(sinfo -h -o '%P %D %c cpus %m MB %T' | tr '\n' ';')"
+
+# --- 5. run ---------------------------------------------------------------------------
+# Settings that only make sense on this toy cluster are given on the command line, so that
+# the profile itself stays the one a user runs on a real cluster:
+#   squeue polling (no accounting db), a first status check after 5 s instead of 40 s,
+#   no shared-filesystem latency, and memory requests that fit this machine.
+SLURM_ARGS=(
+    --profile "$REPO/workflow/profiles/slurm"
+    --slurm-status-command squeue
+    --slurm-init-seconds-before-status-checks 5
+    --latency-wait 5
+    --slurm-keep-successful-logs
+)
+
+run_snakemake() {  # run_snakemake <workdir> <profile args...> -- <snakemake args...>
+    local dir="$1"; shift
+    mkdir -p "$dir"
+    (cd "$dir" && timeout "$RUN_TIMEOUT" snakemake "$@") > "$dir/snakemake.out" 2>&1 \
+        || { tail -n 40 "$dir/snakemake.out" >&2; return 1; }
+}
+
+check_tiny() {  # the tiny workflow's results: every job ran as its own SLURM job
+    local dir="$1" summary="$1/summary.txt"
+    [[ -s "$summary" ]] || die "no $summary"
+    local n_poly n_jobs
+    n_poly=$(grep -c '^poly=' "$summary" || true)
+    [[ $n_poly -eq 2 ]] || die "expected 2 per-polygon lines in summary.txt, got $n_poly"
+    grep -q '^gather ' "$summary" || die "no gather line in summary.txt"
+    if grep -q 'slurm_job=none' "$summary"; then die "a job did not run under SLURM: $(cat "$summary")"; fi
+    n_jobs=$(grep -o 'slurm_job=[0-9]*' "$summary" | sort -u | wc -l)
+    [[ $n_jobs -eq 3 ]] || die "expected 3 distinct SLURM job ids, got $n_jobs"
+    # threads -> --cpus-per-task, mem_mb -> --mem, runtime -> -t, as SLURM saw them
+    # (the job's own environment is no witness: the plugin strips SLURM_* inside the job)
+    local line id rule want_cpus want_mem info
+    while read -r line; do
+        id=$(grep -o 'slurm_job=[0-9]*' <<<"$line" | cut -d= -f2)
+        rule=per_polygon; want_cpus=1; want_mem=200M
+        [[ "$line" == gather* ]] && { rule=gather; want_cpus=2; want_mem=300M; }
+        info=$(scontrol show job -o "$id")
+        grep -q "NumCPUs=$want_cpus " <<<"$info" || die "$rule job $id: expected NumCPUs=$want_cpus: $info"
+        grep -q "MinMemoryNode=$want_mem " <<<"$info" || die "$rule job $id: expected MinMemoryNode=$want_mem: $info"
+        grep -q "TimeLimit=00:05:00 " <<<"$info" || die "$rule job $id: expected TimeLimit=00:05:00: $info"
+        grep -q "Partition=cpu " <<<"$info" || die "$rule job $id: expected Partition=cpu: $info"
+        grep -q "JobState=COMPLETED " <<<"$info" || die "$rule job $id: not COMPLETED: $info"
+    done < "$summary"
+    local listed
+    listed=$(squeue -h --states=all -o '%i %T' | grep -c COMPLETED || true)
+    [[ $listed -ge 3 ]] || die "squeue lists $listed completed jobs, expected >= 3"
+    log "tiny workflow OK: 3 SLURM jobs in partition cpu, threads/mem_mb/runtime passed through"
+    sed 's/^/    /' "$summary" >&2
+}
+
+compare_textures() {  # compare_textures <dir_a> <dir_b>: same PNGs, values within tolerance
+    python - "$1" "$2" "$TOLERANCE" <<'PY'
+import sys
+from pathlib import Path
+
+import numpy as np
+from difftex.io import read_image
+
+a, b, tol = Path(sys.argv[1]), Path(sys.argv[2]), float(sys.argv[3])
+skip = {".snakemake"}
+def pngs(root):
+    return {p.relative_to(root) for p in root.rglob("*.png") if not skip & set(p.parts)}
+pa, pb = pngs(a), pngs(b)
+if not pa:
+    sys.exit(f"no PNG written under {a}")
+if pa != pb:
+    sys.exit(f"different PNG sets: only slurm {sorted(map(str, pa - pb))[:5]}, "
+             f"only local {sorted(map(str, pb - pa))[:5]}")
+worst, worst_name = 0.0, ""
+for rel in sorted(pa):
+    x, y = read_image(a / rel), read_image(b / rel)
+    if x.shape != y.shape:
+        sys.exit(f"{rel}: shape {x.shape} (slurm) != {y.shape} (local)")
+    d = float(np.abs(x - y).max()) if x.size else 0.0
+    if d > worst:
+        worst, worst_name = d, str(rel)
+print(f"compared {len(pa)} PNGs: max abs difference {worst:.6f}"
+      + (f" ({worst_name})" if worst_name else ""))
+if worst > tol:
+    sys.exit(f"max abs difference {worst:.6f} > tolerance {tol}")
+PY
+}
+
+T_RUN=$(now)
+case "$MODE" in
+    tiny)
+        log "running the tiny fan-out workflow through SLURM in $WORK/slurm"
+        run_snakemake "$WORK/slurm" "${SLURM_ARGS[@]}" -s "$REPO/tests/slurm/Snakefile" \
+            --config 'polys=["p0","p1"]' \
+            || die "snakemake failed (log: $WORK/slurm/snakemake.out)"
+        check_tiny "$WORK/slurm"
+        ;;
+    custom)
+        args=(-s "$SNAKEFILE")
+        [[ -n "$CONFIGFILE" ]] && args+=(--configfile "$CONFIGFILE")
+        [[ ${#CONFIG[@]} -gt 0 ]] && args+=(--config "${CONFIG[@]}")
+        log "running $SNAKEFILE ${TARGETS[*]:-} through SLURM in $WORK/slurm"
+        run_snakemake "$WORK/slurm" "${SLURM_ARGS[@]}" "${args[@]}" -- "${TARGETS[@]}" \
+            || die "snakemake failed (log: $WORK/slurm/snakemake.out)"
+        for t in "${TARGETS[@]}"; do
+            # a target that is a file must exist afterwards; a rule name is checked by the exit code
+            if [[ "$t" == */* || "$t" == *.* ]]; then [[ -e "$WORK/slurm/$t" || -e "$t" ]] || die "target $t missing"; fi
+        done
+        log "custom workflow OK"
+        ;;
+    real)
+        [[ -f "$REPO/Snakefile" ]] || die "no $REPO/Snakefile yet: the real workflow is not written"
+        difftex synth --help >/dev/null 2>&1 || die "'difftex synth' is not available"
+        SCENE="$WORK/scene"
+        log "writing the tiny synthetic scene to $SCENE"
+        difftex synth --preset tiny --out "$SCENE" > "$WORK/synth.out" 2>&1 \
+            || { tail -n 20 "$WORK/synth.out" >&2; die "difftex synth failed"; }
+        args=(-s "$REPO/Snakefile")
+        if [[ -n "$CONFIGFILE" ]]; then args+=(--configfile "$CONFIGFILE")
+        elif [[ -f "$REPO/config/config.yaml" ]]; then args+=(--configfile "$REPO/config/config.yaml"); fi
+        args+=(--config "scene=$SCENE" "${CONFIG[@]}")
+        log "real workflow through SLURM in $WORK/slurm"
+        run_snakemake "$WORK/slurm" "${SLURM_ARGS[@]}" "${args[@]}" -- "${TARGETS[@]}" \
+            || die "snakemake (slurm) failed (log: $WORK/slurm/snakemake.out)"
+        SLURM_RUN_S=$(elapsed "$T_RUN")
+        n_sbatch=$(find "$WORK/slurm/.snakemake/slurm_logs" -name '*.log' 2>/dev/null | wc -l)
+        [[ $n_sbatch -gt 0 ]] || die "no SLURM job logs: the run did not go through SLURM"
+        log "slurm run done in ${SLURM_RUN_S} s ($n_sbatch SLURM jobs); same workflow with the local profile in $WORK/local"
+        T_LOCAL=$(now)
+        run_snakemake "$WORK/local" --profile "$REPO/workflow/profiles/local" "${args[@]}" -- "${TARGETS[@]}" \
+            || die "snakemake (local) failed (log: $WORK/local/snakemake.out)"
+        log "local run done in $(elapsed "$T_LOCAL") s"
+        compare_textures "$WORK/slurm" "$WORK/local" || die "slurm and local textures differ"
+        ;;
+esac
+RUN_S=$(elapsed "$T_RUN")
+log "PASS ($MODE)"
