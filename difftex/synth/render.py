@@ -18,7 +18,7 @@ from difftex.synth.detail import DetailedModel
 
 _PROBE = (
     "import mitsuba as mi; mi.set_variant('{v}'); "
-    "s = mi.load_dict({{'type': 'scene', 'e': {{'type': 'constant'}}, 'r': {{'type': 'sphere'}}, "
+    "s = mi.load_dict({{'type': 'scene', 'integrator': {{'type': 'path'}}, 'e': {{'type': 'constant'}}, 'r': {{'type': 'sphere'}}, "
     "'sensor': {{'type': 'perspective', 'to_world': mi.ScalarTransform4f().translate([0, 0, -4]), "
     "'film': {{'type': 'hdrfilm', 'width': 8, 'height': 8}}}}}}); mi.render(s, spp=4)"
 )
