@@ -124,11 +124,33 @@ def read_reconstruction(sparse_dir: str | Path):
     names = {p.name for p in sparse_dir.iterdir()}
     if not ({"cameras.bin", "images.bin"} <= names or {"cameras.txt", "images.txt"} <= names):
         raise DifftexError(f"{sparse_dir}: no COLMAP model (cameras/images .bin or .txt) in this folder")
+    if (sparse_dir / "images.txt").is_file():
+        _check_text_poses(sparse_dir / "images.txt")
     try:
         return pycolmap.Reconstruction(str(sparse_dir))
     except Exception as exc:  # pycolmap raises bare RuntimeErrors with multi-line C++ context
         first = str(exc).strip().splitlines()[-1] if str(exc).strip() else type(exc).__name__
         raise DifftexError(f"{sparse_dir}: unreadable COLMAP model ({first})") from None
+
+
+def _check_text_poses(path: Path) -> None:
+    """Name the image whose pose is not finite: pycolmap's own parser only reports a C++ stream error."""
+    lines = [ln for ln in path.read_text(errors="replace").splitlines() if ln.strip() and not ln.startswith("#")]
+    # images.txt alternates a pose line and a (possibly empty, then skipped above) points line.
+    for ln in lines:
+        parts = ln.split()
+        if len(parts) < 10:
+            continue
+        try:
+            int(parts[0]), int(parts[8])
+        except ValueError:
+            continue  # a points2D line
+        try:
+            vals = np.array([float(x) for x in parts[1:8]])
+        except ValueError:
+            raise DifftexError(f"{path}: image '{parts[9]}' has an unreadable pose ({' '.join(parts[1:8])})") from None
+        if not np.isfinite(vals).all():
+            raise DifftexError(f"{path}: pose of image '{parts[9]}' is not finite (NaN or inf)")
 
 
 def load_photos(sparse_dir: str | Path, images_dir: str | Path, check_images: bool = True) -> list[Photo]:

@@ -85,6 +85,11 @@ def read_npz(path: str | os.PathLike) -> dict[str, np.ndarray]:
         raise DifftexError(f"{path}: unreadable npz ({exc})") from None
 
 
+def _first_line(text: str) -> str:
+    lines = [ln.strip() for ln in (text or "").strip().splitlines() if ln.strip()]
+    return lines[0] if lines else ""
+
+
 def read_image(path: str | os.PathLike, expected_size: tuple[int, int] | None = None) -> np.ndarray:
     """Read an image as float32 RGB in [0, 1] (H, W, 3) with OpenImageIO.
 
@@ -98,7 +103,7 @@ def read_image(path: str | os.PathLike, expected_size: tuple[int, int] | None = 
         raise DifftexError(f"{path}: image file not found")
     inp = oiio.ImageInput.open(str(path))
     if inp is None:
-        raise DifftexError(f"{path}: cannot open image ({oiio.geterror().strip() or 'unknown format'})")
+        raise DifftexError(f"{path}: cannot open image ({_first_line(oiio.geterror()) or 'unknown format'})")
     try:
         spec = inp.spec()
         if expected_size is not None and (spec.width, spec.height) != tuple(expected_size):
@@ -108,10 +113,10 @@ def read_image(path: str | os.PathLike, expected_size: tuple[int, int] | None = 
             )
         pixels = inp.read_image(0, 0, 0, spec.nchannels, oiio.FLOAT)
         if pixels is None or not isinstance(pixels, np.ndarray):
-            raise DifftexError(f"{path}: corrupt image ({inp.geterror().strip() or 'read failed'})")
+            raise DifftexError(f"{path}: corrupt image ({_first_line(inp.geterror()) or 'read failed'})")
         err = inp.geterror()
         if err:
-            raise DifftexError(f"{path}: corrupt image ({err.strip().splitlines()[0]})")
+            raise DifftexError(f"{path}: corrupt image ({_first_line(err)})")
     finally:
         inp.close()
     pixels = pixels.reshape(spec.height, spec.width, spec.nchannels)
@@ -132,7 +137,7 @@ def image_size(path: str | os.PathLike) -> tuple[int, int]:
 
     inp = oiio.ImageInput.open(str(path))
     if inp is None:
-        raise DifftexError(f"{path}: cannot open image ({oiio.geterror().strip() or 'unknown format'})")
+        raise DifftexError(f"{path}: cannot open image ({_first_line(oiio.geterror()) or 'unknown format'})")
     spec = inp.spec()
     inp.close()
     return spec.width, spec.height

@@ -287,7 +287,16 @@ def _simplify_loop(loop: np.ndarray, tol: float) -> np.ndarray:
     return np.asarray(pts)
 
 
+def _weld(verts: np.ndarray, tris: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Merge vertices at the same position so triangle soups (one vertex per corner) connect."""
+    scale = float(np.linalg.norm(np.ptp(verts, axis=0))) or 1.0
+    key = np.round(verts / (1e-9 * scale)).astype(np.int64)
+    uniq, first, inverse = np.unique(key, axis=0, return_index=True, return_inverse=True)
+    return verts[first], inverse.reshape(-1)[tris]
+
+
 def _polygons_from_triangles(verts, tris, angle_tol_deg, dist_tol_rel):
+    verts, tris = _weld(verts, np.asarray(tris, dtype=np.int64))
     out = []
     for group in _group_triangles(verts, tris, angle_tol_deg, dist_tol_rel):
         gt = np.asarray(tris, dtype=np.int64)[group]

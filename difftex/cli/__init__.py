@@ -47,7 +47,8 @@ def main(argv: list[str] | None = None) -> int:
     try:
         return int(args._run(args) or 0)
     except DifftexError as exc:
-        print(f"difftex: error: {exc}", file=sys.stderr)
+        # One line, whatever a library put in the message.
+        print("difftex: error: " + " ".join(str(exc).split()), file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         print("difftex: interrupted", file=sys.stderr)

@@ -1,0 +1,400 @@
+"""Helpers of the Snakemake workflow (Snakefile, workflow/rules/*.smk): config merging, per-stage
+config files, scene inputs, resource estimates, the end-of-run summary and report.
+
+Kept out of the Snakefile so that they can be tested and so that `snakemake --lint` sees
+no functions mixed with rules.
+"""
+
+from __future__ import annotations
+
+import copy
+import json
+import math
+from pathlib import Path
+from typing import Any
+
+from difftex.errors import DifftexError
+
+# Sections each stage command reads (docs/stages.md). A stage's config file holds only these,
+# so a change elsewhere leaves its file, and therefore its outputs, untouched.
+STAGE_SECTIONS = {
+    "filter": ("filter",),
+    "visibility": ("texture", "visibility"),
+    "optimize": ("texture", "optimize"),
+    "assemble": ("assemble",),
+    "evaluate": ("evaluate",),
+}
+
+SPARSE_FILES = ("cameras", "images", "points3D")
+IMAGE_EXTS = {".jpg", ".jpeg", ".png", ".tif", ".tiff", ".exr", ".bmp", ".webp"}
+EXAMPLE_SCENE = "data/synth/tiny"
+
+
+# ---------------------------------------------------------------------------------------------
+# Configuration
+
+
+def deep_merge(base: dict, over: dict) -> dict:
+    """``over`` merged into a copy of ``base``; nested dicts merge, everything else replaces."""
+    out = copy.deepcopy(dict(base))
+    for k, v in (over or {}).items():
+        if isinstance(v, dict) and isinstance(out.get(k), dict):
+            out[k] = deep_merge(out[k], v)
+        else:
+            out[k] = copy.deepcopy(v)
+    return out
+
+
+def expand_dotted(d: dict) -> dict:
+    """{"optimize.lr": 0.01} -> {"optimize": {"lr": 0.01}} (snakemake --config has no nesting)."""
+    out: dict = {}
+    for k, v in (d or {}).items():
+        parts = str(k).split(".")
+        cur = out
+        for p in parts[:-1]:
+            nxt = cur.get(p)
+            if not isinstance(nxt, dict):
+                nxt = cur[p] = {}
+            cur = nxt
+        leaf = parts[-1]
+        if isinstance(v, dict) and isinstance(cur.get(leaf), dict):
+            cur[leaf] = deep_merge(cur[leaf], expand_dotted(v))
+        else:
+            cur[leaf] = expand_dotted(v) if isinstance(v, dict) else v
+    return out
+
+
+def _load_yaml(path: Path) -> dict:
+    import yaml
+
+    try:
+        data = yaml.safe_load(path.read_text()) or {}
+    except FileNotFoundError:
+        raise DifftexError(f"{path}: file not found") from None
+    except yaml.YAMLError as exc:
+        raise DifftexError(f"{path}: not valid YAML ({str(exc).splitlines()[0]})") from None
+    if not isinstance(data, dict):
+        raise DifftexError(f"{path}: must be a mapping")
+    return data
+
+
+def resolve_config(repo: str | Path, user: dict | None) -> dict:
+    """defaults (config/config.yaml) < preset (config/presets/<name>.yaml) < the user's values
+    (--configfile files and --config keys, dotted keys expanded)."""
+    repo = Path(repo)
+    defaults = _load_yaml(repo / "config" / "config.yaml")
+    user = expand_dotted(dict(user or {}))
+    preset = user.get("preset", defaults.get("preset"))
+    cfg = defaults
+    if preset:
+        path = repo / "config" / "presets" / f"{preset}.yaml"
+        if not path.is_file():
+            known = sorted(p.stem for p in (repo / "config" / "presets").glob("*.yaml"))
+            raise DifftexError(f"unknown preset '{preset}' (known: {', '.join(known)})")
+        cfg = deep_merge(cfg, _load_yaml(path))
+    cfg = deep_merge(cfg, user)
+    if cfg.get("scene") is None:
+        cfg["scene"] = ""
+    return cfg
+
+
+def validate(cfg: dict, schema_path: str | Path) -> None:
+    """Schema check with a one-line message naming the key (the snakemake.utils.validate error
+    prints the whole schema)."""
+    import jsonschema
+    import yaml
+
+    schema = yaml.safe_load(Path(schema_path).read_text())
+    validator = jsonschema.Draft202012Validator(schema)
+    errors = sorted(validator.iter_errors(cfg), key=lambda e: list(e.absolute_path))
+    if errors:
+        e = errors[0]
+        where = ".".join(str(p) for p in e.absolute_path) or "config"
+        raise DifftexError(f"invalid configuration: {where}: {e.message}")
+
+
+def stage_config_text(cfg: dict, stage: str) -> str:
+    import yaml
+
+    sections = {s: cfg[s] for s in STAGE_SECTIONS[stage]}
+    return f"# written by the difftex workflow: the '{stage}' stage's sections\n" + yaml.safe_dump(sections, sort_keys=True)
+
+
+def write_if_changed(path: str | Path, text: str) -> bool:
+    """Write ``text`` only if the file's content differs, so its mtime (which Snakemake compares)
+    changes only with the content. True if written."""
+    from difftex.io import write_text
+
+    path = Path(path)
+    try:
+        if path.read_text() == text:
+            return False
+    except (FileNotFoundError, UnicodeDecodeError):
+        pass
+    write_text(path, text)
+    return True
+
+
+def write_stage_configs(cfg: dict, results: str | Path) -> dict[str, str]:
+    """R/config/<stage>.yaml for every stage; returns {stage: path}."""
+    out = {}
+    for stage in STAGE_SECTIONS:
+        path = Path(results) / "config" / f"{stage}.yaml"
+        write_if_changed(path, stage_config_text(cfg, stage))
+        out[stage] = str(path)
+    return out
+
+
+# ---------------------------------------------------------------------------------------------
+# Scene
+
+
+def scene_name(scene: str | Path) -> str:
+    name = Path(scene).resolve().name
+    if not name:
+        raise DifftexError(f"{scene}: cannot name the results folder after this scene path")
+    return name
+
+
+def scene_inputs(scene: str | Path) -> list[str]:
+    """The files a scene's stages depend on: proxy, COLMAP model, photos. Adding a photo adds an
+    input, and Snakemake reruns what depends on the photo set."""
+    from difftex.scene import PROXY_NAMES
+
+    root = Path(scene)
+    if not root.is_dir():
+        raise DifftexError(f"{root}: scene folder not found (set scene=path/to/scene)")
+    proxies = [root / n for n in PROXY_NAMES if (root / n).is_file()]
+    if not proxies:
+        raise DifftexError(f"{root}: no proxy model ({', '.join(PROXY_NAMES)})")
+    sparse = root / "sparse" / "0"
+    if not sparse.is_dir():
+        sparse = root / "sparse"
+    model = [sparse / f"{n}{ext}" for n in SPARSE_FILES for ext in (".bin", ".txt") if (sparse / f"{n}{ext}").is_file()]
+    if not any(p.stem == "images" for p in model):
+        raise DifftexError(f"{root}: no COLMAP model in sparse/0 (cameras/images .bin or .txt)")
+    images = sorted(p for p in (root / "images").rglob("*") if p.suffix.lower() in IMAGE_EXTS and p.is_file())
+    if not images:
+        raise DifftexError(f"{root / 'images'}: no photos")
+    return [str(p) for p in [proxies[0], *model, *images]]
+
+
+def polygons(summary: str | Path) -> list[dict]:
+    """Polygon rows of R/visibility/summary.json."""
+    from difftex.io import read_json
+
+    data = read_json(summary)
+    try:
+        return list(data["polygons"])
+    except (KeyError, TypeError):
+        raise DifftexError(f"{summary}: not a visibility summary (no 'polygons')") from None
+
+
+def textured_ids(summary: str | Path) -> list[str]:
+    """Polygons worth optimizing: at least one candidate photo and some coverage."""
+    return [str(p["id"]) for p in polygons(summary) if p.get("photos") and float(p.get("coverage", 0)) > 0]
+
+
+def polygon_row(summary: str | Path, pid: str) -> dict:
+    for p in polygons(summary):
+        if str(p["id"]) == pid:
+            return p
+    raise DifftexError(f"{summary}: no polygon '{pid}'")
+
+
+def photo_paths(scene: str | Path, row: dict) -> list[str]:
+    return [str(Path(scene) / "images" / name) for name in row.get("photos", [])]
+
+
+# ---------------------------------------------------------------------------------------------
+# Resources
+
+
+def _photo_pixels(scene: str | Path, row: dict) -> int:
+    from difftex.io import image_size
+
+    for name in row.get("photos", [])[:1]:
+        try:
+            w, h = image_size(Path(scene) / "images" / name)
+            return w * h
+        except Exception:  # noqa: BLE001 -- an estimate only; the stage reports a bad photo itself
+            break
+    return 4000 * 3000
+
+
+def polygon_mem_mb(scene: str | Path, row: dict, run: dict) -> int:
+    """Memory of one polygon's optimization: texels x candidate photos x bytes per pair (parameters,
+    Adam state, mappings, masks), plus the candidate photos as float32 RGB, plus Python/torch."""
+    texels = int(row.get("width", 0)) * int(row.get("height", 0))
+    k = len(row.get("photos", []))
+    data = texels * k * float(run["bytes_per_texel_photo"]) + k * _photo_pixels(scene, row) * 12
+    return int(run["base_mem_mb"] + math.ceil(data / 2**20))
+
+
+def polygon_runtime_min(row: dict, cfg: dict) -> int:
+    """Wall-clock minutes for a cluster's time limit: coarse-to-fine levels up to the target, each
+    level at most max_iters_per_level iterations over texels x photos; 3x margin."""
+    texels = int(row.get("width", 0)) * int(row.get("height", 0))
+    k = max(1, len(row.get("photos", [])))
+    long_side = max(int(row.get("width", 1)), int(row.get("height", 1)))
+    start = int(cfg["optimize"]["long_side_start"])
+    levels = max(1, math.ceil(math.log2(max(long_side / max(start, 1), 1))) + 1)
+    # each level has a quarter of the next one's texels: total <= 4/3 of the finest
+    work = texels * k * int(cfg["optimize"]["max_iters_per_level"]) * (4 / 3 if levels > 1 else 1)
+    return int(max(10, math.ceil(3 * work / float(cfg["run"]["texels_per_minute"]))))
+
+
+def scene_mem_mb(scene_inputs_list: list[str], run: dict, factor: float = 4.0) -> int:
+    """Whole-scene stages hold about one full-resolution photo and its id buffer at a time."""
+    from difftex.io import image_size
+
+    pixels = 4000 * 3000
+    for p in scene_inputs_list:
+        if Path(p).suffix.lower() in IMAGE_EXTS and "images" in Path(p).parts:
+            try:
+                w, h = image_size(p)
+                pixels = w * h
+            except Exception:  # noqa: BLE001 -- an estimate only
+                pass
+            break
+    return int(run["base_mem_mb"] + math.ceil(pixels * 3 * 4 * factor / 2**20))
+
+
+def assemble_mem_mb(summary: str | Path, cfg: dict) -> int:
+    """Two float32 pages of the atlas at most plus the textures (as float32) of all polygons."""
+    texels = sum(int(p.get("width", 0)) * int(p.get("height", 0)) for p in polygons(summary))
+    page = int(cfg["assemble"]["max_page_size"]) ** 2
+    page = min(page, int(texels * 1.3) + 1)
+    return int(cfg["run"]["base_mem_mb"] + math.ceil((3 * page * 12 + texels * 13) / 2**20))
+
+
+# ---------------------------------------------------------------------------------------------
+# Summary and report
+
+
+def _benchmarks(results: Path) -> dict[str, dict]:
+    """{rule: {"jobs": n, "seconds": sum of wall seconds, "max_rss_mb": max}} from Snakemake's
+    benchmark files R/benchmarks/<rule>/*.tsv."""
+    out: dict[str, dict] = {}
+    root = results / "benchmarks"
+    if not root.is_dir():
+        return out
+    for tsv in sorted(root.rglob("*.tsv")):
+        rule = tsv.relative_to(root).parts[0]
+        lines = tsv.read_text().splitlines()
+        if len(lines) < 2:
+            continue
+        head, row = lines[0].split("\t"), lines[1].split("\t")
+        rec = dict(zip(head, row))
+        d = out.setdefault(rule, {"jobs": 0, "seconds": 0.0, "max_rss_mb": 0.0})
+        d["jobs"] += 1
+        try:
+            d["seconds"] += float(rec.get("s", 0))
+            rss = rec.get("max_rss", "NA")
+            if rss not in ("NA", "-", ""):
+                d["max_rss_mb"] = max(d["max_rss_mb"], float(rss))
+        except ValueError:
+            pass
+    return out
+
+
+def run_summary(results: str | Path) -> dict:
+    """Everything the end-of-run message and the report show."""
+    from difftex.io import read_json
+
+    results = Path(results)
+    model = results / "model"
+    summary = read_json(model / "summary.json")
+    out = {
+        "results": str(results),
+        "model": {k: str(model / summary[k]) for k in ("glb", "obj", "mtl") if k in summary},
+        "atlas_pages": [str(model / p["file"]) for p in summary.get("atlas_pages", [])],
+        "polygons": summary.get("polygons", []),
+        "untextured": summary.get("untextured", []),
+        "check": summary.get("check"),
+        "stages": _benchmarks(results),
+    }
+    metrics = results / "evaluation" / "metrics.json"
+    if metrics.is_file():
+        out["evaluation"] = str(metrics)
+    return out
+
+
+def format_summary(s: dict) -> str:
+    polys = s["polygons"]
+    n_tex = sum(1 for p in polys if p.get("textured"))
+    lines = [f"difftex: {n_tex}/{len(polys)} polygons textured"]
+    if polys:
+        w = max(len(p["id"]) for p in polys)
+        for p in polys:
+            state = f"coverage {100 * p['coverage']:5.1f}%, {p['photos']:3d} photos" if p.get("textured") else "untextured (grey)"
+            size = "x".join(map(str, p["texture_size"])) if p.get("texture_size") else "-"
+            lines.append(f"  {p['id']:<{w}}  {state}  {size}")
+    if s["stages"]:
+        total = sum(d["seconds"] for d in s["stages"].values())
+        parts = ", ".join(f"{r} {d['seconds']:.0f}s" + (f"/{d['jobs']}" if d["jobs"] > 1 else "") for r, d in s["stages"].items())
+        lines.append(f"time: {total:.0f} s of jobs ({parts})")
+    chk = s.get("check")
+    if chk:
+        lines.append(f"GLB reloaded: {chk['glb_polygons']} polygons, max colour difference to the textures {chk['max_color_error']:.3f}")
+    if s["untextured"]:
+        lines.append(f"no photo sees: {', '.join(s['untextured'])}")
+    if s.get("evaluation"):
+        lines.append(f"metrics: {s['evaluation']}")
+    lines.append(f"atlas: {', '.join(s['atlas_pages'])}")
+    for k in ("obj", "glb"):
+        if k in s["model"]:
+            lines.append(f"{k.upper()}: {s['model'][k]}")
+    return "\n".join(lines)
+
+
+def print_summary(results: str | Path) -> None:
+    """The onsuccess message; silent when the model is not there (a partial target was run)."""
+    path = Path(results) / "model" / "summary.json"
+    if not path.is_file():
+        return
+    try:
+        print("\n" + format_summary(run_summary(results)))
+    except (DifftexError, KeyError, TypeError, ValueError) as exc:
+        print(f"difftex: cannot summarise {path}: {exc}")
+
+
+def write_report(results: str | Path, out: str | Path) -> None:
+    """R/report.md: the summary, per-stage times and (if any) the evaluation metrics."""
+    from difftex.io import read_json, write_text
+
+    s = run_summary(results)
+    md = [f"# difftex results: {Path(results).name}", "", "```", format_summary(s), "```", ""]
+    if s["stages"]:
+        md += ["## Stages", "", "| stage | jobs | wall s (sum) | max RSS MB |", "|---|---:|---:|---:|"]
+        for r, d in s["stages"].items():
+            md.append(f"| {r} | {d['jobs']} | {d['seconds']:.1f} | {d['max_rss_mb']:.0f} |")
+        md.append("")
+    if s.get("evaluation"):
+        md += ["## Evaluation", "", "```json", json.dumps(read_json(s["evaluation"]), indent=2)[:20000], "```", ""]
+    write_text(out, "\n".join(md))
+
+
+def want_evaluation(cfg: dict, has_ground_truth: bool) -> bool:
+    """run.evaluate: true, false, or auto (ground truth present and `difftex evaluate` installed)."""
+    import importlib.util
+
+    mode = cfg["run"]["evaluate"]
+    if mode is False:
+        return False
+    has_cmd = importlib.util.find_spec("difftex.cli.evaluate") is not None
+    if mode is True:
+        if not has_cmd:
+            raise DifftexError("run.evaluate is true but this difftex has no 'evaluate' command")
+        return True
+    return has_cmd and has_ground_truth
+
+
+def synth_available() -> bool:
+    import importlib.util
+
+    return importlib.util.find_spec("difftex.cli.synth") is not None
+
+
+def as_json(obj: Any) -> str:
+    return json.dumps(obj, sort_keys=True)

@@ -1,0 +1,48 @@
+"""Photo filtering: sharpness, photos that see nothing, inclined views."""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.ndimage import gaussian_filter
+
+from difftex.config import FilterConfig
+from difftex.filtering import filter_photos, sharpness
+from difftex.io import write_image
+from difftex.scene import load_scene
+from tests.scenes import make_scene
+
+
+def test_sharpness_falls_with_blur():
+    rng = np.random.default_rng(1)
+    img = rng.random((200, 300, 3)).astype(np.float32)
+    values = [sharpness(gaussian_filter(img, (s, s, 0)) if s else img) for s in (0, 1, 2, 4)]
+    assert all(a > b for a, b in zip(values, values[1:]))
+
+
+def test_sharpness_of_a_flat_image_is_zero():
+    assert sharpness(np.full((64, 64, 3), 0.5, np.float32)) == 0.0
+
+
+def test_blurry_photo_is_dropped_relative_to_the_set(tmp_path):
+    centers = [(x, -6.0, 1.0) for x in (-1.0, -0.5, 0.0, 0.5, 1.0)]
+    root = make_scene(tmp_path / "s", centers=centers)
+    img = np.random.default_rng(3).random((120, 160, 3)).astype(np.float32)
+    write_image(root / "images" / "img02.png", gaussian_filter(img, (3, 3, 0)))
+    sc = load_scene(root)
+    table = filter_photos(sc.proxy, sc.photos, FilterConfig(), progress=False)
+    rec = {r["name"]: r for r in table["photos"]}
+    assert not rec["img02.png"]["kept"] and "blurry" in rec["img02.png"]["reason"]
+    assert sum(r["kept"] for r in table["photos"]) == 4
+    assert "img02.png" in table["polygons"]["front"]["dropped"]
+
+
+def test_inclined_views_are_dropped_per_polygon(tmp_path):
+    # one frontal camera and one almost along the wall
+    root = make_scene(tmp_path / "s", centers=[(0.0, -6.0, 1.0), (8.0, -0.6, 1.0)], target=(0.0, 0.0, 1.0))
+    sc = load_scene(root)
+    table = filter_photos(sc.proxy, sc.photos, FilterConfig(max_angle_deg=70.0, min_pixels=4), progress=False)
+    poly = table["polygons"]["front"]
+    assert poly["kept"] == ["img00.png"]
+    assert "inclined" in poly["dropped"]["img01.png"]
+    angles = {r["name"]: r["polygons"]["front"]["angle_deg"] for r in table["photos"]}
+    assert angles["img00.png"] < 15 and angles["img01.png"] > 70

@@ -1,0 +1,86 @@
+"""Visibility: id buffers, occlusion between proxy polygons, per-polygon masks on disk."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from difftex.scene import load_scene
+from difftex.visibility import (
+    id_buffer,
+    load_visibility,
+    save_visibility,
+    scene_visibility,
+    visible_texels_at,
+)
+from tests.scenes import make_scene, wall
+
+
+@pytest.fixture
+def occlusion_scene(tmp_path):
+    # back wall at y=0; a smaller wall 1 m in front of it hides part of it from the camera at y=-6
+    back = wall(-2, 2, 0, 2, y=0.0)
+    front = wall(-0.5, 0.5, 0, 1, y=-1.0)
+    root = make_scene(tmp_path / "occ", {"back": back, "front": front}, centers=[(0.0, -6.0, 1.0)], size=(320, 240))
+    return load_scene(root)
+
+
+def test_occluded_texels_are_the_projected_shadow_of_the_front_polygon(occlusion_scene):
+    sc = occlusion_scene
+    vis = scene_visibility(sc.proxy, sc.photos, sc.up, {"back": [sc.photos[0].name], "front": [sc.photos[0].name]}, long_side=200, density=None)
+    back = vis[0]
+    assert back.polygon_id == "back" and back.photos == [sc.photos[0].name]
+    f = back.frame
+    tx, ty = f.centres()
+    X = f.texel_to_world(tx, ty)
+    # analytic shadow: scale the front wall from the camera centre onto the back plane (factor 6/5)
+    in_shadow = (np.abs(X[..., 0]) < 0.6) & (X[..., 2] < 1.0)
+    band = (np.abs(np.abs(X[..., 0]) - 0.6) < 0.05) | (np.abs(X[..., 2] - 1.0) < 0.05)
+    seen = back.texel_visible[0]
+    assert not seen[in_shadow & ~band].any()
+    assert seen[~in_shadow & ~band & back.texel_mask].all()
+    # the front polygon itself is fully visible
+    assert vis[1].texel_visible[0][vis[1].texel_mask].mean() > 0.97
+    # photo-space mask: the front polygon's pixels are not the back polygon's
+    ph = sc.photos[0]
+    a_back = back.a_mask_full(0, ph.width, ph.height)
+    a_front = vis[1].a_mask_full(0, ph.width, ph.height)
+    assert a_front.sum() > 500 and not (a_back & a_front).any()
+
+
+def test_id_buffer_stride_agrees_with_full_resolution(occlusion_scene):
+    sc = occlusion_scene
+    full, _ = id_buffer(sc.proxy, sc.photos[0])
+    coarse, _ = id_buffer(sc.proxy, sc.photos[0], stride=4)
+    assert coarse.shape == (60, 80)
+    sub = full[2::4, 2::4]
+    assert (sub == coarse).mean() > 0.97
+
+
+def test_photo_behind_the_wall_sees_nothing(tmp_path):
+    root = make_scene(tmp_path / "s", centers=[(0.0, -6.0, 1.0), (0.0, 6.0, 1.0)])
+    sc = load_scene(root)
+    names = [p.name for p in sc.photos]
+    vis = scene_visibility(sc.proxy, sc.photos, sc.up, {"front": names}, long_side=64, density=None)[0]
+    assert vis.photos == [names[0]]  # the photo from behind is not a candidate
+
+
+def test_visibility_file_round_trip_and_levels(occlusion_scene, tmp_path):
+    sc = occlusion_scene
+    vis = scene_visibility(sc.proxy, sc.photos, sc.up, {"back": [sc.photos[0].name]}, long_side=128, density=None)[0]
+    save_visibility(tmp_path / "v.npz", vis)
+    again = load_visibility(tmp_path / "v.npz")
+    assert again.photos == vis.photos and again.frame.to_dict() == vis.frame.to_dict()
+    assert (again.texel_visible == vis.texel_visible).all() and (again.texel_mask == vis.texel_mask).all()
+    assert all((a == b).all() for a, b in zip(again.a_masks, vis.a_masks))
+    coarse = visible_texels_at(vis, vis.frame.resized(32))
+    assert coarse.shape == (1, *vis.frame.resized(32).shape)
+    assert abs(coarse.mean() - vis.texel_visible.mean()) < 0.05
+
+
+def test_polygon_without_photos_saves_and_loads(occlusion_scene, tmp_path):
+    sc = occlusion_scene
+    vis = scene_visibility(sc.proxy, sc.photos, sc.up, {"back": []}, long_side=32, density=None)[0]
+    assert vis.photos == [] and vis.coverage == 0.0
+    save_visibility(tmp_path / "e.npz", vis)
+    assert load_visibility(tmp_path / "e.npz").texel_visible.shape == (0, *vis.frame.shape)
