@@ -119,7 +119,12 @@ def run_scene(cfg: SynthConfig, spec: BuildingSpec, out: Path, seed: int, buildi
     t3 = time.perf_counter()
     gt = out / "ground_truth"
     gscene = rd.build_scene(variant, model, ground, ground_size, lighting, occluders=False)
-    frames = _render_gt_maps(cfg, building, model, polygons, gscene, variant, gt, bar, seed)
+    # The frame must be the one difftex will compute: it takes 'up' from the written cameras (~+z;
+    # the exact vector matters for flat roofs, whose e_v comes from up's tiny horizontal part).
+    from difftex.camera import load_photos, scene_up
+
+    up = scene_up(load_photos(out / "sparse" / "0", out / "images", check_images=False))
+    frames = _render_gt_maps(cfg, building, model, polygons, gscene, variant, gt, bar, up)
     timing["gt_maps_s"] = time.perf_counter() - t3
     t4 = time.perf_counter()
     for i, v in enumerate(held):
@@ -179,14 +184,14 @@ def run_scene(cfg: SynthConfig, spec: BuildingSpec, out: Path, seed: int, buildi
     return manifest
 
 
-def _render_gt_maps(cfg, building, model, polygons, gscene, variant, gt: Path, bar, seed) -> dict:
+def _render_gt_maps(cfg, building, model, polygons, gscene, variant, gt: Path, bar, up) -> dict:
     from difftex.io import write_image, write_json
     from difftex.mapping import texel_mask, uv_frame
     from difftex.synth import render as rd
 
     frames = {}
     for k, poly in enumerate(polygons):
-        frame = uv_frame(poly, up=np.array([0.0, 0.0, 1.0]), long_side=cfg.gt_long_side)
+        frame = uv_frame(poly, up=up, long_side=cfg.gt_long_side)
         # The camera stands just in front of the relief, so nothing farther out (e.g. another wing
         # of the building) can come between it and the facade.
         standoff = model.protrusion[poly.id] + 0.3
@@ -197,6 +202,7 @@ def _render_gt_maps(cfg, building, model, polygons, gscene, variant, gt: Path, b
         write_image(gt / "masks" / f"{poly.id}.png", texel_mask(poly, frame).astype(np.float32))
         fd = frame.to_dict()
         fd["standoff"] = standoff
+        fd["up"] = np.asarray(up).tolist()
         write_json(gt / "frames" / f"{poly.id}.json", fd)
         frames[poly.id] = fd
         bar.update(1)
@@ -286,3 +292,23 @@ def _sample_points(cfg, building, layouts, bitmaps, views, intr_by_id, scene, va
         vis = idx[hit > dist - 0.02]
         obs[i] = [(int(p), xy[p].tolist()) for p in vis]
     return X, rgb, obs
+
+
+def position_image(cfg: SynthConfig, spec: BuildingSpec, seed: int, building_index: int, R, t, intr,
+                   occluders: bool | None = None, spp: int = 16) -> np.ndarray:
+    """World position seen by each pixel of a photo taken with pose (R, t) and ``intr``, ray traced
+    by Mitsuba through the same sensor (and distortion warp) as the photos. For tests."""
+    from difftex.synth import cameras as cams
+    from difftex.synth import render as rd
+
+    variant = rd.choose_variant(cfg.variant)
+    _, _, _, model, ground, ground_size, lighting, _, _ = build_model(cfg, spec, seed, building_index)
+    occ = cfg.occluders if occluders is None else occluders
+    scene = rd.build_scene(variant, model, ground, ground_size, lighting, occluders=occ,
+                           integrator={"type": "aov", "aovs": "pp:position"})
+    cw, ch = cams.undistort_canvas(intr)
+    sensor = rd.perspective_sensor(variant, R, t, intr.f, cw, ch, spp)
+    pos = rd.render(variant, scene, sensor, spp, seed=1)
+    if intr.k != 0:
+        pos = cams.warp(pos, cams.distortion_map(intr, (cw, ch)))
+    return pos
