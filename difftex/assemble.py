@@ -389,7 +389,7 @@ def verify_glb(path: Path, items: list[PolygonTexture], samples_per_polygon: int
 
             # Bilinear taps at the polygon's edge reach outside texels, which the atlas has
             # dilated and the source texture has not: compare where all four taps are inside.
-            inner_mask = binary_erosion(it.mask, iterations=1, border_value=0)
+            inner_mask = binary_erosion(it.mask, structure=np.ones((3, 3), bool), border_value=0)
             ix = np.clip(np.floor(t[:, 0]).astype(int), 0, it.mask.shape[1] - 1)
             iy = np.clip(np.floor(t[:, 1]).astype(int), 0, it.mask.shape[0] - 1)
             inner = inner_mask[iy, ix]
@@ -409,6 +409,46 @@ def verify_glb(path: Path, items: list[PolygonTexture], samples_per_polygon: int
     }
 
 
+def render_view(glb: str | Path, proxy, photo, long_side: int = 512) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Render the reloaded GLB as photo ``photo`` sees it: the project's ray caster finds the
+    nearest proxy polygon per pixel, the polygon's reloaded UVs (an affine function on its plane,
+    fitted to its reloaded vertices) give the atlas position, the atlas is sampled bilinearly.
+
+    Returns (render (h, w, 3), covered (h, w) bool, pixel centres (h, w, 2)) at a stride that
+    makes the long side about ``long_side``.
+    """
+    import trimesh
+
+    from difftex.visibility import id_buffer
+
+    stride = max(1, math.ceil(max(photo.width, photo.height) / long_side))
+    ids, dist = id_buffer(proxy, photo, stride=stride)
+    # the same pixel centres as id_buffer's
+    ys = np.minimum(np.arange(0, photo.height, stride) + (0.5 * stride if stride > 1 else 0.5), photo.height - 0.5)
+    xs = np.minimum(np.arange(0, photo.width, stride) + (0.5 * stride if stride > 1 else 0.5), photo.width - 0.5)
+    pix = np.stack(np.meshgrid(xs, ys), axis=-1)
+    scene = trimesh.load(glb, file_type="glb", force="scene")
+    out = np.zeros((*ids.shape, 3), np.float32)
+    covered = np.zeros(ids.shape, bool)
+    pages: dict[int, np.ndarray] = {}
+    for j, poly in enumerate(proxy.polygons):
+        sel = ids == j
+        geom = scene.geometry.get(poly.id)
+        if not sel.any() or geom is None:
+            continue
+        rays = photo.unproject(pix[sel])
+        X = photo.center + dist[sel][:, None].astype(np.float64) * rays
+        A = np.column_stack([geom.vertices, np.ones(len(geom.vertices))])
+        M = np.linalg.lstsq(A, np.asarray(geom.visual.uv, np.float64), rcond=None)[0]
+        uv = np.column_stack([X, np.ones(len(X))]) @ M
+        img = geom.visual.material.baseColorTexture
+        if id(img) not in pages:
+            pages[id(img)] = np.asarray(img.convert("RGB"), np.float32) / 255.0
+        out[sel] = sample_atlas(pages[id(img)], uv)
+        covered |= sel
+    return out, covered, pix
+
+
 # ---------------------------------------------------------------------------------------------
 
 
@@ -422,6 +462,8 @@ def assemble(items: list[PolygonTexture], out_dir: str | Path, cfg: AssembleConf
         raise DifftexError(f"{out_dir}: no polygons to assemble")
     pad = int(cfg.padding)
     atlas = build_atlas(items, cfg)
+    for stale in out_dir.glob(f"{name}_atlas*.png"):
+        stale.unlink()  # pages of an earlier run with more pages
     page_paths = []
     for k, page in enumerate(atlas.pages):
         p = out_dir / f"{name}_atlas{k}.png"

@@ -64,6 +64,25 @@ def expand_dotted(d: dict) -> dict:
     return out
 
 
+def coerce_types(user: Any, default: Any) -> Any:
+    """Snakemake's --config reads nested values as plain strings ('optimize={lr: 0.01}' gives
+    lr = "0.01"); parse such a string as YAML wherever the default is not a string."""
+    import yaml
+
+    if isinstance(user, dict):
+        d = default if isinstance(default, dict) else {}
+        return {k: coerce_types(v, d.get(k)) for k, v in user.items()}
+    if isinstance(user, list):
+        d = default[0] if isinstance(default, list) and default else None
+        return [coerce_types(v, d) for v in user]
+    if isinstance(user, str) and not isinstance(default, str):
+        try:
+            return yaml.safe_load(user) if user.strip() else user
+        except yaml.YAMLError:
+            return user
+    return user
+
+
 def _load_yaml(path: Path) -> dict:
     import yaml
 
@@ -83,7 +102,7 @@ def resolve_config(repo: str | Path, user: dict | None) -> dict:
     (--configfile files and --config keys, dotted keys expanded)."""
     repo = Path(repo)
     defaults = _load_yaml(repo / "config" / "config.yaml")
-    user = expand_dotted(dict(user or {}))
+    user = coerce_types(expand_dotted(dict(user or {})), defaults)
     preset = user.get("preset", defaults.get("preset"))
     cfg = defaults
     if preset:
@@ -179,15 +198,23 @@ def scene_inputs(scene: str | Path) -> list[str]:
     return [str(p) for p in [proxies[0], *model, *images]]
 
 
+_POLYGONS_CACHE: dict[tuple[str, int], list[dict]] = {}
+
+
 def polygons(summary: str | Path) -> list[dict]:
-    """Polygon rows of R/visibility/summary.json."""
+    """Polygon rows of R/visibility/summary.json (cached per file version: the workflow asks for
+    them once per job and resource of every polygon)."""
     from difftex.io import read_json
 
-    data = read_json(summary)
-    try:
-        return list(data["polygons"])
-    except (KeyError, TypeError):
-        raise DifftexError(f"{summary}: not a visibility summary (no 'polygons')") from None
+    path = Path(summary)
+    key = (str(path.resolve()), path.stat().st_mtime_ns if path.exists() else -1)
+    if key not in _POLYGONS_CACHE:
+        data = read_json(path)
+        try:
+            _POLYGONS_CACHE[key] = list(data["polygons"])
+        except (KeyError, TypeError):
+            raise DifftexError(f"{summary}: not a visibility summary (no 'polygons')") from None
+    return _POLYGONS_CACHE[key]
 
 
 def textured_ids(summary: str | Path) -> list[str]:
@@ -262,6 +289,8 @@ def scene_mem_mb(scene_inputs_list: list[str], run: dict, factor: float = 4.0) -
 
 def assemble_mem_mb(summary: str | Path, cfg: dict) -> int:
     """Two float32 pages of the atlas at most plus the textures (as float32) of all polygons."""
+    if not Path(summary).is_file():  # asked before the checkpoint ran (dry run)
+        return int(cfg["run"]["base_mem_mb"])
     texels = sum(int(p.get("width", 0)) * int(p.get("height", 0)) for p in polygons(summary))
     page = int(cfg["assemble"]["max_page_size"]) ** 2
     page = min(page, int(texels * 1.3) + 1)

@@ -37,6 +37,35 @@ def _read_frame_and_mask(path):
     return frame, mask
 
 
+def _view_check(scene_dir, proxy, info, glb, out_png) -> dict | None:
+    """Render the reloaded GLB from the photo that sees most polygons; write the render beside
+    the photo (left: photo, right: model) and their mean colour difference where the model is."""
+    from collections import Counter
+
+    import numpy as np
+
+    from difftex.assemble import render_view
+    from difftex.camera import load_photos
+    from difftex.io import read_image, write_image
+    from difftex.mapping import sample_photo
+    from difftex.scene import find_sparse
+
+    counts = Counter(name for row in info.values() for name in row.get("photos", []))
+    if not counts:
+        return None
+    name = counts.most_common(1)[0][0]
+    photos = {p.name: p for p in load_photos(find_sparse(scene_dir), scene_dir / "images", check_images=False)}
+    if name not in photos:
+        return None
+    photo = photos[name]
+    render, covered, pix = render_view(glb, proxy, photo)
+    shot = sample_photo(read_image(scene_dir / "images" / name), pix)
+    write_image(out_png, np.concatenate([shot, np.where(covered[..., None], render, 0.0)], axis=1))
+    diff = float(np.abs(render - shot)[covered].mean()) if covered.any() else None
+    return {"photo": name, "image": out_png.name, "covered_share": round(float(covered.mean()), 4),
+            "mean_abs_diff": None if diff is None else round(diff, 4)}
+
+
 def run(args) -> int:
     import time
     from pathlib import Path
@@ -93,6 +122,9 @@ def run(args) -> int:
     out_dir = Path(args.out_dir)
     with console.status(f"packing {len(items)} textures and writing the model"):
         summary = assemble(items, out_dir, cfg, name=args.name)
+    if cfg.glb and cfg.verify:
+        with console.status("rendering a view of the model"):
+            summary["view_check"] = _view_check(scene, proxy, info, out_dir / summary["glb"], out_dir / f"{args.name}_view.png")
     summary = {"scene": scene.resolve().name, "scene_path": str(scene.resolve()), **summary, "seconds": round(time.time() - t0, 2)}
     write_json(out_dir / "summary.json", summary)
 

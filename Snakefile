@@ -1,0 +1,36 @@
+# difftex: texturing planar building proxies from registered photos (DiffTex, ACM TOG 2025).
+#
+#   snakemake --cores all                                   # the bundled synthetic example
+#   snakemake --cores all --config scene=path/to/scene      # any scene (images/, sparse/0/, proxy.obj)
+#   snakemake --cores all --config scene=... preset=fast optimize.lr=0.01
+#
+# Results: <results>/<scene name>/ in the working directory (see docs/workflow.md).
+
+from snakemake.utils import min_version
+
+min_version("9.0")
+
+
+include: "workflow/rules/common.smk"
+include: "workflow/rules/scene.smk"
+include: "workflow/rules/filter.smk"
+include: "workflow/rules/visibility.smk"
+include: "workflow/rules/optimize.smk"
+include: "workflow/rules/assemble.smk"
+include: "workflow/rules/evaluate.smk"
+
+
+localrules:
+    all,
+    report,
+
+
+rule all:
+    input:
+        f"{R}/model/summary.json",
+        f"{R}/report.md",
+    default_target: True
+
+
+onsuccess:
+    wf.print_summary(R)

@@ -1,0 +1,56 @@
+# The textured model: atlas pages, OBJ + MTL + PNG and GLB; every polygon of the proxy is in it,
+# those no photo sees with a grey patch. Then a short report.
+
+
+rule assemble:
+    input:
+        scene=SCENE_MODEL,
+        summary=f"{R}/visibility/summary.json",
+        textures=lambda wc: expand(
+            f"{R}/textures/{{pid}}/texture.png",
+            pid=wf.textured_ids(checkpoints.visibility.get().output.summary),
+        ),
+        config=STAGE_CFG["assemble"],
+    output:
+        summary=f"{R}/model/summary.json",
+        obj=f"{R}/model/model.obj",
+        mtl=f"{R}/model/model.mtl",
+        **({"glb": f"{R}/model/model.glb"} if config["assemble"]["glb"] else {}),
+    params:
+        scene=lambda wc, input: Path(input.scene[0]).parent,
+        textures=f"{R}/textures",
+        visibility=lambda wc, input: Path(input.summary).parent,
+        out_dir=lambda wc, output: Path(output.summary).parent,
+    conda:
+        "../envs/difftex.yaml"
+    log:
+        f"{R}/logs/assemble.log",
+    benchmark:
+        f"{R}/benchmarks/assemble/assemble.tsv"
+    threads: 1
+    resources:
+        mem_mb=lambda wc, input: wf.assemble_mem_mb(input.summary, config),
+        runtime=60,
+    shell:
+        "difftex assemble --scene {params.scene} --textures {params.textures} "
+        "--visibility {params.visibility} --config {input.config} --out-dir {params.out_dir} > {log} 2>&1"
+
+
+rule report:
+    input:
+        model=f"{R}/model/summary.json",
+        metrics=[f"{R}/evaluation/metrics.json"] if EVALUATE else [],
+    output:
+        f"{R}/report.md",
+    params:
+        results=lambda wc, output: Path(output[0]).parent,
+    conda:
+        "../envs/difftex.yaml"
+    log:
+        f"{R}/logs/report.log",
+    threads: 1
+    resources:
+        mem_mb=500,
+        runtime=5,
+    script:
+        "../scripts/report.py"

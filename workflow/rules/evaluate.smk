@@ -1,0 +1,26 @@
+# Evaluation against the ground truth of synthetic scenes (run.evaluate: auto | true | false).
+
+
+rule evaluate:
+    input:
+        scene=SCENE_MODEL,
+        model=f"{R}/model/summary.json",
+        config=STAGE_CFG["evaluate"],
+    output:
+        f"{R}/evaluation/metrics.json",
+    params:
+        scene=lambda wc, input: Path(input.scene[0]).parent,
+        results=lambda wc, input: Path(input.model).parent.parent,
+    conda:
+        "../envs/difftex.yaml"
+    log:
+        f"{R}/logs/evaluate.log",
+    benchmark:
+        f"{R}/benchmarks/evaluate/evaluate.tsv"
+    threads: RUN["scene_threads"]
+    resources:
+        mem_mb=8000,
+        runtime=60,
+    shell:
+        "OMP_NUM_THREADS={threads} difftex evaluate --scene {params.scene} --results {params.results} "
+        "--config {input.config} --out {output} > {log} 2>&1"
