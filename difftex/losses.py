@@ -144,7 +144,17 @@ def _crop(x: torch.Tensor, axis: int, which: str) -> torch.Tensor:
     return x[..., :, 1:] if which == "o" else x[..., :, :-1]
 
 
-def para_loss(W, U, active, G, matches: dict[int, NeighbourMatch], lambda_s: float, n_tex: float) -> torch.Tensor:
+def _abs(x: torch.Tensor, eps: float) -> torch.Tensor:
+    """|x|, smoothed near 0 (Charbonnier) when eps > 0.
+
+    The exact |x| has a gradient of constant size whose sign flips with every tiny
+    difference; with Adam's per-parameter normalisation that noise swamps the other terms.
+    """
+    return (x * x + eps * eps).sqrt() - eps if eps > 0 else x.abs()
+
+
+def para_loss(W, U, active, G, matches: dict[int, NeighbourMatch], lambda_s: float, n_tex: float,
+              eps: float = 0.0) -> torch.Tensor:
     """L_Para (eq. 8-10) over up and left neighbours, summed over photos.
 
     C = m_k(t_o) D(t_o, t_q) + lambda_s, D = S(|U(t_o) - U(t_q)|) (1 + G(t_o)). The edge weight
@@ -160,6 +170,6 @@ def para_loss(W, U, active, G, matches: dict[int, NeighbourMatch], lambda_s: flo
         m = _crop(overlap, axis, "o").to(W.dtype)
         Wq_same = torch.gather(Wq, 0, nm.match.clamp_min(0)) * (nm.match >= 0).to(W.dtype)
         C = m * D[None] + lambda_s
-        term = (C * (Wo - Wq_same).abs()).sum(0) + lambda_s * (Wq * nm.q_alone.to(W.dtype)).sum(0)
+        term = (C * _abs(Wo - Wq_same, eps)).sum(0) + lambda_s * _abs(Wq * nm.q_alone.to(W.dtype), eps).sum(0)
         total = total + (term * nm.pair_ok.to(W.dtype)).sum()
     return total / n_tex

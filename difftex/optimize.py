@@ -44,7 +44,8 @@ class OptimizeConfig:
     beta: float = 2.0  # L_Persp
     omega: float = 10.0  # L_Para
     lambda_s: float = 0.5
-    sparsity: float = 0.02  # weight of the L1 term inside L_Render (see docs/optimizer.md)
+    para_eps: float = 0.01  # Charbonnier smoothing of |.| in L_Para (0: exact L1)
+    sparsity: float = 1.0  # weight of the L1 term inside L_Render (paper: 1; see docs/optimizer.md)
     lr: float = 0.005
     betas: tuple[float, float] = (0.9, 0.99)
     tau: float = 0.01  # activation threshold on normalised weights
@@ -53,7 +54,7 @@ class OptimizeConfig:
     sigma_min: float = 0.02  # noise floor of colour standard deviations (Q_c and elimination)
     elimination_test: str = "loo"  # "loo": leave-one-out mean/std; "paper": mean/std including the pixel
     eliminate_every: int = 10  # iterations between pixel-elimination passes
-    max_iters_per_level: tuple[int, ...] = (300, 200, 120, 80)  # caps, last value repeats
+    max_iters_per_level: tuple[int, ...] = (300, 150, 80, 40)  # caps, last value repeats
     min_iters_per_level: int = 20
     conv_rel_tol: float = 1e-3  # converged when the loss fell by less than this share ...
     conv_window: int = 20  # ... over this many iterations
@@ -418,7 +419,7 @@ def build_level(inp: PolygonInput, frame: UVFrame, samplers: dict[int, PhotoSamp
     h, w = frame.shape
     K = cfg.top_k
     dropped = dropped or set()
-    photos = [n for n in sorted(samplers) if n not in dropped]
+    photos = sorted(samplers)
     cache: dict[int, MappedPhoto | None] = {}
     keep_all = len(photos) <= K
     s1 = torch.zeros(3, h, w, device=device)
@@ -450,7 +451,7 @@ def build_level(inp: PolygonInput, frame: UVFrame, samplers: dict[int, PhotoSamp
     normal = torch.tensor(frame.normal, dtype=torch.float32, device=device)
     v_tilde = losses.guidance_direction(torch.stack(vsum), normal) if vsum else -normal
 
-    best_score = torch.full((K, h, w), -1.0, device=device)
+    best_score = torch.full((K, h, w), -10.0, device=device)
     idx = torch.full((K, h, w), -1, dtype=torch.long, device=device)
     vis = torch.zeros((K, h, w), dtype=torch.bool, device=device)
     cols = torch.zeros((K, 3, h, w), device=device)
@@ -471,7 +472,8 @@ def build_level(inp: PolygonInput, frame: UVFrame, samplers: dict[int, PhotoSamp
             theta = torch.where(cov, t_up, q)
         # Rank: upsampled weight (or Q where the coarse level had no data); the small Q term
         # breaks ties between photos that were both deactivated at the coarse level.
-        score = torch.where(mp.visible, theta + 1e-3 * q, torch.full_like(q, -1.0))
+        score = theta + 1e-3 * q - (2.0 if n in dropped else 0.0)  # dropped photos only fill empty slots
+        score = torch.where(mp.visible, score, torch.full_like(q, -10.0))
         all_score = torch.cat([best_score, score[None]])
         top = torch.topk(all_score, K, dim=0)
         sel = top.indices
@@ -637,19 +639,38 @@ def eliminate_pixels(lv: Level, active: torch.Tensor, W: torch.Tensor, cfg: Opti
     return out & one
 
 
-def photos_to_drop(lv: Level, base: torch.Tensor, W: torch.Tensor, tau: float, tau_w: float, n_photos: int) -> list[int]:
-    """Photos whose weight is zero (<= tau) on more than tau_w of the texels they could serve."""
+def photo_zero_share(lv: Level, base: torch.Tensor, W: torch.Tensor, tau: float, n_photos: int) -> torch.Tensor:
+    """Per photo: share of the texels it could serve (base) where its weight is zero (<= tau); -1 if none."""
     idx = lv.idx.clamp_min(0).reshape(-1)
-    b = base.reshape(-1).float()
-    z = (base & (W <= tau)).reshape(-1).float()
+    b = base.reshape(-1).double()
+    z = (base & (W <= tau)).reshape(-1).double()
     tot = torch.bincount(idx, weights=b, minlength=n_photos)
     zero = torch.bincount(idx, weights=z, minlength=n_photos)
-    share = zero / tot.clamp_min(1)
-    return [int(k) for k in torch.nonzero((tot > 0) & (share > tau_w)).flatten().tolist()]
+    return torch.where(tot > 0, zero / tot.clamp_min(1), torch.full_like(tot, -1.0))
 
 
-def sole_source(base: torch.Tensor) -> torch.Tensor:
-    return base & (base.sum(0, keepdim=True) == 1)
+def photos_to_drop(lv: Level, base: torch.Tensor, W: torch.Tensor, tau: float, tau_w: float, n_photos: int) -> list[int]:
+    """Photos whose weight is zero (<= tau) on more than tau_w of the texels they could serve."""
+    share = photo_zero_share(lv, base, W, tau, n_photos)
+    return [int(k) for k in torch.nonzero(share > tau_w).flatten().tolist()]
+
+
+def dropped_slot_mask(lv: Level, eliminated: torch.Tensor, dropped: set[int], W: torch.Tensor | None = None) -> torch.Tensor:
+    """Slots of dropped photos, except the best one of a texel that no other photo serves.
+
+    Removing a texel's last source would leave a hole the optimization cannot fill (paper:
+    "improper photo or pixel removal can cause irreversible color loss").
+    """
+    base = lv.visible & ~eliminated
+    if not dropped:
+        return torch.zeros_like(base)
+    dset = torch.tensor(sorted(dropped), device=lv.idx.device)
+    ds = torch.isin(lv.idx, dset) & base
+    need = base.any(0) & ~(base & ~ds).any(0)
+    score = W if W is not None else lv.theta0
+    best = torch.where(base, score, torch.full_like(score, -1.0)).argmax(0, keepdim=True)
+    keep = torch.zeros_like(ds).scatter_(0, best, True) & need[None]
+    return ds & ~keep
 
 
 def loss_terms(lv: Level, st: LevelState, cfg: OptimizeConfig, matches) -> dict[str, torch.Tensor]:
@@ -665,7 +686,7 @@ def loss_terms(lv: Level, st: LevelState, cfg: OptimizeConfig, matches) -> dict[
             terms["render"] = losses.render_loss_texel(U, lv.colours, st.active, lv.Q, lv.n_tex)
         terms["sparsity"] = losses.sparsity_loss(st.theta, st.active, lv.n_tex) if cfg.use_sparsity else zero
     terms["persp"] = losses.persp_loss(W, lv.cost, lv.n_tex) if cfg.use_persp else zero
-    terms["para"] = losses.para_loss(W, U, st.active, lv.G, matches, cfg.lambda_s, lv.n_tex) if cfg.use_para else zero
+    terms["para"] = losses.para_loss(W, U, st.active, lv.G, matches, cfg.lambda_s, lv.n_tex, cfg.para_eps) if cfg.use_para else zero
     total = zero
     if cfg.use_render:
         total = total + cfg.alpha * (terms["render"] + cfg.sparsity * terms["sparsity"])
@@ -715,7 +736,7 @@ def optimize_polygon(inp: PolygonInput, cfg: OptimizeConfig, progress: bool = Fa
         t_setup = time.perf_counter() - tl
         K = lv.idx.shape[0]
         eliminated = torch.zeros_like(lv.visible)
-        drop_slots = torch.zeros_like(lv.visible)
+        drop_slots = dropped_slot_mask(lv, eliminated, dropped)
         theta = lv.theta0.clone()
         base = base_mask(lv, eliminated, drop_slots)
         active = update_activation(theta, base, cfg.tau)
@@ -734,6 +755,7 @@ def optimize_polygon(inp: PolygonInput, cfg: OptimizeConfig, progress: bool = Fa
                 e = eliminate_pixels(lv, st.active, W0, cfg)
                 st.eliminated |= e
                 n_elim += int(e.sum())
+                drop_slots = dropped_slot_mask(lv, st.eliminated, dropped)
                 base = base_mask(lv, st.eliminated, drop_slots)
                 st.active = update_activation(st.theta.detach(), base, cfg.tau)
         anything = cfg.use_render or cfg.use_persp or cfg.use_para
@@ -749,21 +771,21 @@ def optimize_polygon(inp: PolygonInput, cfg: OptimizeConfig, progress: bool = Fa
                 W = losses.blend_weights(st.theta, base)
                 if cfg.data_elimination:
                     if it >= cfg.min_iters_per_level // 2:
-                        for n in photos_to_drop(lv, base, W, cfg.tau, cfg.tau_w, N):
-                            if n in dropped:
-                                continue
+                        cand = [n for n in photos_to_drop(lv, base, W, cfg.tau, cfg.tau_w, N) if n not in dropped]
+                        if cand:
+                            # one photo per check (the worst): dropping changes everyone's weights
+                            shares = photo_zero_share(lv, base, W, cfg.tau, N)
+                            n = max(cand, key=lambda k: (float(shares[k]), -k))
                             dropped.add(n)
                             dropped_here.append(inp.photos[n].name)
                             stats["dropped"].append({"photo": inp.photos[n].name, "level": li, "iteration": it})
-                        if dropped:
-                            dset = torch.tensor(sorted(dropped), device=device)
-                            ds = torch.isin(lv.idx, dset) & lv.visible
-                            # a dropped photo still serves texels it alone sees (no holes)
-                            drop_slots = ds & ~sole_source(base_mask(lv, st.eliminated, torch.zeros_like(ds)))
+                            drop_slots = dropped_slot_mask(lv, st.eliminated, dropped, W)
                     if it % max(cfg.eliminate_every, 1) == 0:
                         e = eliminate_pixels(lv, st.active, losses.blend_weights(st.theta, st.active), cfg)
                         st.eliminated |= e
                         n_elim += int(e.sum())
+                        if dropped:
+                            drop_slots = dropped_slot_mask(lv, st.eliminated, dropped, W)
                 base = base_mask(lv, st.eliminated, drop_slots)
                 st.active = update_activation(st.theta.detach(), base, cfg.tau)
             if bar is not None:

@@ -13,6 +13,8 @@ import numpy as np
 import pytest
 import torch
 
+torch.set_num_threads(1)  # the CI machine has 2 shared cores; intra-op threads only contend
+
 from difftex.camera import Photo
 from difftex.mapping import map_texels, sample_photo, texel_mask, uv_frame
 from difftex.optimize import OptimizeConfig, PolygonInput, level_sides, optimize_polygon, photo_weight
@@ -87,7 +89,7 @@ def make_input(photos, images, long_side=64, transfers=None) -> PolygonInput:
 
 
 def fast_cfg(**kw) -> OptimizeConfig:
-    base = dict(long_side_start=32, max_iters_per_level=(60, 40, 30), min_iters_per_level=10, device="cpu",
+    base = dict(long_side_start=32, max_iters_per_level=(300, 150, 80), min_iters_per_level=20, device="cpu",
                 histogram_matching=False)
     base.update(kw)
     return OptimizeConfig(**base)
@@ -253,7 +255,11 @@ def test_numerics_stay_finite(case):
         # every texel some photo sees has a source, weights sum to one there
         assert np.allclose(res.W.sum(0)[seen], 1.0, atol=1e-4)
         if case == "flat":
-            assert np.abs(res.U[seen] - np.array([0.4, 0.5, 0.6])).max() < 0.01
+            # border texels blend with the background through the pixel footprint; skip them
+            from scipy.ndimage import binary_erosion
+
+            inner = binary_erosion(seen, iterations=2)
+            assert np.abs(res.U[inner] - np.array([0.4, 0.5, 0.6])).max() < 0.01
 
 
 @pytest.mark.gpu
