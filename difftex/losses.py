@@ -153,23 +153,32 @@ def _abs(x: torch.Tensor, eps: float) -> torch.Tensor:
     return (x * x + eps * eps).sqrt() - eps if eps > 0 else x.abs()
 
 
+def edge_weights(U: torch.Tensor, G: torch.Tensor, axes=(1, 2)) -> dict[int, torch.Tensor]:
+    """D(t_o, t_q) = S(|U(t_o) - U(t_q)|) (1 + G(t_o)) per neighbour direction (eq. 10), no gradient.
+
+    D is a constant of L_Para: it says where a change of source is expensive; letting its
+    gradient act would blur U instead of moving the seams. It changes slowly with U, so the
+    optimizer refreshes it every few iterations.
+    """
+    U = U.detach()
+    return {a: torch.sigmoid((_crop(U, a, "o") - _crop(U, a, "q")).norm(dim=0)) * (1.0 + _crop(G, a, "o")) for a in axes}
+
+
 def para_loss(W, U, active, G, matches: dict[int, NeighbourMatch], lambda_s: float, n_tex: float,
-              eps: float = 0.0) -> torch.Tensor:
+              eps: float = 0.0, D: dict[int, torch.Tensor] | None = None) -> torch.Tensor:
     """L_Para (eq. 8-10) over up and left neighbours, summed over photos.
 
-    C = m_k(t_o) D(t_o, t_q) + lambda_s, D = S(|U(t_o) - U(t_q)|) (1 + G(t_o)). The edge weight
-    D is treated as a constant (detached): it says where a change of source is expensive, and
-    letting its gradient act would blur U instead of moving the seams.
+    C = m_k(t_o) D(t_o, t_q) + lambda_s with D from ``edge_weights`` (computed here if not given).
     """
+    if D is None:
+        D = edge_weights(U, G, tuple(matches))
     overlap = (active.sum(0, keepdim=True) >= 2) & active  # m_k: another mapped photo overlaps
     total = W.new_zeros(())
     for axis, nm in matches.items():
         Wo, Wq = _crop(W, axis, "o"), _crop(W, axis, "q")
-        Uo, Uq = _crop(U, axis, "o").detach(), _crop(U, axis, "q").detach()
-        D = torch.sigmoid((Uo - Uq).norm(dim=0)) * (1.0 + _crop(G, axis, "o"))
         m = _crop(overlap, axis, "o").to(W.dtype)
         Wq_same = torch.gather(Wq, 0, nm.match.clamp_min(0)) * (nm.match >= 0).to(W.dtype)
-        C = m * D[None] + lambda_s
+        C = m * D[axis][None] + lambda_s
         term = (C * _abs(Wo - Wq_same, eps)).sum(0) + lambda_s * _abs(Wq * nm.q_alone.to(W.dtype), eps).sum(0)
         total = total + (term * nm.pair_ok.to(W.dtype)).sum()
     return total / n_tex

@@ -588,6 +588,8 @@ class LevelState:
     active: torch.Tensor  # (K, h, w) bool a^_k
     eliminated: torch.Tensor  # (K, h, w) bool
     history: dict = field(default_factory=dict)
+    it: int = 0
+    D: dict | None = None  # L_Para edge weights, refreshed every eliminate_every iterations
 
 
 def base_mask(lv: Level, eliminated: torch.Tensor, dropped_slots: torch.Tensor) -> torch.Tensor:
@@ -686,7 +688,12 @@ def loss_terms(lv: Level, st: LevelState, cfg: OptimizeConfig, matches) -> dict[
             terms["render"] = losses.render_loss_texel(U, lv.colours, st.active, lv.Q, lv.n_tex)
         terms["sparsity"] = losses.sparsity_loss(st.theta, st.active, lv.n_tex) if cfg.use_sparsity else zero
     terms["persp"] = losses.persp_loss(W, lv.cost, lv.n_tex) if cfg.use_persp else zero
-    terms["para"] = losses.para_loss(W, U, st.active, lv.G, matches, cfg.lambda_s, lv.n_tex, cfg.para_eps) if cfg.use_para else zero
+    if cfg.use_para:
+        if st.D is None or st.it % max(cfg.eliminate_every, 1) == 0:
+            st.D = losses.edge_weights(U, lv.G, tuple(matches))
+        terms["para"] = losses.para_loss(W, U, st.active, lv.G, matches, cfg.lambda_s, lv.n_tex, cfg.para_eps, st.D)
+    else:
+        terms["para"] = zero
     total = zero
     if cfg.use_render:
         total = total + cfg.alpha * (terms["render"] + cfg.sparsity * terms["sparsity"])
@@ -760,6 +767,7 @@ def optimize_polygon(inp: PolygonInput, cfg: OptimizeConfig, progress: bool = Fa
                 st.active = update_activation(st.theta.detach(), base, cfg.tau)
         anything = cfg.use_render or cfg.use_persp or cfg.use_para
         for it in range(1, cap + 1 if anything else 1):
+            st.it = it
             terms = loss_terms(lv, st, cfg, matches)
             opt.zero_grad(set_to_none=True)
             terms["total"].backward()
