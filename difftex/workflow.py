@@ -155,7 +155,11 @@ def write_if_changed(path: str | Path, text: str) -> bool:
 
 
 def write_stage_configs(cfg: dict, results: str | Path) -> dict[str, str]:
-    """R/config/<stage>.yaml for every stage; returns {stage: path}."""
+    """R/config/<stage>.yaml for every stage; returns {stage: path}.
+
+    Snakemake 9 reruns a job when an input's content (checksum) or a param changed, not when only
+    its mtime did; the rules also carry the text as a param, so both triggers see a change.
+    """
     out = {}
     for stage in STAGE_SECTIONS:
         path = Path(results) / "config" / f"{stage}.yaml"
@@ -259,15 +263,16 @@ def polygon_mem_mb(scene: str | Path, row: dict, run: dict) -> int:
 
 
 def polygon_runtime_min(row: dict, cfg: dict) -> int:
-    """Wall-clock minutes for a cluster's time limit: coarse-to-fine levels up to the target, each
-    level at most max_iters_per_level iterations over texels x photos; 3x margin."""
+    """Wall-clock minutes for a cluster's time limit: coarse-to-fine levels doubling from
+    long_side_start to the target, each at most its iteration cap over texels x photos; 3x margin."""
     texels = int(row.get("width", 0)) * int(row.get("height", 0))
     k = max(1, len(row.get("photos", [])))
     long_side = max(int(row.get("width", 1)), int(row.get("height", 1)))
     start = int(cfg["optimize"]["long_side_start"])
     levels = max(1, math.ceil(math.log2(max(long_side / max(start, 1), 1))) + 1)
-    # each level has a quarter of the next one's texels: total <= 4/3 of the finest
-    work = texels * k * int(cfg["optimize"]["max_iters_per_level"]) * (4 / 3 if levels > 1 else 1)
+    caps = cfg["optimize"]["max_iters_per_level"]
+    caps = [int(c) for c in (caps if isinstance(caps, list) else [caps])]
+    work = sum(texels / 4 ** (levels - 1 - lv) * k * caps[min(lv, len(caps) - 1)] for lv in range(levels))
     return int(max(10, math.ceil(3 * work / float(cfg["run"]["texels_per_minute"]))))
 
 

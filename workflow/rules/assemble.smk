@@ -17,6 +17,7 @@ rule assemble:
         mtl=f"{R}/model/model.mtl",
         **({"glb": f"{R}/model/model.glb"} if config["assemble"]["glb"] else {}),
     params:
+        stage_config=STAGE_TEXT["assemble"],
         scene=lambda wc, input: Path(input.scene[0]).parent,
         textures=f"{R}/textures",
         visibility=lambda wc, input: Path(input.summary).parent,

@@ -31,6 +31,7 @@ try:
     # One small file per stage with only that stage's sections, rewritten only when they
     # change: editing an optimization parameter reruns optimization and what follows, nothing else.
     STAGE_CFG = wf.write_stage_configs(config, R)
+    STAGE_TEXT = {stage: wf.stage_config_text(config, stage) for stage in STAGE_CFG}
     # Synthetic scenes (the example included) carry ground_truth/ to evaluate against.
     EVALUATE = wf.want_evaluation(config, EXAMPLE or Path(SCENE, "ground_truth").is_dir())
 except DifftexError as exc:

@@ -9,6 +9,7 @@ rule evaluate:
     output:
         f"{R}/evaluation/metrics.json",
     params:
+        stage_config=STAGE_TEXT["evaluate"],
         scene=lambda wc, input: Path(input.scene[0]).parent,
         results=lambda wc, input: Path(input.model).parent.parent,
     conda:

@@ -9,6 +9,7 @@ rule filter:
         table=f"{R}/photos.json",
         csv=f"{R}/photos.csv",
     params:
+        stage_config=STAGE_TEXT["filter"],
         scene=lambda wc, input: Path(input.scene[0]).parent,
     conda:
         "../envs/difftex.yaml"

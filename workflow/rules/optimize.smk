@@ -14,6 +14,7 @@ rule init:
     output:
         f"{R}/init/{{pid}}.npz",
     params:
+        stage_config=STAGE_TEXT["optimize"],
         scene=lambda wc, input: Path(input.scene[0]).parent,
     conda:
         "../envs/difftex.yaml"
@@ -29,7 +30,7 @@ rule init:
         runtime=30,
         gpu=RUN["gpu"],
     shell:
-        "OMP_NUM_THREADS={threads} difftex init --scene {params.scene} --visibility {input.vis} "
+        "OMP_NUM_THREADS={threads} difftex init --threads {threads} --scene {params.scene} --visibility {input.vis} "
         "--config {input.config} --out {output} > {log} 2>&1"
 
 
@@ -46,6 +47,7 @@ rule optimize:
         weights=f"{R}/optimized/{{pid}}/weights.npz",
         stats=f"{R}/optimized/{{pid}}/stats.json",
     params:
+        stage_config=STAGE_TEXT["optimize"],
         scene=lambda wc, input: Path(input.scene[0]).parent,
         out_dir=lambda wc, output: Path(output.weights).parent,
     conda:
@@ -64,7 +66,7 @@ rule optimize:
         ),
         gpu=RUN["gpu"],
     shell:
-        "OMP_NUM_THREADS={threads} difftex optimize --scene {params.scene} --visibility {input.vis} "
+        "OMP_NUM_THREADS={threads} difftex optimize --threads {threads} --no-progress --scene {params.scene} --visibility {input.vis} "
         "--init {input.init} --config {input.config} --out-dir {params.out_dir} > {log} 2>&1"
 
 
@@ -83,6 +85,7 @@ rule histmatch:
         source=f"{R}/textures/{{pid}}/source.png",
         report=f"{R}/textures/{{pid}}/report.json",
     params:
+        stage_config=STAGE_TEXT["optimize"],
         scene=lambda wc, input: Path(input.scene[0]).parent,
         optimized=lambda wc, input: Path(input.weights).parent,
         out_dir=lambda wc, output: Path(output.texture).parent,
@@ -100,5 +103,5 @@ rule histmatch:
         runtime=30,
         gpu=RUN["gpu"],
     shell:
-        "OMP_NUM_THREADS={threads} difftex histmatch --scene {params.scene} --visibility {input.vis} "
+        "OMP_NUM_THREADS={threads} difftex histmatch --threads {threads} --scene {params.scene} --visibility {input.vis} "
         "--optimized {params.optimized} --config {input.config} --out-dir {params.out_dir} > {log} 2>&1"

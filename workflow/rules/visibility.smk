@@ -10,6 +10,7 @@ checkpoint visibility:
     output:
         summary=f"{R}/visibility/summary.json",
     params:
+        stage_config=STAGE_TEXT["visibility"],
         scene=lambda wc, input: Path(input.scene[0]).parent,
         out_dir=lambda wc, output: Path(output.summary).parent,
     conda:

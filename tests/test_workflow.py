@@ -1,0 +1,216 @@
+"""The Snakemake workflow: configuration handling, lint, the rule graph, and one end-to-end run on
+the tiny synthetic scene (outputs exist, load, cover the proxy; a rerun has nothing to do; an
+optimization-only change reruns only optimization and what follows)."""
+
+from __future__ import annotations
+
+import importlib.util
+import os
+import re
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from difftex import workflow as wf
+from difftex.errors import DifftexError
+
+REPO = Path(__file__).resolve().parents[1]
+SNAKEFILE = REPO / "Snakefile"
+LUND = REPO.parent / "shared" / "data" / "lund-door"
+BIN = Path(sys.executable).parent
+
+
+def snakemake(workdir: Path, *args: str, timeout: int = 1800) -> subprocess.CompletedProcess:
+    env = dict(os.environ, PATH=f"{BIN}{os.pathsep}{os.environ.get('PATH', '')}")
+    return subprocess.run(
+        [str(BIN / "snakemake"), "-s", str(SNAKEFILE), "--directory", str(workdir), *args],
+        capture_output=True,
+        text=True,
+        timeout=timeout,
+        env=env,
+    )
+
+
+def job_counts(out: str) -> dict[str, int]:
+    """{rule: count} from the 'Job stats' table of a (dry) run."""
+    m = re.search(r"Job stats:\n.*?\n-+\s+-+\n(.*?)\ntotal", out, re.S)
+    if not m:
+        return {}
+    return {line.split()[0]: int(line.split()[1]) for line in m.group(1).splitlines() if line.strip()}
+
+
+# ---------------------------------------------------------------------------------------------
+# Configuration
+
+
+def test_presets_and_user_values_merge_in_order():
+    cfg = wf.resolve_config(REPO, {"preset": "fast", "optimize": {"lr": "0.01"}})
+    wf.validate(cfg, REPO / "workflow/schemas/config.schema.yaml")
+    assert cfg["texture"]["long_side"] == 256  # from the preset
+    assert cfg["optimize"]["lr"] == 0.01  # the user's string coerced to the default's type
+    assert cfg["optimize"]["alpha"] == 1.0  # untouched default
+    # a user value beats the preset
+    cfg = wf.resolve_config(REPO, {"preset": "fast", "texture": {"long_side": "64"}})
+    assert cfg["texture"]["long_side"] == 64
+    # the paper preset renders into the photos
+    assert wf.resolve_config(REPO, {"preset": "paper"})["optimize"]["loss_mode"] == "render"
+
+
+@pytest.mark.parametrize(
+    "user, message",
+    [
+        ({"optimize": {"lrr": 1}}, "lrr"),
+        ({"optimize": {"loss_mode": "pixel"}}, "optimize.loss_mode"),
+        ({"texture": {"long_side": 0}}, "texture.long_side"),
+        ({"sceen": "x"}, "sceen"),
+    ],
+)
+def test_bad_config_is_a_one_line_error(user, message):
+    with pytest.raises(DifftexError, match=message):
+        wf.validate(wf.resolve_config(REPO, user), REPO / "workflow/schemas/config.schema.yaml")
+    with pytest.raises(DifftexError, match="unknown preset"):
+        wf.resolve_config(REPO, {"preset": "fastest"})
+
+
+def test_stage_files_hold_only_their_sections_and_are_rewritten_only_on_change(tmp_path):
+    cfg = wf.resolve_config(REPO, {})
+    paths = wf.write_stage_configs(cfg, tmp_path)
+    assert "lr:" in Path(paths["optimize"]).read_text()
+    assert "lr:" not in Path(paths["filter"]).read_text()
+    before = {s: Path(p).stat().st_mtime_ns for s, p in paths.items()}
+    os.utime(paths["filter"], ns=(1, 1))  # so a rewrite would show
+    cfg2 = wf.deep_merge(cfg, {"optimize": {"lr": 0.02}})
+    wf.write_stage_configs(cfg2, tmp_path)
+    assert Path(paths["filter"]).stat().st_mtime_ns == 1
+    assert Path(paths["visibility"]).stat().st_mtime_ns == before["visibility"]
+    assert "0.02" in Path(paths["optimize"]).read_text()
+
+
+def test_memory_estimate_grows_with_texels_and_photos():
+    run = wf.resolve_config(REPO, {})["run"]
+    small = wf.polygon_mem_mb(".", {"width": 256, "height": 256, "photos": ["a"]}, run)
+    big = wf.polygon_mem_mb(".", {"width": 2048, "height": 2048, "photos": ["a"] * 8}, run)
+    assert run["base_mem_mb"] < small < big
+
+
+# ---------------------------------------------------------------------------------------------
+# Rule graph (no stage runs)
+
+
+def test_lint_is_clean(tmp_path):
+    if not LUND.is_dir():
+        pytest.skip(f"{LUND} missing")
+    r = snakemake(tmp_path, "--lint", "--config", f"scene={LUND}")
+    assert r.returncode == 0, r.stdout + r.stderr
+
+
+def test_dry_run_plans_every_stage_and_a_wrong_key_stops_it(tmp_path):
+    if not LUND.is_dir():
+        pytest.skip(f"{LUND} missing")
+    r = snakemake(tmp_path, "-n", "--config", f"scene={LUND}", "preset=fast")
+    assert r.returncode == 0, r.stderr
+    counts = job_counts(r.stdout)
+    assert {"filter", "visibility", "assemble", "report", "all"} <= set(counts)
+    assert (tmp_path / "results/lund-door/config/optimize.yaml").is_file()
+    bad = snakemake(tmp_path, "-n", "--config", f"scene={LUND}", "optimize={lrr: 1}")
+    assert bad.returncode != 0 and "lrr" in bad.stdout + bad.stderr
+    missing = snakemake(tmp_path, "-n", "--config", f"scene={tmp_path / 'nowhere'}")
+    assert missing.returncode != 0 and "scene folder not found" in missing.stdout + missing.stderr
+
+
+# ---------------------------------------------------------------------------------------------
+# End to end on the tiny synthetic scene
+
+STAGES = ("init", "optimize", "histmatch")
+
+
+@pytest.fixture(scope="session")
+def tiny_scene(tmp_path_factory):
+    missing = [s for s in STAGES if importlib.util.find_spec(f"difftex.cli.{s}") is None]
+    if missing:
+        pytest.skip(f"difftex has no {', '.join(missing)} command yet")
+    from difftex.synth import generate
+
+    out = tmp_path_factory.mktemp("synth") / "tiny"
+    generate("tiny", out, progress=False)
+    return out
+
+
+@pytest.mark.slow
+def test_workflow_end_to_end(tiny_scene, tmp_path):
+    import numpy as np
+    import trimesh
+
+    from difftex.io import read_json
+    from difftex.proxy import load_proxy
+
+    work = tmp_path / "work"
+    args = ("--cores", "2", "--config", f"scene={tiny_scene}", "preset=fast")
+    r = snakemake(work, *args)
+    assert r.returncode == 0, r.stdout[-3000:] + r.stderr[-3000:]
+    R = work / "results" / "tiny"
+    model = R / "model"
+    glb, obj = model / "model.glb", model / "model.obj"
+    assert glb.is_file() and obj.is_file()
+    assert str(glb.relative_to(work)) in r.stdout + r.stderr  # the end-of-run summary names the GLB
+
+    proxy = load_proxy(tiny_scene / "proxy.obj")
+    scene = trimesh.load(glb, force="scene")
+    assert set(scene.geometry) == set(proxy.ids)
+    for p in proxy.polygons:
+        assert scene.geometry[p.id].area == pytest.approx(p.area, rel=1e-5)
+    mesh = trimesh.load(obj, force="mesh")
+    assert mesh.area == pytest.approx(sum(p.area for p in proxy.polygons), rel=1e-5)
+
+    summary = read_json(model / "summary.json")
+    vis = {p["id"]: p for p in read_json(R / "visibility/summary.json")["polygons"]}
+    for row in summary["polygons"]:
+        seen = vis[row["id"]]["coverage"] > 0 and vis[row["id"]]["photos"]
+        assert row["textured"] == bool(seen), row
+    assert summary["textured_area_share"] > 0.5
+    assert summary["check"]["max_color_error"] < 0.02
+    # the rendered view of the reloaded GLB looks like the photo
+    assert summary["view_check"]["mean_abs_diff"] < 0.25
+    texture = np.asarray(scene.geometry[summary["polygons"][0]["id"]].visual.material.baseColorTexture)
+    assert texture.std() > 0.01  # not a blank atlas
+
+    # a second run has nothing to do
+    again = snakemake(work, "-n", *args)
+    assert again.returncode == 0 and "Nothing to be done" in again.stdout, again.stdout[-2000:]
+
+    # an optimization-only change reruns optimization and what follows, not filter/visibility
+    changed = snakemake(work, "-n", *args, "optimize={lr: 0.01}")
+    counts = job_counts(changed.stdout)
+    assert counts.get("optimize", 0) == len([p for p in summary["polygons"] if p["textured"]])
+    assert "filter" not in counts and "visibility" not in counts
+    # ... and an assembly-only change only assembly
+    counts = job_counts(snakemake(work, "-n", *args, "assemble={padding: 2}").stdout)
+    assert set(counts) == {"assemble", "report", "all"}
+
+
+def test_config_yaml_mirrors_the_stage_dataclasses():
+    """config/config.yaml lists every key of each stage's config dataclass with its default, so
+    the workflow's defaults are the method's and a new parameter is not forgotten."""
+    import dataclasses
+
+    import yaml
+
+    from difftex.assemble import AssembleConfig
+    from difftex.config import FilterConfig, TextureConfig, VisibilityConfig
+
+    classes = {"texture": TextureConfig, "filter": FilterConfig, "visibility": VisibilityConfig, "assemble": AssembleConfig}
+    if importlib.util.find_spec("difftex.optimize") is not None:
+        from difftex.optimize import OptimizeConfig
+
+        classes["optimize"] = OptimizeConfig
+    cfg = yaml.safe_load((REPO / "config" / "config.yaml").read_text())
+    for name, cls in classes.items():
+        defaults = dataclasses.asdict(cls())
+        assert set(cfg[name]) == set(defaults), name
+        for key, value in defaults.items():
+            mine = cfg[name][key]
+            if isinstance(value, tuple):
+                value, mine = list(value), list(mine)
+            assert mine == value, f"{name}.{key}: config.yaml {mine!r} != {cls.__name__} {value!r}"
