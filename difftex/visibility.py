@@ -19,7 +19,7 @@ import numpy as np
 
 from difftex.camera import Photo
 from difftex.errors import DifftexError
-from difftex.mapping import UVFrame, map_texels, texel_mask, uv_frame
+from difftex.mapping import UVFrame, texel_mask, texel_to_pixel, uv_frame
 from difftex.proxy import Polygon, Proxy
 
 NO_POLYGON = -1
@@ -173,6 +173,7 @@ def polygon_visibility(
     photos: list[Photo],
     id_buffers: dict[str, np.ndarray],
     min_texels: int = 1,
+    mask: np.ndarray | None = None,
 ) -> PolygonVisibility:
     """Texel and photo-space visibility of polygon ``index`` in the given photos.
 
@@ -180,24 +181,25 @@ def polygon_visibility(
     than ``min_texels`` texels are left out of the candidates.
     """
     poly = proxy.polygons[index]
-    tmask = texel_mask(poly, frame)
+    tmask = texel_mask(poly, frame) if mask is None else mask
     names, vis, boxes, crops = [], [], [], []
+    ty_all, tx_all = np.nonzero(tmask)
     for ph in photos:
         ids = id_buffers[ph.name]
-        m = map_texels(frame, ph)
-        ok = m.valid & tmask
+        if (poly.normal @ (ph.center - poly.centroid)) <= 0:
+            continue  # the camera is behind the plane: it sees none of this face's outside
+        # Only the polygon's own texels are mapped: f_k^i on the mask, not the whole rectangle.
+        pix, depth = texel_to_pixel(frame, ph, tx_all + 0.5, ty_all + 0.5)
+        ok = (depth > 1e-9) & ph.in_image(pix)
+        seen = np.zeros_like(tmask)
         if ok.any():
-            px = np.clip(np.floor(m.pix[..., 0][ok]).astype(int), 0, ph.width - 1)
-            py = np.clip(np.floor(m.pix[..., 1][ok]).astype(int), 0, ph.height - 1)
-            seen = np.zeros_like(ok)
-            seen[ok] = ids[py, px] == index
-        else:
-            seen = ok
+            px = np.clip(pix[ok, 0].astype(np.int64), 0, ph.width - 1)
+            py = np.clip(pix[ok, 1].astype(np.int64), 0, ph.height - 1)
+            hit = ids[py, px] == index
+            seen[ty_all[ok][hit], tx_all[ok][hit]] = True
         if seen.sum() < min_texels:
             continue
         a = ids == index
-        if (poly.normal @ (ph.center - poly.centroid)) <= 0:
-            continue  # seen from behind: nothing of this face's outside is in the photo
         ys, xs = np.nonzero(a)
         if len(ys):
             x0, y0, x1, y1 = xs.min(), ys.min(), xs.max() + 1, ys.max() + 1
@@ -331,7 +333,7 @@ def scene_visibility(
         for i, poly in enumerate(proxy.polygons):
             if ph.name not in wanted.get(poly.id, ()):
                 continue
-            single = polygon_visibility(proxy, i, frames[i], [ph], {ph.name: ids}, min_texels=min_texels)
+            single = polygon_visibility(proxy, i, frames[i], [ph], {ph.name: ids}, min_texels=min_texels, mask=masks[i])
             if not single.photos:
                 continue
             seen = single.texel_visible[0]
