@@ -184,6 +184,15 @@ def _base(style, U, V, rng, color):
     return img
 
 
+def _sub(img, U, V, rect, pad=0.0):
+    """Views of the pixels around a rectangle: U varies along columns only and V along rows only
+    (V decreasing), so the window is found by binary search instead of a whole-image mask."""
+    u0, v0, u1, v1 = rect
+    c0, c1 = np.searchsorted(U[0], [u0 - pad, u1 + pad])
+    r0, r1 = np.searchsorted(-V[:, 0], [-(v1 + pad), -(v0 - pad)])
+    return img[r0:r1, c0:c1], U[r0:r1, c0:c1], V[r0:r1, c0:c1]
+
+
 def _fill(img, U, V, rect, color):
     u0, v0, u1, v1 = rect
     m = (U >= u0) & (U < u1) & (V >= v0) & (V < v1)
@@ -192,6 +201,7 @@ def _fill(img, U, V, rect, color):
 
 
 def _window(img, U, V, rect, frame_color, rng, mullions, shop=False):
+    img, U, V = _sub(img, U, V, rect, 0.01)
     u0, v0, u1, v1 = rect
     fw = 0.07
     _fill(img, U, V, rect, frame_color)
@@ -216,6 +226,7 @@ def _window(img, U, V, rect, frame_color, rng, mullions, shop=False):
 
 
 def _door(img, U, V, rect, rng):
+    img, U, V = _sub(img, U, V, rect, 0.01)
     u0, v0, u1, v1 = rect
     wood = np.float32([0.25, 0.13, 0.06]) * rng.uniform(0.8, 1.2)
     _fill(img, U, V, rect, np.float32([0.1, 0.1, 0.1]))
@@ -235,6 +246,7 @@ _SEGS = np.array([
 
 
 def _sign(img, U, V, rect, bg, rng):
+    img, U, V = _sub(img, U, V, rect, 0.01)
     u0, v0, u1, v1 = rect
     m = _fill(img, U, V, rect, np.asarray(bg, np.float32))
     if not m.any():
@@ -296,8 +308,9 @@ def paint_face(face: Face, layout: Layout, rng: np.random.Generator, density: fl
             _window(img, U, V, r, frame, rng, st["mullions"])
             # dirt streak under the sill
             u0, v0, u1, v1 = r
-            m = (U >= u0) & (U < u1) & (V < v0) & (V > v0 - 1.2)
-            img[m] *= (0.82 + 0.18 * np.clip((v0 - V[m]) / 1.2, 0, 1))[:, None]
+            si, sU, sV = _sub(img, U, V, (u0, v0 - 1.2, u1, v0))
+            m = (sU >= u0) & (sU < u1) & (sV < v0) & (sV > v0 - 1.2)
+            si[m] *= (0.82 + 0.18 * np.clip((v0 - sV[m]) / 1.2, 0, 1))[:, None]
         for r in layout.shopfronts:
             _window(img, U, V, r, frame * 0.5, rng, True, shop=True)
         for r in layout.doors:

@@ -130,8 +130,8 @@ def run_scene(cfg: SynthConfig, spec: BuildingSpec, out: Path, seed: int, buildi
     for i, v in enumerate(held):
         c = intr_by_id[v.camera_id]
         cw, ch = canv[c.camera_id]
-        sensor = rd.perspective_sensor(variant, v.R, v.t, c.f, cw, ch, cfg.gt_spp * 2)
-        lin = rd.render(variant, gscene, sensor, cfg.gt_spp * 2, seed=500000 + 1000 * building_index + i)
+        sensor = rd.perspective_sensor(variant, v.R, v.t, c.f, cw, ch, cfg.gt_spp)
+        lin = rd.render(variant, gscene, sensor, cfg.gt_spp, seed=500000 + 1000 * building_index + i)
         if c.k != 0:
             lin = cams.warp(lin, maps[c.camera_id])
         write_image(gt / "views" / "images" / v.name, rd.to_srgb(lin * EXPOSURE))

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 from difftex.errors import DifftexError
 
@@ -46,7 +46,7 @@ class SynthConfig:
     relief_depth: float = 0.4  # window recess / cornice protrusion (metres); 0 = flat facades
     balconies: bool = True
     sun: bool = True  # directional sun besides the sky; False = sky only
-    max_depth: int = 4  # path length (direct light + a few bounces, so recesses are shaded)
+    max_depth: int = 3  # path length: direct light plus one bounce, so recesses are shaded
     points3d: int = 300  # points of the COLMAP model sampled on the detailed facades
     previews: bool = True
     variant: str = "auto"  # auto | llvm_ad_rgb | scalar_rgb
@@ -71,7 +71,7 @@ PRESETS: dict[str, SynthConfig] = {
         width=320,
         height=240,
         spp=16,
-        gt_spp=16,
+        gt_spp=32,
         gt_long_side=512,
         texture_density=60.0,
         points3d=200,
@@ -90,8 +90,8 @@ PRESETS: dict[str, SynthConfig] = {
         held_out_views=20,
         width=1024,
         height=768,
-        spp=32,
-        gt_spp=16,
+        spp=16,
+        gt_spp=32,
         gt_long_side=2048,
         texture_density=80.0,
         texture_max_side=4096,
