@@ -1,6 +1,6 @@
 """The synthetic-scene generator checked against itself, independently of the optimiser.
 
-Two small scenes are generated once per session: the ``tiny`` preset cut down (occluders,
+Two small scenes are generated once per session: the ``tiny`` preset through the CLI (occluders,
 exposure variation, pinhole cameras) and a "clean" one (no occluders, reference exposure,
 radial distortion) for comparing photos with the ground-truth maps.
 """
@@ -18,7 +18,6 @@ pytest.importorskip("mitsuba")
 from difftex.io import read_image  # noqa: E402
 from difftex.synth import generate, get_preset  # noqa: E402
 
-SMALL = dict(views=8, held_out_views=2, width=200, height=150, gt_long_side=256, points3d=80)
 CLEAN = dict(views=6, held_out_views=1, width=240, height=180, gt_long_side=384, points3d=40, occluders=False,
              exposure_range=0.0, white_balance=0.0, image_noise=0.0, distortion=-0.08, street_fraction=0.5,
              spp=64, gt_spp=64, previews=False)
@@ -26,7 +25,12 @@ CLEAN = dict(views=6, held_out_views=1, width=240, height=180, gt_long_side=384,
 
 @pytest.fixture(scope="session")
 def tiny_scene(tmp_path_factory) -> Path:
-    return generate("tiny", tmp_path_factory.mktemp("synth") / "tiny", seed=3, progress=False, **SMALL)
+    """The README/CI example, made exactly as a user makes it: ``difftex synth --preset tiny``."""
+    from difftex.cli import main
+
+    out = tmp_path_factory.mktemp("synth") / "tiny"
+    assert main(["synth", "--preset", "tiny", "--out", str(out), "--seed", "3", "--quiet"]) == 0
+    return out
 
 
 @pytest.fixture(scope="session")
@@ -185,7 +189,7 @@ def test_frames_match_difftex_uv_frames(tiny_scene):
     from difftex.scene import load_scene
 
     scene = load_scene(tiny_scene)
-    assert len(scene.photos) == 8 and len(scene.proxy.polygons) >= 6
+    assert len(scene.photos) == get_preset("tiny").views and len(scene.proxy.polygons) >= 6
     assert scene.up[2] > 0.99
     for poly in scene.proxy.polygons:
         d = json.loads((tiny_scene / "ground_truth" / "frames" / f"{poly.id}.json").read_text())
@@ -200,7 +204,7 @@ def test_frames_match_difftex_uv_frames(tiny_scene):
 
 def test_layout_and_pictures(tiny_scene):
     man = _manifest(tiny_scene)
-    assert len(list((tiny_scene / "images").glob("*.png"))) == 8
+    assert len(list((tiny_scene / "images").glob("*.png"))) == len(man["views"]) == get_preset("tiny").views
     assert man["config"]["occluders"] and man["building"]["occluder_primitives"] > 0
     gains = [v["gain"] for v in man["views"]]
     assert max(gains) / min(gains) > 1.1  # exposure varies between photos
