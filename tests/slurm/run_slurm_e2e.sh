@@ -18,12 +18,15 @@
 # Options:
 #   --real               run the real difftex workflow (needs ./Snakefile and `difftex synth`)
 #   --snakefile F        Snakefile to run (default tests/slurm/Snakefile)
-#   --target T           target file/rule (repeatable; default: the workflow's first rule)
+#   --target T           target file/rule (repeatable; default: the workflow's default target);
+#                        with --real e.g. results/tiny/visibility/summary.json to stop early
 #   --config K=V         passed to snakemake --config (repeatable)
 #   --configfile C       passed to snakemake --configfile
+#   --scene DIR          --real: use this scene instead of generating `difftex synth --preset tiny`
 #   --tolerance X        --real: max allowed abs difference of texture values in [0,1] (default 0.02)
 #   --keep               keep the work directory and the cluster logs
 #   --timeout S          give up on the snakemake run after S seconds (default 1800)
+#   -- ARGS...           further snakemake arguments for every run (e.g. -- --groups ...)
 set -euo pipefail
 
 REPO="$(cd "$(dirname "${BASH_SOURCE[0]}")/../.." && pwd)"
@@ -32,6 +35,8 @@ SNAKEFILE=""
 TARGETS=()
 CONFIG=()
 CONFIGFILE=""
+SCENE=""
+EXTRA=()
 TOLERANCE=0.02
 KEEP=0
 RUN_TIMEOUT=1800
@@ -44,8 +49,10 @@ while [[ $# -gt 0 ]]; do
         --config) CONFIG+=("$2"); shift ;;
         --configfile) CONFIGFILE="$(realpath "$2")"; shift ;;
         --tolerance) TOLERANCE="$2"; shift ;;
+        --scene) SCENE="$(realpath "$2")"; shift ;;
         --keep) KEEP=1 ;;
         --timeout) RUN_TIMEOUT="$2"; shift ;;
+        --) shift; EXTRA=("$@"); break ;;
         -h|--help) sed -n '2,/^set -euo/p' "$0" | sed '$d' | sed 's/^# \{0,1\}//'; exit 0 ;;
         *) echo "run_slurm_e2e.sh: unknown argument '$1' (see --help)" >&2; exit 2 ;;
     esac
@@ -94,6 +101,7 @@ unset SLURM_CONF_BACKUP
 # SLURM_* from an enclosing allocation leaks into the test.
 unset SLURM_CONF SLURM_JOB_ID SLURM_JOBID SLURM_PARTITION SLURM_ACCOUNT || true
 STARTED_MUNGE=0
+SMK_PID=""
 T_SHUTDOWN=""
 
 stop_pidfile() {  # stop the daemon whose pid is in $1, wait up to 10 s, then SIGKILL
@@ -110,6 +118,14 @@ cleanup() {
     local rc=$?
     T_SHUTDOWN=$(now)
     set +e
+    if [[ -n "${SMK_PID:-}" ]] && kill -0 "$SMK_PID" 2>/dev/null; then
+        # INT, not TERM: on TERM snakemake waits for its running jobs to finish, on INT it
+        # cancels them (scancel) and exits (`timeout` passes the signal on)
+        kill -INT "$SMK_PID" 2>/dev/null
+        for _ in $(seq 300); do kill -0 "$SMK_PID" 2>/dev/null || break; sleep 0.2; done
+        kill -KILL "$SMK_PID" 2>/dev/null
+        wait "$SMK_PID" 2>/dev/null
+    fi
     if [[ -s "$STATE/slurmctld.pid" ]]; then
         # cancel anything still queued, then stop both daemons
         scancel --full --quiet --partition=cpu,gpu 2>/dev/null
@@ -165,6 +181,7 @@ fi
 HOST="$(hostname -s)"
 NODE_LINE="$(slurmd -C | head -n 1)"   # NodeName=<host> CPUs=.. ... RealMemory=..
 [[ "$NODE_LINE" == NodeName=* ]] || die "slurmd -C printed no node line: $NODE_LINE"
+NODE_CPUS="$(grep -o 'CPUs=[0-9]*' <<<"$NODE_LINE" | cut -d= -f2)"
 mkdir -p "$STATE/ctld" "$STATE/slurmd" "$(dirname "$SLURM_CONF_FILE")"
 if [[ -e "$SLURM_CONF_FILE" ]] && ! grep -qs 'written by tests/slurm/run_slurm_e2e.sh' "$SLURM_CONF_FILE"; then
     SLURM_CONF_BACKUP="$STATE/slurm.conf.orig"
@@ -230,9 +247,10 @@ log "cluster up in ${START_S} s: $(sinfo -h -o '%P %D %c cpus %m MB %T' | tr '\n
 # Settings that only make sense on this toy cluster are given on the command line, so that
 # the profile itself stays the one a user runs on a real cluster:
 #   squeue polling (no accounting db), a first status check after 5 s instead of 40 s,
-#   no shared-filesystem latency, and memory requests that fit this machine.
+#   no shared-filesystem latency, and no rule asking for more threads than this node has.
 SLURM_ARGS=(
     --profile "$REPO/workflow/profiles/slurm"
+    --max-threads "$NODE_CPUS"
     --slurm-status-command squeue
     --slurm-init-seconds-before-status-checks 5
     --latency-wait 5
@@ -242,8 +260,22 @@ SLURM_ARGS=(
 run_snakemake() {  # run_snakemake <workdir> <profile args...> -- <snakemake args...>
     local dir="$1"; shift
     mkdir -p "$dir"
-    (cd "$dir" && timeout "$RUN_TIMEOUT" snakemake "$@") > "$dir/snakemake.out" 2>&1 \
-        || { tail -n 40 "$dir/snakemake.out" >&2; return 1; }
+    # in the background + wait, so that a TERM/INT to this script reaches the trap at once
+    # (bash defers traps while a foreground child runs); the trap then stops snakemake
+    (cd "$dir" && exec timeout "$RUN_TIMEOUT" snakemake "${EXTRA[@]}" "$@") > "$dir/snakemake.out" 2>&1 &
+    SMK_PID=$!
+    local rc=0 stuck
+    while kill -0 "$SMK_PID" 2>/dev/null; do
+        # a job this cluster can never run (more cpus/memory/time than the node or partition
+        # has) would stay pending until the timeout: fail at once instead
+        stuck=$(squeue -h -t PD -o '%i %r' 2>/dev/null \
+            | grep -E 'PartitionConfig|PartitionNodeLimit|PartitionTimeLimit|BadConstraints|ReqNodeNotAvail' || true)
+        [[ -z "$stuck" ]] || die "a SLURM job can never start on this cluster: $stuck ($(scontrol show job -o "${stuck%% *}" | grep -o 'NumCPUs=[^ ]* .*MinMemoryNode=[^ ]*'))"
+        sleep 2
+    done
+    wait "$SMK_PID" || rc=$?
+    SMK_PID=""
+    [[ $rc -eq 0 ]] || { tail -n 40 "$dir/snakemake.out" >&2; return 1; }
 }
 
 check_tiny() {  # the tiny workflow's results: every job ran as its own SLURM job
@@ -277,7 +309,7 @@ check_tiny() {  # the tiny workflow's results: every job ran as its own SLURM jo
     sed 's/^/    /' "$summary" >&2
 }
 
-compare_textures() {  # compare_textures <dir_a> <dir_b>: same PNGs, values within tolerance
+compare_outputs() {  # compare_outputs <dir_a> <dir_b>: same PNGs within tolerance, same arrays
     python - "$1" "$2" "$TOLERANCE" <<'PY'
 import sys
 from pathlib import Path
@@ -286,27 +318,49 @@ import numpy as np
 from difftex.io import read_image
 
 a, b, tol = Path(sys.argv[1]), Path(sys.argv[2]), float(sys.argv[3])
-skip = {".snakemake"}
-def pngs(root):
-    return {p.relative_to(root) for p in root.rglob("*.png") if not skip & set(p.parts)}
-pa, pb = pngs(a), pngs(b)
-if not pa:
-    sys.exit(f"no PNG written under {a}")
-if pa != pb:
-    sys.exit(f"different PNG sets: only slurm {sorted(map(str, pa - pb))[:5]}, "
-             f"only local {sorted(map(str, pb - pa))[:5]}")
+
+def files(root, ext):
+    return {p.relative_to(root) for p in root.rglob(f"*{ext}")
+            if ".snakemake" not in p.parts and "benchmarks" not in p.parts}
+
+def same_set(ext):
+    fa, fb = files(a, ext), files(b, ext)
+    if fa != fb:
+        sys.exit(f"different {ext} files: only slurm {sorted(map(str, fa - fb))[:5]}, "
+                 f"only local {sorted(map(str, fb - fa))[:5]}")
+    return sorted(fa)
+
+pngs, npzs = same_set(".png"), same_set(".npz")
+if not pngs and not npzs:
+    sys.exit(f"no PNG or NPZ written under {a}: nothing to compare")
+# Textures: optimisation is deterministic on CPU, so SLURM and local runs must agree up to
+# PNG quantisation and thread-count effects on float reductions.
 worst, worst_name = 0.0, ""
-for rel in sorted(pa):
+for rel in pngs:
     x, y = read_image(a / rel), read_image(b / rel)
     if x.shape != y.shape:
         sys.exit(f"{rel}: shape {x.shape} (slurm) != {y.shape} (local)")
     d = float(np.abs(x - y).max()) if x.size else 0.0
-    if d > worst:
+    if d >= worst:
         worst, worst_name = d, str(rel)
-print(f"compared {len(pa)} PNGs: max abs difference {worst:.6f}"
-      + (f" ({worst_name})" if worst_name else ""))
+# Intermediate arrays (visibility masks, weights): same keys and shapes, difference reported.
+worst_arr, worst_arr_name = 0.0, ""
+for rel in npzs:
+    with np.load(a / rel) as za, np.load(b / rel) as zb:
+        if sorted(za.files) != sorted(zb.files):
+            sys.exit(f"{rel}: arrays {sorted(za.files)} (slurm) != {sorted(zb.files)} (local)")
+        for k in za.files:
+            x, y = za[k], zb[k]
+            if x.shape != y.shape:
+                sys.exit(f"{rel}[{k}]: shape {x.shape} (slurm) != {y.shape} (local)")
+            if x.dtype.kind in "biuf" and x.size:
+                d = float(np.abs(x.astype(np.float64) - y.astype(np.float64)).max())
+                if d >= worst_arr:
+                    worst_arr, worst_arr_name = d, f"{rel}[{k}]"
+print(f"compared {len(pngs)} PNGs: max abs difference {worst:.6f} ({worst_name or '-'}); "
+      f"{len(npzs)} NPZ files: max abs difference {worst_arr:.6g} ({worst_arr_name or '-'})")
 if worst > tol:
-    sys.exit(f"max abs difference {worst:.6f} > tolerance {tol}")
+    sys.exit(f"PNG max abs difference {worst:.6f} > tolerance {tol}")
 PY
 }
 
@@ -335,13 +389,21 @@ case "$MODE" in
     real)
         [[ -f "$REPO/Snakefile" ]] || die "no $REPO/Snakefile yet: the real workflow is not written"
         difftex synth --help >/dev/null 2>&1 || die "'difftex synth' is not available"
-        SCENE="$WORK/scene"
-        log "writing the tiny synthetic scene to $SCENE"
-        difftex synth --preset tiny --out "$SCENE" > "$WORK/synth.out" 2>&1 \
-            || { tail -n 20 "$WORK/synth.out" >&2; die "difftex synth failed"; }
+        if [[ -n "$SCENE" ]]; then
+            [[ -d "$SCENE" ]] || die "--scene $SCENE: no such folder"
+            log "using the scene $SCENE"
+        else
+            SCENE="$WORK/tiny"
+            T_SYNTH=$(now)
+            log "writing the tiny synthetic scene to $SCENE"
+            difftex synth --preset tiny --out "$SCENE" > "$WORK/synth.out" 2>&1 \
+                || { tail -n 20 "$WORK/synth.out" >&2; die "difftex synth failed"; }
+            log "scene written in $(elapsed "$T_SYNTH") s"
+        fi
+        # config/config.yaml is read by the workflow itself; it is not passed as --configfile,
+        # which would rank it above the chosen preset
         args=(-s "$REPO/Snakefile")
-        if [[ -n "$CONFIGFILE" ]]; then args+=(--configfile "$CONFIGFILE")
-        elif [[ -f "$REPO/config/config.yaml" ]]; then args+=(--configfile "$REPO/config/config.yaml"); fi
+        [[ -n "$CONFIGFILE" ]] && args+=(--configfile "$CONFIGFILE")
         args+=(--config "scene=$SCENE" "${CONFIG[@]}")
         log "real workflow through SLURM in $WORK/slurm"
         run_snakemake "$WORK/slurm" "${SLURM_ARGS[@]}" "${args[@]}" -- "${TARGETS[@]}" \
@@ -354,7 +416,7 @@ case "$MODE" in
         run_snakemake "$WORK/local" --profile "$REPO/workflow/profiles/local" "${args[@]}" -- "${TARGETS[@]}" \
             || die "snakemake (local) failed (log: $WORK/local/snakemake.out)"
         log "local run done in $(elapsed "$T_LOCAL") s"
-        compare_textures "$WORK/slurm" "$WORK/local" || die "slurm and local textures differ"
+        compare_outputs "$WORK/slurm" "$WORK/local" || die "slurm and local outputs differ"
         ;;
 esac
 RUN_S=$(elapsed "$T_RUN")
