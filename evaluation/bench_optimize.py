@@ -1,0 +1,172 @@
+"""Time and memory of the per-polygon optimizer at several texture sizes (and both loss modes).
+
+    python evaluation/bench_optimize.py --scene ../shared/data/herzjesu-p8 --polygon facade \
+        --sizes 512 1024 2048 --modes texel render --iters 10 --out evaluation/bench_optimize
+
+Visibility is computed once at the largest size and resampled to the smaller ones. Each
+(size, mode) runs in a fresh subprocess so that its peak resident memory (ru_maxrss) is its own.
+With ``--iters N`` every level runs exactly N iterations (no convergence stop), so the per-level
+iteration time is measured on equal terms; the time of a full run is then
+setup + iterations x time per iteration for the configured caps (both are reported).
+Writes <out>.json and <out>.md with the machine description.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import resource
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+
+def machine() -> dict:
+    import torch
+
+    cpu = platform.processor()
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                cpu = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        pass
+    mem = None
+    try:
+        for line in Path("/proc/meminfo").read_text().splitlines():
+            if line.startswith("MemTotal"):
+                mem = round(int(line.split()[1]) / 2**20, 1)
+    except OSError:
+        pass
+    return {"cpu": cpu, "cores": os.cpu_count(), "ram_gib": mem, "torch": torch.__version__,
+            "cuda": torch.cuda.get_device_name(0) if torch.cuda.is_available() else None,
+            "torch_threads": torch.get_num_threads(), "load_avg": os.getloadavg()}
+
+
+def visibility_file(scene: str, polygon: str, size: int, cache: Path) -> Path:
+    from difftex.scene import load_scene
+    from difftex.visibility import save_visibility, scene_visibility
+
+    path = cache / f"{Path(scene).name}_{polygon}_{size}.npz"
+    if path.is_file():
+        return path
+    sc = load_scene(scene, check_images=False)
+    names = [p.name for p in sc.photos]
+    vis = scene_visibility(sc.proxy, sc.photos, sc.up, {polygon: names}, size, None, progress=False)
+    (v,) = [v for v in vis if v.polygon_id == polygon]
+    save_visibility(path, v)
+    return path
+
+
+def run_one(args) -> dict:
+    import numpy as np
+    import torch
+
+    from difftex.optimize import OptimizeConfig, optimize_polygon, polygon_input_from_visibility, resample_nearest
+    from difftex.scene import load_scene
+    from difftex.visibility import load_visibility
+
+    torch.set_num_threads(args.threads)
+    sc = load_scene(args.scene, check_images=False)
+    vis = load_visibility(args.vis)
+    inp = polygon_input_from_visibility(vis, {p.name: p for p in sc.photos})
+    if max(inp.frame.shape) != args.one:
+        frame = inp.frame.resized(args.one)
+        inp.texel_visible = resample_nearest(inp.texel_visible, inp.frame, frame)
+        inp.texel_mask = resample_nearest(inp.texel_mask, inp.frame, frame)
+        inp.frame = frame
+    kw = dict(loss_mode=args.mode, device=args.device, histogram_matching=False)
+    if args.iters:
+        kw.update(max_iters_per_level=(args.iters,), min_iters_per_level=args.iters + 1, conv_window=args.iters)
+    cfg = OptimizeConfig(**kw)
+    rss0 = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    t0 = time.perf_counter()
+    res = optimize_polygon(inp, cfg)
+    total = time.perf_counter() - t0
+    full_cfg = OptimizeConfig()
+    levels = []
+    est = res.stats["time_read_photos_s"]
+    for i, lv in enumerate(res.stats["levels"]):
+        it = max(lv["iterations"], 1)
+        per_it = (lv["time_s"] - lv["time_setup_s"]) / it
+        est += lv["time_setup_s"] + per_it * full_cfg.cap(i)
+        levels.append({"long_side": lv["long_side"], "shape": lv["shape"], "candidates": lv["candidates"],
+                       "top_k": lv["top_k"], "setup_s": round(lv["time_setup_s"], 3), "iter_s": round(per_it, 4),
+                       "iterations": lv["iterations"], "tensor_mib": round(lv["tensor_bytes"] / 2**20, 1),
+                       "render_pixels": lv.get("render_pixels")})
+    out = {"size": args.one, "mode": args.mode, "texels": res.stats["texels"], "photos": len(inp.photos),
+           "time_s": round(total, 2), "read_photos_s": round(res.stats["time_read_photos_s"], 2),
+           "est_full_run_s": round(est, 1), "peak_rss_mib": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1),
+           "rss_before_mib": round(rss0 / 1024, 1), "levels": levels, "coverage": res.stats["coverage"]}
+    if "cuda_peak_bytes" in res.stats:
+        out["cuda_peak_mib"] = round(res.stats["cuda_peak_bytes"] / 2**20, 1)
+    return out
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--scene", required=True)
+    ap.add_argument("--polygon", required=True)
+    ap.add_argument("--sizes", type=int, nargs="+", default=[512, 1024, 2048])
+    ap.add_argument("--modes", nargs="+", default=["texel", "render"], choices=["texel", "render"])
+    ap.add_argument("--iters", type=int, default=10, help="iterations per level (0: the config's caps and convergence)")
+    ap.add_argument("--device", default="auto")
+    ap.add_argument("--threads", type=int, default=1)
+    ap.add_argument("--cache", default="/tmp/difftex_bench")
+    ap.add_argument("--out", default="evaluation/bench_optimize")
+    ap.add_argument("--one", type=int, help=argparse.SUPPRESS)
+    ap.add_argument("--mode", default="texel", help=argparse.SUPPRESS)
+    ap.add_argument("--vis", help=argparse.SUPPRESS)
+    args = ap.parse_args()
+    if args.one:
+        print("RESULT " + json.dumps(run_one(args)))
+        return 0
+    cache = Path(args.cache)
+    cache.mkdir(parents=True, exist_ok=True)
+    vis = visibility_file(args.scene, args.polygon, max(args.sizes), cache)
+    rows = []
+    for size in args.sizes:
+        for mode in args.modes:
+            cmd = [sys.executable, __file__, "--scene", args.scene, "--polygon", args.polygon, "--one", str(size),
+                   "--mode", mode, "--vis", str(vis), "--iters", str(args.iters), "--device", args.device,
+                   "--threads", str(args.threads)]
+            p = subprocess.run(cmd, capture_output=True, text=True)
+            line = [l for l in p.stdout.splitlines() if l.startswith("RESULT ")]
+            if p.returncode or not line:
+                print(p.stderr[-2000:], file=sys.stderr)
+                rows.append({"size": size, "mode": mode, "error": p.stderr.strip().splitlines()[-1] if p.stderr.strip() else "failed"})
+                continue
+            r = json.loads(line[0][7:])
+            rows.append(r)
+            print(f"{size:5d} {mode:6s} {r['time_s']:8.1f}s  full~{r['est_full_run_s']:8.1f}s  rss {r['peak_rss_mib']:8.1f} MiB", flush=True)
+    info = {"command": " ".join(sys.argv), "scene": args.scene, "polygon": args.polygon, "iters_per_level": args.iters,
+            "machine": machine(), "results": rows}
+    from difftex.io import write_json, write_text
+
+    write_json(args.out + ".json", info)
+    m = info["machine"]
+    lines = [f"# Optimizer time and memory per polygon ({Path(args.scene).name} / {args.polygon})", "",
+             f"Command: `{info['command']}`", "",
+             f"Machine: {m['cpu']}, {m['cores']} cores, {m['ram_gib']} GiB RAM, torch {m['torch']}, "
+             f"CUDA: {m['cuda'] or 'none'}, torch threads {args.threads}, load average at the end {tuple(round(x, 1) for x in m['load_avg'])}.", "",
+             f"Each level ran {args.iters} iterations (0 = config caps). 'full run' = read + setup + default caps "
+             "(300, 150, 80, 40 iterations per level) x measured time per iteration.", "",
+             "| texels | mode | photos | run (s) | est. full run (s) | peak RSS (MiB) | last level: s/iter | last level tensors (MiB) |",
+             "|---|---|---|---|---|---|---|---|"]
+    for r in rows:
+        if "error" in r:
+            lines.append(f"| {r['size']} | {r['mode']} | | failed: {r['error']} | | | | |")
+            continue
+        last = r["levels"][-1]
+        lines.append(f"| {r['size']} ({r['texels']} in polygon) | {r['mode']} | {r['photos']} | {r['time_s']} | {r['est_full_run_s']} | "
+                     f"{r['peak_rss_mib']} | {last['iter_s']} | {last['tensor_mib']} |")
+    write_text(args.out + ".md", "\n".join(lines) + "\n")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
