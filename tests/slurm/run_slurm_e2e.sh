@@ -125,6 +125,7 @@ cleanup() {
         for _ in $(seq 300); do kill -0 "$SMK_PID" 2>/dev/null || break; sleep 0.2; done
         kill -KILL "$SMK_PID" 2>/dev/null
         wait "$SMK_PID" 2>/dev/null
+        log "snakemake interrupted; SLURM jobs left: $(squeue -h -o '%i %T' 2>/dev/null | tr '\n' ' ')"
     fi
     if [[ -s "$STATE/slurmctld.pid" ]]; then
         # cancel anything still queued, then stop both daemons
