@@ -274,3 +274,94 @@ def test_cuda_matches_cpu():
     b = optimize_polygon(inp, fast_cfg(device="cuda"))
     assert np.abs(a.U - b.U).max() < 2e-3
     assert np.abs(a.W - b.W).mean() < 2e-3
+
+
+# ------------------------------------------------------------------------------------------
+# Texture utilities and the command chain
+
+
+def test_fill_holes_fills_everything_and_keeps_known_texels():
+    from difftex.texture import fill_holes
+
+    rng = np.random.default_rng(0)
+    img = rng.random((40, 50, 3)).astype(np.float32)
+    known = rng.random((40, 50)) > 0.7
+    known[:, :20] = False  # a large hole
+    out = fill_holes(img * known[..., None], known)
+    assert np.array_equal(out[known], (img * known[..., None])[known])
+    assert (out[~known] > 0).all() and np.isfinite(out).all()
+    assert abs(out[~known].mean() - img[known].mean()) < 0.1  # filled from the neighbours' colours
+
+
+def test_source_map_colours_are_stable_per_photo():
+    from difftex.texture import photo_colour, source_map
+
+    dom = np.array([[0, 1], [-1, 1]])
+    mask = np.array([[True, True], [True, False]])
+    sm = source_map(dom, ["x.jpg", "y.jpg"], mask)
+    assert np.allclose(sm[0, 0], photo_colour("x.jpg")) and np.allclose(sm[0, 1], photo_colour("y.jpg"))
+    assert np.allclose(sm[1, 1], 0) and np.allclose(sm[1, 0], 0)
+    assert not np.allclose(photo_colour("x.jpg"), photo_colour("y.jpg"))
+
+
+def write_scene(root, photos, images):
+    """The analytic wall as a scene folder: COLMAP text model, PNG photos, proxy.obj."""
+    from scipy.spatial.transform import Rotation
+
+    from difftex.io import write_image
+
+    (root / "sparse" / "0").mkdir(parents=True)
+    (root / "images").mkdir()
+    cams, ims = [], []
+    for i, (ph, img) in enumerate(zip(photos, images), 1):
+        K = ph.K()
+        cams.append(f"{i} PINHOLE {ph.width} {ph.height} {K[0, 0]} {K[1, 1]} {K[0, 2]} {K[1, 2]}")
+        x, y, z, w = Rotation.from_matrix(ph.R).as_quat()
+        ims.append(f"{i} {w} {x} {y} {z} {ph.t[0]} {ph.t[1]} {ph.t[2]} {i} {ph.name}\n\n")  # + empty POINTS2D line
+        write_image(root / "images" / ph.name, img, bits=16)
+    (root / "sparse" / "0" / "cameras.txt").write_text("\n".join(cams) + "\n")
+    (root / "sparse" / "0" / "images.txt").write_text("".join(ims))
+    (root / "sparse" / "0" / "points3D.txt").write_text("")
+    v = wall().outer
+    (root / "proxy.obj").write_text("".join(f"v {a} {b} {c}\n" for a, b, c in v) + "g wall\nf 1 2 3 4\n")
+
+
+@pytest.mark.slow
+def test_command_chain_on_the_analytic_wall(tmp_path):
+    import json
+
+    from difftex.cli import main
+    from difftex.io import read_image
+
+    photos = [make_photo("a.png", -15.0), make_photo("b.png", 5.0), make_photo("c.png", 25.0)]
+    imgs = [render(ph) for ph in photos]
+    imgs[2] = paint_occluder(photos[2], imgs[2])
+    scene = tmp_path / "scene"
+    write_scene(scene, photos, imgs)
+    cfg = tmp_path / "cfg.yaml"
+    cfg.write_text("texture:\n  long_side: 64\noptimize:\n  long_side_start: 32\n  max_iters_per_level: [100, 60]\n  device: cpu\n")
+    R = tmp_path / "R"
+    assert main(["visibility", "--scene", str(scene), "--config", str(cfg), "--out-dir", str(R / "visibility"), "--quiet"]) == 0
+    vis = str(R / "visibility" / "wall.npz")
+    common = ["--scene", str(scene), "--visibility", vis, "--config", str(cfg), "--threads", "1"]
+    assert main(["init", *common, "--out", str(R / "init" / "wall.npz")]) == 0
+    assert main(["optimize", *common, "--init", str(R / "init" / "wall.npz"), "--out-dir", str(R / "opt"), "--no-progress"]) == 0
+    assert main(["histmatch", *common, "--optimized", str(R / "opt"), "--out-dir", str(R / "tex")]) == 0
+    assert main(["baseline", *common, "--method", "average", "--out-dir", str(R / "avg")]) == 0
+    stats = json.loads((R / "opt" / "stats.json").read_text())
+    assert len(stats["levels"]) == 2 and set(stats["levels"][0]["loss"]) >= {"render", "persp", "para", "sparsity", "total"}
+    report = json.loads((R / "tex" / "report.json").read_text())
+    assert report["coverage"] == 1.0 and report["histogram_matching"]
+    tex = read_image(R / "tex" / "texture.png")
+    avg = read_image(R / "avg" / "texture.png")
+    from difftex.mapping import uv_frame
+
+    frame = uv_frame(wall(), UP, long_side=64)
+    inp = make_input(photos, imgs, long_side=64)
+    assert inp.frame.shape == frame.shape == tex.shape[:2]
+    reg = occluded_region(inp) & inp.texel_visible.all(0)
+    gt = gt_texture(inp)
+    # the occluder (green) is averaged in by the baseline, not by the optimizer
+    assert np.abs(tex - gt).mean(-1)[reg].mean() < 0.5 * np.abs(avg - gt).mean(-1)[reg].mean()
+    # a stage given another polygon's files fails with one line
+    assert main(["histmatch", *common, "--optimized", str(R / "nope"), "--out-dir", str(R / "x")]) == 2
