@@ -113,13 +113,17 @@ class NeighbourMatch:
     Arrays are cropped so that o and q line up: o = [:, 1:, :], q = [:, :-1, :] for "up".
     """
 
-    match: torch.Tensor  # (K, h', w') long
-    q_alone: torch.Tensor  # (K, h', w') bool
+    match: torch.Tensor | None  # (K, h', w') long; None: slot j is the same photo everywhere
+    q_alone: torch.Tensor | None  # (K, h', w') bool
     pair_ok: torch.Tensor  # (h', w') bool: both texels inside the polygon
 
 
-def neighbour_match(idx: torch.Tensor, mask: torch.Tensor, axis: int) -> NeighbourMatch:
-    """Build the slot correspondence for the up (axis=1) or left (axis=2) neighbour."""
+def neighbour_match(idx: torch.Tensor, mask: torch.Tensor, axis: int, fixed: bool = False) -> NeighbourMatch:
+    """Build the slot correspondence for the up (axis=1) or left (axis=2) neighbour.
+
+    ``fixed``: every slot holds one photo at all texels (weights of photos that do not see a
+    texel are 0 there), so slots correspond directly and no gather is needed.
+    """
     K = idx.shape[0]
     if axis == 1:
         io, iq = idx[:, 1:, :], idx[:, :-1, :]
@@ -127,6 +131,8 @@ def neighbour_match(idx: torch.Tensor, mask: torch.Tensor, axis: int) -> Neighbo
     else:
         io, iq = idx[:, :, 1:], idx[:, :, :-1]
         ok = mask[:, 1:] & mask[:, :-1]
+    if fixed:
+        return NeighbourMatch(match=None, q_alone=None, pair_ok=ok)
     match = torch.full_like(io, -1)
     q_in_o = torch.zeros(io.shape, dtype=torch.bool, device=idx.device)
     # K x K comparisons, done slot by slot to keep the temporary at (h, w).
@@ -177,8 +183,11 @@ def para_loss(W, U, active, G, matches: dict[int, NeighbourMatch], lambda_s: flo
     for axis, nm in matches.items():
         Wo, Wq = _crop(W, axis, "o"), _crop(W, axis, "q")
         m = _crop(overlap, axis, "o").to(W.dtype)
-        Wq_same = torch.gather(Wq, 0, nm.match.clamp_min(0)) * (nm.match >= 0).to(W.dtype)
         C = m * D[axis][None] + lambda_s
-        term = (C * _abs(Wo - Wq_same, eps)).sum(0) + lambda_s * _abs(Wq * nm.q_alone.to(W.dtype), eps).sum(0)
+        if nm.match is None:
+            term = (C * _abs(Wo - Wq, eps)).sum(0)
+        else:
+            Wq_same = torch.gather(Wq, 0, nm.match.clamp_min(0)) * (nm.match >= 0).to(W.dtype)
+            term = (C * _abs(Wo - Wq_same, eps)).sum(0) + lambda_s * _abs(Wq * nm.q_alone.to(W.dtype), eps).sum(0)
         total = total + (term * nm.pair_ok.to(W.dtype)).sum()
     return total / n_tex

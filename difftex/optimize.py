@@ -371,6 +371,7 @@ class Level:
     v_tilde: np.ndarray
     n_candidates: int  # photos that see at least one texel at this level
     pixel_sets: list | None = None  # render mode
+    fixed_slots: bool = False  # slot j holds the same photo at every texel (all candidates fit in K)
 
     @property
     def n_tex(self) -> float:
@@ -451,6 +452,9 @@ def build_level(inp: PolygonInput, frame: UVFrame, samplers: dict[int, PhotoSamp
     normal = torch.tensor(frame.normal, dtype=torch.float32, device=device)
     v_tilde = losses.guidance_direction(torch.stack(vsum), normal) if vsum else -normal
 
+    fixed = keep_all  # every candidate fits: slot j is photo seen[j] at every texel
+    if fixed:
+        K = max(1, len(seen))
     best_score = torch.full((K, h, w), -10.0, device=device)
     idx = torch.full((K, h, w), -1, dtype=torch.long, device=device)
     vis = torch.zeros((K, h, w), dtype=torch.bool, device=device)
@@ -458,7 +462,7 @@ def build_level(inp: PolygonInput, frame: UVFrame, samplers: dict[int, PhotoSamp
     Q = torch.zeros((K, h, w), device=device)
     cost = torch.zeros((K, h, w), device=device)
     th0 = torch.zeros((K, h, w), device=device)
-    for n in seen:
+    for j, n in enumerate(seen):
         mp = cache[n] if keep_all else map_photo(inp, n, frame, samplers[n], mask_np, device)
         if mp is None:
             continue
@@ -470,6 +474,10 @@ def build_level(inp: PolygonInput, frame: UVFrame, samplers: dict[int, PhotoSamp
         if prev is not None:
             t_up, cov = upsample_photo_theta(prev, n, frame)
             theta = torch.where(cov, t_up, q)
+        if fixed:
+            idx[j] = n
+            vis[j], cols[j], Q[j], cost[j], th0[j] = mp.visible, mp.colour, q, pc, theta
+            continue
         # Rank: upsampled weight (or Q where the coarse level had no data); the small Q term
         # breaks ties between photos that were both deactivated at the coarse level.
         score = theta + 1e-3 * q - (2.0 if n in dropped else 0.0)  # dropped photos only fill empty slots
@@ -491,13 +499,12 @@ def build_level(inp: PolygonInput, frame: UVFrame, samplers: dict[int, PhotoSamp
         Q = pick(Q, q)
         cost = pick(cost, pc)
         th0 = pick(th0, theta)
-        if not keep_all:
-            del mp
+        del mp
     idx = torch.where(vis, idx, torch.full_like(idx, -1))
     th0 = th0.clamp(0.0, 1.0) * vis
     th0 = gauge(th0, vis)
     return Level(frame=frame, mask=mask, idx=idx, visible=vis, colours=cols, Q=Q, cost=cost, G=G, theta0=th0,
-                 v_tilde=v_tilde.cpu().numpy(), n_candidates=len(seen))
+                 v_tilde=v_tilde.cpu().numpy(), n_candidates=len(seen), fixed_slots=fixed)
 
 
 def gauge(theta: torch.Tensor, active: torch.Tensor) -> torch.Tensor:
@@ -748,7 +755,7 @@ def optimize_polygon(inp: PolygonInput, cfg: OptimizeConfig, progress: bool = Fa
         base = base_mask(lv, eliminated, drop_slots)
         active = update_activation(theta, base, cfg.tau)
         st = LevelState(level=lv, theta=theta.requires_grad_(True), active=active, eliminated=eliminated)
-        matches = {1: losses.neighbour_match(lv.idx, lv.mask, 1), 2: losses.neighbour_match(lv.idx, lv.mask, 2)} if cfg.use_para else {}
+        matches = {a: losses.neighbour_match(lv.idx, lv.mask, a, fixed=lv.fixed_slots) for a in (1, 2)} if cfg.use_para else {}
         opt = torch.optim.Adam([st.theta], lr=cfg.lr, betas=cfg.betas)
         hist: dict[str, list] = {k: [] for k in ("total", "render", "sparsity", "persp", "para")}
         n_elim = 0

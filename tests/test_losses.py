@@ -108,3 +108,22 @@ def test_para_smoothing_is_exact_l1_with_eps_zero_and_close_with_small_eps():
     assert torch.isclose(exact, ref, atol=1e-6)
     smooth = losses.para_loss(W, U, active, G, m, 0.5, 1.0, eps=1e-4)
     assert abs(float(smooth - exact)) < 1e-3
+
+
+def test_para_fixed_slot_shortcut_equals_the_general_matching():
+    g = torch.Generator().manual_seed(0)
+    K, h, w = 3, 5, 6
+    idx = torch.arange(K)[:, None, None].expand(K, h, w).clone()
+    idx[1, :2, :3] = -1  # photo 1 does not see the top-left corner
+    active = idx >= 0
+    theta = torch.rand(K, h, w, generator=g)
+    W = losses.blend_weights(theta, active)
+    U = torch.rand(3, h, w, generator=g)
+    G = torch.rand(h, w, generator=g)
+    mask = torch.ones(h, w, dtype=torch.bool)
+    mask[-1, -1] = False
+    gen = {a: losses.neighbour_match(idx, mask, a) for a in (1, 2)}
+    fix = {a: losses.neighbour_match(idx, mask, a, fixed=True) for a in (1, 2)}
+    a = losses.para_loss(W, U, active, G, gen, 0.5, 30.0, eps=0.01)
+    b = losses.para_loss(W, U, active, G, fix, 0.5, 30.0, eps=0.01)
+    assert torch.isclose(a, b, rtol=1e-5)
