@@ -209,11 +209,14 @@ def test_layout_and_pictures(tiny_scene):
     gains = [v["gain"] for v in man["views"]]
     assert max(gains) / min(gains) > 1.1  # exposure varies between photos
     held = tiny_scene / "ground_truth" / "views"
+    seen = set()
     for v in man["held_out_views"]:
         ids = read_image(held / "polygon_ids" / v["name"])[..., 0] * 65535
-        labels = np.unique(np.round(ids).astype(int))
-        assert 0 in labels and len(labels) >= 3  # background and at least two polygons
+        labels = set(np.unique(np.round(ids).astype(int)).tolist())
+        assert 0 in labels and len(labels) >= 2  # background and at least one polygon
+        seen |= labels
         assert read_image(held / "images" / v["name"]).shape[:2] == ids.shape
+    assert len(seen) >= 4  # together the held-out views cover several polygons
     for pic in ("contact_sheet.png", "proxy_overlay.png", "ground_truth_maps.png"):
         assert (tiny_scene / "preview" / pic).stat().st_size > 10_000
 

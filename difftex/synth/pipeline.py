@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 import platform
 import time
 from pathlib import Path
@@ -302,13 +303,21 @@ def position_image(cfg: SynthConfig, spec: BuildingSpec, seed: int, building_ind
     from difftex.synth import render as rd
 
     variant = rd.choose_variant(cfg.variant)
-    _, _, _, model, ground, ground_size, lighting, _, _ = build_model(cfg, spec, seed, building_index)
     occ = cfg.occluders if occluders is None else occluders
-    scene = rd.build_scene(variant, model, ground, ground_size, lighting, occluders=occ,
-                           integrator={"type": "aov", "aovs": "pp:position"})
+    scene = _position_scene(cfg, spec, seed, building_index, occ, variant)
     cw, ch = cams.undistort_canvas(intr)
     sensor = rd.perspective_sensor(variant, R, t, intr.f, cw, ch, spp)
     pos = rd.render(variant, scene, sensor, spp, seed=1)
     if intr.k != 0:
         pos = cams.warp(pos, cams.distortion_map(intr, (cw, ch)))
     return pos
+
+
+@functools.lru_cache(maxsize=2)
+def _position_scene(cfg, spec, seed, building_index, occluders, variant):
+    # Tests ask for several views of one scene; painting and loading it once saves seconds each.
+    from difftex.synth import render as rd
+
+    _, _, _, model, ground, ground_size, lighting, _, _ = build_model(cfg, spec, seed, building_index)
+    return rd.build_scene(variant, model, ground, ground_size, lighting, occluders=occluders,
+                          integrator={"type": "aov", "aovs": "pp:position"})
