@@ -57,34 +57,66 @@ class PixelSet:
     scale: float  # visible texels / pixels: puts a photo's pixel sum on the texel-sum scale
 
 
-def render_view(U: torch.Tensor, support: torch.Tensor, grid: torch.Tensor) -> torch.Tensor:
+@dataclass
+class PixelBatch:
+    """All photos' PixelSets concatenated, so one grid_sample renders every view."""
+
+    grid: torch.Tensor  # (1, P, 1, 2)
+    colour: torch.Tensor  # (P, 3)
+    texel: torch.Tensor  # (P,)
+    slot: torch.Tensor  # (P,)
+    scale: torch.Tensor  # (P,) the photo's scale per pixel
+    den: torch.Tensor | None = None  # (P,) sampled support, fixed per level (see render_view)
+
+    @property
+    def n(self) -> int:
+        return int(self.colour.shape[0])
+
+
+def batch_pixel_sets(sets: list[PixelSet], support: torch.Tensor, device) -> PixelBatch:
+    if not sets:
+        z = torch.zeros(0, device=device)
+        return PixelBatch(grid=torch.zeros(1, 0, 1, 2, device=device), colour=torch.zeros(0, 3, device=device),
+                          texel=z.long(), slot=z.long(), scale=z, den=z)
+    b = PixelBatch(
+        grid=torch.cat([s.grid for s in sets], 1),
+        colour=torch.cat([s.colour for s in sets]),
+        texel=torch.cat([s.texel for s in sets]),
+        slot=torch.cat([s.slot for s in sets]),
+        scale=torch.cat([torch.full((s.colour.shape[0],), float(s.scale), device=device) for s in sets]),
+    )
+    s_ = support.float()[None, None]
+    b.den = F.grid_sample(s_, b.grid, mode="bilinear", padding_mode="zeros", align_corners=False)[0, 0, :, 0]
+    return b
+
+
+def render_view(U: torch.Tensor, support: torch.Tensor, grid: torch.Tensor, den: torch.Tensor | None = None) -> torch.Tensor:
     """R_k at the given pixels: bilinear lookup of U (3, H, W), normalised by the support.
 
     Texels outside the polygon (or with no source) carry no colour; dividing by the bilinearly
-    sampled support keeps pixels at the polygon's border from blending with black.
+    sampled support keeps pixels at the polygon's border from blending with black. The support
+    does not depend on the weights, so its samples ``den`` can be computed once.
     """
     s = support.to(U.dtype)[None]
-    num = F.grid_sample((U * s)[None], grid, mode="bilinear", padding_mode="zeros", align_corners=False)
-    den = F.grid_sample(s[None], grid, mode="bilinear", padding_mode="zeros", align_corners=False)
-    return (num[0, :, :, 0] / den[0, :, :, 0].clamp_min(1e-6)).T  # (n, 3)
+    num = F.grid_sample((U * s)[None], grid, mode="bilinear", padding_mode="zeros", align_corners=False)[0, :, :, 0]
+    if den is None:
+        den = F.grid_sample(s[None], grid, mode="bilinear", padding_mode="zeros", align_corners=False)[0, 0, :, 0]
+    return (num / den.clamp_min(1e-6)[None]).T  # (n, 3)
 
 
-def render_loss_pixels(U, support, pixel_sets: list[PixelSet], active, Q, n_tex: float) -> torch.Tensor:
+def render_loss_pixels(U, support, batch: PixelBatch, active, Q, n_tex: float) -> torch.Tensor:
     """Render-space L_Render data term: sum_k ||a_k Q (R_k - I_k)||^2 over a_k^i pixels."""
+    if batch.n == 0:
+        return U.new_zeros(())
     K = active.shape[0]
     a_flat = active.reshape(K, -1).to(U.dtype)
     q_flat = Q.reshape(K, -1)
-    total = U.new_zeros(())
-    for ps in pixel_sets:
-        if ps.colour.shape[0] == 0:
-            continue
-        ok = ps.slot >= 0
-        j = ps.slot.clamp_min(0)
-        wq = a_flat[j, ps.texel] * q_flat[j, ps.texel] * ok.to(U.dtype)
-        R = render_view(U, support, ps.grid)
-        r = wq[:, None] * (R - ps.colour)
-        total = total + ps.scale * (r * r).sum()
-    return total / n_tex
+    ok = batch.slot >= 0
+    j = batch.slot.clamp_min(0)
+    wq = a_flat[j, batch.texel] * q_flat[j, batch.texel] * ok.to(U.dtype)
+    R = render_view(U, support, batch.grid, batch.den)
+    r = wq[:, None] * (R - batch.colour)
+    return (batch.scale[:, None] * r * r).sum() / n_tex
 
 
 def guidance_direction(view_dirs: torch.Tensor, normal: torch.Tensor) -> torch.Tensor:

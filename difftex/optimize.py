@@ -370,7 +370,7 @@ class Level:
     theta0: torch.Tensor  # (K, h, w) initial raw weights
     v_tilde: np.ndarray
     n_candidates: int  # photos that see at least one texel at this level
-    pixel_sets: list | None = None  # render mode
+    pixel_sets: "losses.PixelBatch | None" = None  # render mode
     fixed_slots: bool = False  # slot j holds the same photo at every texel (all candidates fit in K)
 
     @property
@@ -521,7 +521,7 @@ def gauge(theta: torch.Tensor, active: torch.Tensor) -> torch.Tensor:
 # Render-space data
 
 
-def build_pixel_sets(inp: PolygonInput, lv: Level, samplers: dict[int, PhotoSampler], device) -> list:
+def build_pixel_sets(inp: PolygonInput, lv: Level, samplers: dict[int, PhotoSampler], device) -> "losses.PixelBatch":
     """Per photo: its a_k^i pixels at the pyramid level matching the texel size, their texel coords.
 
     The rasterisation (pixel -> texel coordinate) is computed once per photo and level; the
@@ -581,7 +581,16 @@ def build_pixel_sets(inp: PolygonInput, lv: Level, samplers: dict[int, PhotoSamp
         g = np.stack([t[:, 0] / w * 2 - 1, t[:, 1] / h * 2 - 1], -1).astype(np.float32)
         grid = torch.from_numpy(g).to(device)[None, :, None, :]
         sets.append(losses.PixelSet(grid=grid, colour=colour, texel=tex, slot=slot, scale=n_tex / len(tex)))
-    return sets
+    return losses.batch_pixel_sets(sets, render_support(lv), device)
+
+
+def render_support(lv: Level) -> torch.Tensor:
+    """Texels that carry colour in the render-mode lookup: inside the polygon and seen by a photo.
+
+    The activation update always keeps a texel's strongest candidate, so this does not change
+    during a level.
+    """
+    return lv.mask & lv.visible.any(0)
 
 
 # --------------------------------------------------------------------------------------------
@@ -689,8 +698,7 @@ def loss_terms(lv: Level, st: LevelState, cfg: OptimizeConfig, matches) -> dict[
     zero = st.theta.new_zeros(())
     if cfg.use_render:
         if cfg.loss_mode == "render":
-            support = lv.mask & st.active.any(0)
-            terms["render"] = losses.render_loss_pixels(U, support, lv.pixel_sets or [], st.active, lv.Q, lv.n_tex)
+            terms["render"] = losses.render_loss_pixels(U, render_support(lv), lv.pixel_sets, st.active, lv.Q, lv.n_tex)
         else:
             terms["render"] = losses.render_loss_texel(U, lv.colours, st.active, lv.Q, lv.n_tex)
         terms["sparsity"] = losses.sparsity_loss(st.theta, st.active, lv.n_tex) if cfg.use_sparsity else zero
@@ -826,7 +834,7 @@ def optimize_polygon(inp: PolygonInput, cfg: OptimizeConfig, progress: bool = Fa
             "v_tilde": lv.v_tilde.tolist(),
         }
         if lv.pixel_sets is not None:
-            lvl_stats["render_pixels"] = int(sum(ps.colour.shape[0] for ps in lv.pixel_sets))
+            lvl_stats["render_pixels"] = lv.pixel_sets.n
         stats["levels"].append(lvl_stats)
         prev = st
     if bar is not None:
