@@ -365,3 +365,23 @@ def test_command_chain_on_the_analytic_wall(tmp_path):
     assert np.abs(tex - gt).mean(-1)[reg].mean() < 0.5 * np.abs(avg - gt).mean(-1)[reg].mean()
     # a stage given another polygon's files fails with one line
     assert main(["histmatch", *common, "--optimized", str(R / "nope"), "--out-dir", str(R / "x")]) == 2
+
+
+def test_ablation_switches():
+    photos = [make_photo("a", -20.0), make_photo("b", 5.0), make_photo("c", 25.0)]
+    imgs = [render(ph) for ph in photos]
+    inp = make_input(photos, imgs, long_side=48)
+    # no loss term: no iteration, the weights stay the initial Q (normalised)
+    res = optimize_polygon(inp, fast_cfg(use_render=False, use_persp=False, use_para=False, data_elimination=False))
+    assert all(lv["iterations"] == 0 for lv in res.stats["levels"])
+    # single level without coarse-to-fine; terms switched off stay at zero in the curves
+    res = optimize_polygon(inp, fast_cfg(coarse_to_fine=False, use_para=False, use_sparsity=False, max_iters_per_level=(30,)))
+    assert len(res.stats["levels"]) == 1 and res.stats["levels"][0]["shape"] == list(inp.frame.shape)
+    lv = res.stats["levels"][0]
+    assert max(lv["loss"]["para"]) == 0 and max(lv["loss"]["sparsity"]) == 0 and max(lv["loss"]["persp"]) > 0
+    # data elimination off: nothing eliminated or dropped even with an aggressive threshold
+    res = optimize_polygon(inp, fast_cfg(data_elimination=False, sigma_k=0.1, tau_w=0.01))
+    assert res.stats["dropped"] == [] and all(lv["eliminated_pixels"] == 0 for lv in res.stats["levels"])
+    res = optimize_polygon(inp, fast_cfg(sigma_k=0.1, tau_w=0.01))
+    assert res.stats["dropped"] and sum(lv["eliminated_pixels"] for lv in res.stats["levels"]) > 0
+    assert np.isfinite(res.U).all() and res.stats["coverage"] == 1.0
