@@ -1,0 +1,200 @@
+"""Shared runner of the evaluation commands: one scene, several methods, the same inputs.
+
+For a scene and a stage config, the photo filter and the visibility masks run once
+(``OUT/common``); every method then textures every polygon from the same visibility files into
+its own results folder ``OUT/<method>/textures/<pid>/`` and is scored by
+``difftex evaluate`` into ``OUT/<method>/evaluation/metrics.json``. The stages are the
+``difftex`` sub-commands, called in-process (no interpreter start-up per polygon), so the times
+are those of the commands themselves. Method times are the sum over polygons of their per-polygon
+stages; filter + visibility are shared and reported separately.
+"""
+
+from __future__ import annotations
+
+import copy
+import datetime as _dt
+import json
+import os
+import platform
+import shutil
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+METHODS = ("difftex", "average", "frontal", "mrf", "texrecon")
+LABELS = {"difftex": "DiffTex (ours)", "average": "Averaging (view blending)", "frontal": "Most frontal photo",
+          "mrf": "MRF view selection + leveling (LTBC-style)", "texrecon": "texrecon (mvs-texturing)"}
+
+
+def machine() -> dict:
+    import torch
+
+    cpu = platform.processor() or ""
+    try:
+        for ln in Path("/proc/cpuinfo").read_text().splitlines():
+            if ln.startswith("model name"):
+                cpu = ln.split(":", 1)[1].strip()
+                break
+    except OSError:
+        pass
+    ram = None
+    try:
+        for ln in Path("/proc/meminfo").read_text().splitlines():
+            if ln.startswith("MemTotal"):
+                ram = round(int(ln.split()[1]) / 1024**2, 1)
+    except OSError:
+        pass
+    try:
+        commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True, text=True).stdout.strip()
+    except OSError:
+        commit = ""
+    return {"cpu": cpu, "cores": os.cpu_count(), "ram_gb": ram, "torch": torch.__version__,
+            "torch_threads": torch.get_num_threads(), "cuda": torch.cuda.is_available(),
+            "python": platform.python_version(), "git_commit": commit,
+            "date_utc": _dt.datetime.now(_dt.timezone.utc).strftime("%Y-%m-%d %H:%M UTC")}
+
+
+def base_config(long_side: int, preset: str | None = "fast", overrides: dict | None = None) -> dict:
+    """The stage sections from config/config.yaml, a preset over them, then ``overrides`` (nested)."""
+    import yaml
+
+    cfg = yaml.safe_load((ROOT / "config" / "config.yaml").read_text())
+    if preset:
+        cfg = _merge(cfg, yaml.safe_load((ROOT / "config" / "presets" / f"{preset}.yaml").read_text()) or {})
+    cfg = {k: v for k, v in cfg.items() if isinstance(v, dict) and k not in ("run",)}
+    cfg["texture"]["long_side"] = long_side
+    cfg["optimize"]["device"] = "cpu"
+    return _merge(cfg, overrides or {})
+
+
+def _merge(a: dict, b: dict) -> dict:
+    out = copy.deepcopy(a)
+    for k, v in b.items():
+        out[k] = _merge(out[k], v) if isinstance(v, dict) and isinstance(out.get(k), dict) else copy.deepcopy(v)
+    return out
+
+
+def difftex(*argv: str) -> float:
+    """Run a difftex sub-command in-process; returns its wall time; raises on failure."""
+    from difftex.cli import main
+
+    t0 = time.perf_counter()
+    rc = main([str(a) for a in argv])
+    if rc != 0:
+        raise RuntimeError(f"difftex {' '.join(map(str, argv))} failed with exit code {rc}")
+    return time.perf_counter() - t0
+
+
+def texrecon_available() -> bool:
+    return shutil.which("texrecon") is not None
+
+
+def run_common(scene: Path, out: Path, cfg: dict) -> dict:
+    """Filter and visibility once per scene and config."""
+    from difftex.io import read_json
+
+    c = out / "common"
+    c.mkdir(parents=True, exist_ok=True)
+    cfg_path = c / "config.yaml"
+    _write_yaml(cfg_path, cfg)
+    t_f = difftex("filter", "--quiet", "--scene", scene, "--config", cfg_path, "--out", c / "photos.json")
+    t_v = difftex("visibility", "--quiet", "--scene", scene, "--photos", c / "photos.json", "--config", cfg_path,
+                  "--out-dir", c / "visibility")
+    summary = read_json(c / "visibility" / "summary.json")
+    return {"config": cfg_path, "visibility": c / "visibility", "filter_s": t_f, "visibility_s": t_v,
+            "polygons": [r for r in summary["polygons"] if r["photos"]]}
+
+
+def _write_yaml(path: Path, data: dict) -> None:
+    import yaml
+
+    from difftex.io import write_text
+
+    write_text(path, yaml.safe_dump(data, sort_keys=False))
+
+
+def run_method(method: str, scene: Path, r: Path, common: dict, cfg: dict | None = None) -> dict:
+    """Texture every seen polygon with ``method`` into results folder ``r``; returns timings.
+
+    ``cfg``: a stage config for this run only (ablations); default: the common one.
+    """
+    r = Path(r)
+    if r.exists():
+        shutil.rmtree(r)
+    r.mkdir(parents=True)
+    cfg_path = common["config"]
+    if cfg is not None:
+        cfg_path = r / "config.yaml"
+        _write_yaml(cfg_path, cfg)
+    (r / "visibility.txt").write_text(str(Path(common["visibility"]).resolve()))
+    times = {}
+    t0 = time.perf_counter()
+    for row in common["polygons"]:
+        pid = row["id"]
+        vis = Path(common["visibility"]) / f"{pid}.npz"
+        tex = r / "textures" / pid
+        ts = time.perf_counter()
+        if method == "difftex":
+            difftex("init", "--scene", scene, "--visibility", vis, "--config", cfg_path, "--out", r / "init" / f"{pid}.npz")
+            difftex("optimize", "--scene", scene, "--visibility", vis, "--init", r / "init" / f"{pid}.npz",
+                    "--config", cfg_path, "--out-dir", r / "optimized" / pid, "--no-progress")
+            difftex("histmatch", "--scene", scene, "--visibility", vis, "--optimized", r / "optimized" / pid,
+                    "--config", cfg_path, "--out-dir", tex)
+        elif method in ("average", "frontal"):
+            difftex("baseline", "--scene", scene, "--visibility", vis, "--config", cfg_path, "--method", method, "--out-dir", tex)
+        elif method == "mrf":
+            difftex("mrf", "--scene", scene, "--visibility", vis, "--config", cfg_path, "--out-dir", tex)
+        else:
+            raise ValueError(method)
+        times[pid] = time.perf_counter() - ts
+    total = time.perf_counter() - t0
+    return {"method": method, "results": str(r), "polygon_s": times, "total_s": total}
+
+
+def run_texrecon(scene: Path, out: Path, common: dict) -> dict | None:
+    """texrecon on the same scene, if installed; None otherwise (the tables say it was skipped)."""
+    from evaluation.texrecon_adapter import run as tr_run
+
+    if not texrecon_available():
+        return None
+    r = out / "texrecon"
+    t0 = time.perf_counter()
+    tr_run(scene, r, common)
+    return {"method": "texrecon", "results": str(r), "total_s": time.perf_counter() - t0}
+
+
+def evaluate(scene: Path, results: Path, lpips: str = "auto") -> dict:
+    from difftex.io import read_json
+
+    out = Path(results) / "evaluation" / "metrics.json"
+    t = difftex("evaluate", "--quiet", "--scene", scene, "--results", results, "--out", out, "--lpips", lpips)
+    m = read_json(out)
+    m["eval_s"] = t
+    return m
+
+
+def fmt(v, nd=4) -> str:
+    if v is None:
+        return "n/a"
+    if isinstance(v, float):
+        return f"{v:.{nd}f}"
+    return str(v)
+
+
+def write_outputs(stem: Path, md: str, data: dict) -> None:
+    from difftex.io import write_json, write_text
+
+    write_text(stem.with_suffix(".md"), md)
+    write_json(stem.with_suffix(".json"), json.loads(json.dumps(data, default=str)))
+
+
+def header(title: str, command: str, m: dict, notes: list[str]) -> str:
+    lines = [f"# {title}", "", f"Command: `{command}`  ", f"Date: {m['date_utc']}  ",
+             f"Machine: {m['cpu']}, {m['cores']} cores, {m['ram_gb']} GB RAM, torch {m['torch']} "
+             f"({m['torch_threads']} threads), CUDA {'yes' if m['cuda'] else 'no'}; git {m['git_commit']}", ""]
+    lines += [f"- {n}" for n in notes]
+    return "\n".join(lines) + "\n\n"

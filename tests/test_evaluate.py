@@ -1,0 +1,167 @@
+"""Evaluation: resampling into ground-truth frames, map metrics, held-out renders, scene copies."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from difftex.errors import DifftexError
+from difftex.evaluate import (EvaluateConfig, PolygonTexture, check_same_plane, decode_source_map, evaluate_maps,
+                              prepare_holdout, render_proxy, resample_texture)
+from difftex.io import read_image, write_image, write_json
+from difftex.mapping import UVFrame, texel_mask, uv_frame
+from difftex.proxy import Polygon
+from tests.scenes import make_scene, wall
+
+UP = np.array([0.0, 0.0, 1.0])
+SHARED = Path(__file__).resolve().parents[1] / ".." / "shared" / "data"
+
+
+def linear_texture(frame: UVFrame) -> np.ndarray:
+    """Colour = affine function of the world point (bilinear interpolation reproduces it exactly)."""
+    tx, ty = frame.centres()
+    X = frame.texel_to_world(tx, ty)
+    return np.stack([0.1 + 0.2 * (X[..., 0] + 2), 0.1 + 0.3 * X[..., 2], np.full(X.shape[:2], 0.5)], -1).astype(np.float32)
+
+
+def poly() -> Polygon:
+    return Polygon("front", wall(-2, 2, 0, 2))
+
+
+def test_resample_same_frame_is_identity():
+    f = uv_frame(poly(), UP, long_side=64)
+    rng = np.random.default_rng(0)
+    tex = rng.random((*f.shape, 3)).astype(np.float32)
+    np.testing.assert_allclose(resample_texture(tex, f, f), tex, atol=1e-6)
+
+
+def test_resample_finer_texture_to_coarse_frame_keeps_affine_colours():
+    fine = uv_frame(poly(), UP, long_side=128)
+    coarse = uv_frame(poly(), UP, long_side=32)
+    out = resample_texture(linear_texture(fine), fine, coarse)
+    ref = linear_texture(coarse)
+    inner = np.zeros(coarse.shape, bool)
+    inner[2:-2, 2:-2] = True  # edge texels clamp
+    np.testing.assert_allclose(out[inner], ref[inner], atol=2e-3)
+
+
+def test_resample_into_a_mirrored_frame():
+    f = uv_frame(poly(), UP, long_side=64)
+    # same rectangle, e_u reversed (and the normal kept: e_v reversed too, a 180 degree turn)
+    g = UVFrame(origin=f.origin + f.e_u * f.width * f.texel_size + f.e_v * f.height * f.texel_size,
+                e_u=-f.e_u, e_v=-f.e_v, normal=f.normal, texel_size=f.texel_size, width=f.width, height=f.height)
+    rng = np.random.default_rng(1)
+    tex = rng.random((*f.shape, 3)).astype(np.float32)
+    np.testing.assert_allclose(resample_texture(tex, f, g), tex[::-1, ::-1], atol=1e-5)
+
+
+def test_check_same_plane_rejects_other_planes():
+    f = uv_frame(poly(), UP, long_side=64)
+    check_same_plane(f, f, "x")
+    moved = UVFrame(f.origin + 0.5 * f.normal, f.e_u, f.e_v, f.normal, f.texel_size, f.width, f.height)
+    with pytest.raises(DifftexError, match="off difftex's plane"):
+        check_same_plane(f, moved, "x")
+    flipped = UVFrame(f.origin, -f.e_u, f.e_v, -f.normal, f.texel_size, f.width, f.height)
+    with pytest.raises(DifftexError, match="normal"):
+        check_same_plane(f, flipped, "x")
+
+
+def test_source_map_decodes_back_to_photo_indices(tmp_path):
+    from difftex.texture import photo_colour, source_map
+
+    names = ["a.jpg", "b.jpg", "c.jpg"]
+    dom = np.random.default_rng(2).integers(-1, 3, (20, 30))
+    mask = np.ones(dom.shape, bool)
+    write_image(tmp_path / "s.png", source_map(dom, names, mask))
+    colours = {n: "#%02x%02x%02x" % tuple(int(round(255 * c)) for c in photo_colour(n)) for n in names}
+    back = decode_source_map(read_image(tmp_path / "s.png"), colours)
+    np.testing.assert_array_equal(back, dom)
+
+
+def gt_folder(root: Path, frame: UVFrame, gt: np.ndarray, mask: np.ndarray) -> Path:
+    write_image(root / "ground_truth" / "maps" / "front.png", gt)
+    write_image(root / "ground_truth" / "masks" / "front.png", mask.astype(np.float32))
+    write_json(root / "ground_truth" / "frames" / "front.json", frame.to_dict())
+    return root
+
+
+@pytest.mark.parametrize("offset", [0.0, 0.1])
+def test_map_metrics_known_answers(tmp_path, offset):
+    frame = uv_frame(poly(), UP, long_side=64)
+    mask = texel_mask(poly(), frame)
+    gt = np.round(linear_texture(frame) * 255) / 255  # exactly representable in the 8-bit PNG
+    gt_folder(tmp_path, frame, gt, mask)
+    tex = PolygonTexture("front", np.clip(gt + offset, 0, 1), frame, mask, {"coverage": 1.0}, tmp_path)
+    res = evaluate_maps(tmp_path, {"front": tex}, EvaluateConfig(lpips="none"))
+    o = res["overall"]
+    # a constant offset d in every channel is a per-texel error of d sqrt(3), at every percentile
+    assert o["error90"] == pytest.approx(offset * math.sqrt(3), abs=1e-5)
+    assert o["error95"] == pytest.approx(offset * math.sqrt(3), abs=1e-5)
+    if offset == 0:
+        assert o["ssim"] == pytest.approx(1.0, abs=1e-9) and o["psnr"] > 100  # float32 round trip only
+    else:
+        assert o["psnr"] == pytest.approx(20.0, abs=1e-3)  # MSE 0.01
+
+
+def test_map_metrics_at_another_resolution_resample_first(tmp_path):
+    gframe = uv_frame(poly(), UP, long_side=32)
+    mask = texel_mask(poly(), gframe)
+    gt_folder(tmp_path, gframe, linear_texture(gframe), mask)
+    fine = uv_frame(poly(), UP, long_side=128)
+    tex = PolygonTexture("front", linear_texture(fine), fine, texel_mask(poly(), fine), {}, tmp_path)
+    o = evaluate_maps(tmp_path, {"front": tex}, EvaluateConfig(lpips="none"))["overall"]
+    assert o["error90"] < 0.01  # only 8-bit rounding of the ground truth and clamped edge texels
+
+
+def test_render_proxy_reproduces_the_texture_at_each_pixel(tmp_path):
+    from difftex.scene import load_scene
+
+    root = make_scene(tmp_path / "s", size=(96, 72))
+    sc = load_scene(root)
+    pol = sc.proxy.polygons[0]
+    frame = uv_frame(pol, sc.up, long_side=256)
+    tex = PolygonTexture(pol.id, linear_texture(frame), frame, texel_mask(pol, frame), {}, tmp_path)
+    ph = sc.photos[1]
+    img, ids, textured = render_proxy(ph, sc.proxy, {pol.id: tex})
+    assert textured.sum() > 500 and (textured == (ids == 0)).all()
+    # independent answer: the pixel ray meets the wall plane y = 0 at X; colour is affine in X
+    ys, xs = np.nonzero(textured)
+    d = ph.unproject(np.stack([xs + 0.5, ys + 0.5], -1))
+    C = ph.center
+    X = C + (-C[1] / d[:, 1])[:, None] * d
+    want = np.stack([0.1 + 0.2 * (X[:, 0] + 2), 0.1 + 0.3 * X[:, 2], np.full(len(X), 0.5)], -1)
+    inner = (X[:, 0] > -1.98) & (X[:, 0] < 1.98) & (X[:, 2] > 0.02) & (X[:, 2] < 1.98)
+    np.testing.assert_allclose(img[ys, xs][inner], want[inner], atol=1e-3)
+
+
+def test_prepare_holdout_removes_the_photos_from_the_model(tmp_path):
+    from difftex.scene import load_scene
+
+    root = make_scene(tmp_path / "s", centers=((0, -6, 1), (2, -6, 1.5), (-2, -5, 0.5), (1, -7, 1)))
+    info = prepare_holdout(root, 1, tmp_path / "copy")
+    assert len(info["held_out"]) == 1 and info["held_out"][0] not in info["kept"]
+    sc = load_scene(tmp_path / "copy")
+    assert sorted(p.name for p in sc.photos) == info["kept"] and len(sc.photos) == 3
+    orig = {p.name: p for p in load_scene(root).photos}
+    for p in sc.photos:  # poses survive the copy
+        np.testing.assert_allclose(p.R, orig[p.name].R, atol=1e-12)
+    info2 = prepare_holdout(root, ["img00.png", "img03.png"], tmp_path / "copy2")
+    assert info2["kept"] == ["img01.png", "img02.png"]
+    with pytest.raises(DifftexError, match="not in the scene"):
+        prepare_holdout(root, ["nope.png"], tmp_path / "copy3")
+    with pytest.raises(DifftexError):
+        prepare_holdout(root, 4, tmp_path / "copy4")
+
+
+@pytest.mark.skipif(not (SHARED / "lund-door").is_dir(), reason="shared real scenes not present")
+def test_prepare_holdout_on_a_real_scene_keeps_tracks_consistent(tmp_path):
+    from difftex.camera import read_reconstruction
+
+    info = prepare_holdout(SHARED / "lund-door", 2, tmp_path / "copy")
+    rec = read_reconstruction(tmp_path / "copy" / "sparse" / "0")
+    names = {im.name for im in rec.images.values()}
+    assert names == set(info["kept"]) and len(names) == 10
+    assert rec.num_points3D() > 1000
