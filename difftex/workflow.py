@@ -409,19 +409,17 @@ def write_report(results: str | Path, out: str | Path) -> None:
     write_text(out, "\n".join(md))
 
 
-def want_evaluation(cfg: dict, has_ground_truth: bool) -> bool:
-    """run.evaluate: true, false, or auto (ground truth present and `difftex evaluate` installed)."""
+def want_evaluation(cfg: dict) -> bool:
+    """run.evaluate: true, false, or auto (when this difftex has the `evaluate` command)."""
     import importlib.util
 
     mode = cfg["run"]["evaluate"]
     if mode is False:
         return False
     has_cmd = importlib.util.find_spec("difftex.cli.evaluate") is not None
-    if mode is True:
-        if not has_cmd:
-            raise DifftexError("run.evaluate is true but this difftex has no 'evaluate' command")
-        return True
-    return has_cmd and has_ground_truth
+    if mode is True and not has_cmd:
+        raise DifftexError("run.evaluate is true but this difftex has no 'evaluate' command")
+    return has_cmd
 
 
 def synth_available() -> bool:

@@ -147,7 +147,10 @@ def test_workflow_end_to_end(tiny_scene, tmp_path):
     from difftex.proxy import load_proxy
 
     work = tmp_path / "work"
-    args = ("--cores", "2", "--config", f"scene={tiny_scene}", "preset=fast")
+    # smaller than the fast preset: the test checks the plumbing, not the texture quality
+    small = ("texture={long_side: 128}", "optimize={long_side_start: 64, max_iters_per_level: [15, 8]}",
+             "evaluate={lpips: none, render_long_side: 256}")
+    args = ("--cores", "2", "--config", f"scene={tiny_scene}", "preset=fast", *small)
     r = snakemake(work, *args)
     assert r.returncode == 0, r.stdout[-3000:] + r.stderr[-3000:]
     R = work / "results" / "tiny"
@@ -171,6 +174,8 @@ def test_workflow_end_to_end(tiny_scene, tmp_path):
         assert row["textured"] == bool(seen), row
     assert summary["textured_area_share"] > 0.5
     assert summary["check"]["max_color_error"] < 0.02
+    metrics = read_json(R / "evaluation" / "metrics.json")
+    assert metrics["textured_polygons"] == len(proxy.ids) and "maps" in metrics
     # the rendered view of the reloaded GLB looks like the photo
     assert summary["view_check"]["mean_abs_diff"] < 0.25
     texture = np.asarray(scene.geometry[summary["polygons"][0]["id"]].visual.material.baseColorTexture)
@@ -200,11 +205,17 @@ def test_config_yaml_mirrors_the_stage_dataclasses():
     from difftex.assemble import AssembleConfig
     from difftex.config import FilterConfig, TextureConfig, VisibilityConfig
 
-    classes = {"texture": TextureConfig, "filter": FilterConfig, "visibility": VisibilityConfig, "assemble": AssembleConfig}
-    if importlib.util.find_spec("difftex.optimize") is not None:
-        from difftex.optimize import OptimizeConfig
+    from difftex.evaluate import EvaluateConfig
+    from difftex.optimize import OptimizeConfig
 
-        classes["optimize"] = OptimizeConfig
+    classes = {
+        "texture": TextureConfig,
+        "filter": FilterConfig,
+        "visibility": VisibilityConfig,
+        "optimize": OptimizeConfig,
+        "assemble": AssembleConfig,
+        "evaluate": EvaluateConfig,
+    }
     cfg = yaml.safe_load((REPO / "config" / "config.yaml").read_text())
     for name, cls in classes.items():
         defaults = dataclasses.asdict(cls())

@@ -32,8 +32,8 @@ try:
     # change: editing an optimization parameter reruns optimization and what follows, nothing else.
     STAGE_CFG = wf.write_stage_configs(config, R)
     STAGE_TEXT = {stage: wf.stage_config_text(config, stage) for stage in STAGE_CFG}
-    # Synthetic scenes (the example included) carry ground_truth/ to evaluate against.
-    EVALUATE = wf.want_evaluation(config, EXAMPLE or Path(SCENE, "ground_truth").is_dir())
+    # Perspective quality on every scene; ground-truth maps and views where the scene has them.
+    EVALUATE = wf.want_evaluation(config)
 except DifftexError as exc:
     raise WorkflowError(f"difftex: {exc}") from None
 

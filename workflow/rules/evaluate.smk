@@ -1,4 +1,5 @@
-# Evaluation against the ground truth of synthetic scenes (run.evaluate: auto | true | false).
+# Evaluation (run.evaluate: auto | true | false): Q_front / Q_vc of every scene, and errors against
+# ground-truth maps and views where the scene has them (synthetic scenes, held-out copies).
 
 
 rule evaluate:
@@ -23,5 +24,5 @@ rule evaluate:
         mem_mb=8000,
         runtime=60,
     shell:
-        "OMP_NUM_THREADS={threads} difftex evaluate --scene {params.scene} --results {params.results} "
+        "OMP_NUM_THREADS={threads} difftex evaluate --quiet --scene {params.scene} --results {params.results} "
         "--config {input.config} --out {output} > {log} 2>&1"
