@@ -157,21 +157,22 @@ def run_method(method: str, scene: Path, r: Path, common: dict, cfg: dict | None
 
 def run_texrecon(scene: Path, out: Path, common: dict) -> dict | None:
     """texrecon on the same scene, if installed; None otherwise (the tables say it was skipped)."""
-    from evaluation.texrecon_adapter import run as tr_run
+    from difftex import texrecon
 
-    if not texrecon_available():
+    if not texrecon.available():
         return None
     r = out / "texrecon"
     t0 = time.perf_counter()
-    tr_run(scene, r, common)
+    texrecon.run_scene(scene, r, common["visibility"], [row["id"] for row in common["polygons"]])
     return {"method": "texrecon", "results": str(r), "total_s": time.perf_counter() - t0}
 
 
-def evaluate(scene: Path, results: Path, lpips: str = "auto") -> dict:
+def evaluate(scene: Path, results: Path, lpips: str = "auto", config: Path | None = None) -> dict:
     from difftex.io import read_json
 
     out = Path(results) / "evaluation" / "metrics.json"
-    t = difftex("evaluate", "--quiet", "--scene", scene, "--results", results, "--out", out, "--lpips", lpips)
+    extra = ["--config", config] if config else []
+    t = difftex("evaluate", "--quiet", "--scene", scene, "--results", results, "--out", out, "--lpips", lpips, *extra)
     m = read_json(out)
     m["eval_s"] = t
     return m

@@ -165,3 +165,30 @@ def test_prepare_holdout_on_a_real_scene_keeps_tracks_consistent(tmp_path):
     names = {im.name for im in rec.images.values()}
     assert names == set(info["kept"]) and len(names) == 10
     assert rec.num_points3D() > 1000
+
+
+def test_textured_obj_reads_back_into_the_uv_frames(tmp_path):
+    """texrecon's output is read back with import_obj; difftex's own assembled OBJ is a known answer."""
+    from difftex.assemble import AssembleConfig, PolygonTexture as AT, assemble
+    from difftex.texrecon import import_obj
+
+    p = poly()
+    frame = uv_frame(p, UP, long_side=64)
+    mask = texel_mask(p, frame)
+    tex = linear_texture(frame)
+    assemble([AT(p, frame, tex, mask, 1.0, 1)], tmp_path / "m", AssembleConfig(glb=False, verify=False, padding=2))
+    got, cov = import_obj(tmp_path / "m" / "model.obj", {p.id: frame}, {p.id: mask})[p.id]
+    assert cov[mask].all()
+    np.testing.assert_allclose(got[mask], tex[mask], atol=2.5 / 255)  # 8-bit atlas
+
+
+def test_texrecon_cam_file_encodes_the_camera(tmp_path):
+    from difftex.scene import load_scene
+    from difftex.texrecon import cam_file_text
+
+    ph = load_scene(make_scene(tmp_path / "s", size=(96, 72))).photos[0]
+    l1, l2 = [list(map(float, ln.split())) for ln in cam_file_text(ph).splitlines()]
+    np.testing.assert_allclose(l1[:3], ph.t, atol=1e-9)
+    np.testing.assert_allclose(np.reshape(l1[3:], (3, 3)), ph.R, atol=1e-9)
+    K = ph.K()
+    assert l2[0] * 96 == pytest.approx(K[0, 0]) and l2[4] * 96 == pytest.approx(K[0, 2]) and l2[5] * 72 == pytest.approx(K[1, 2])
