@@ -386,6 +386,8 @@ def evaluate_views(photos: list, proxy, textures: dict[str, PolygonTexture], cfg
 def _pick_holdout(names: list[str], holdout) -> list[str]:
     """N evenly spread photo names (an int), or the given names (a list)."""
     if isinstance(holdout, int):
+        if holdout == 0:
+            return []
         if not 0 < holdout < len(names):
             raise DifftexError(f"holdout: need 0 < N < {len(names)} photos, got {holdout}")
         idx = np.linspace(0, len(names) - 1, holdout + 2)[1:-1].round().astype(int)
@@ -433,6 +435,9 @@ def prepare_holdout(scene: str | Path, holdout, out: str | Path, keep: list[str]
             dst.symlink_to((scene / "images" / n).resolve())
     prox = find_proxy(scene)
     (out / prox.name).symlink_to(prox)
+    for extra in ("ground_truth", "synth.json"):  # synthetic scenes keep their ground truth
+        if (scene / extra).exists():
+            (out / extra).symlink_to((scene / extra).resolve())
     shutil.copyfile(tmp / "cameras.txt", out / "sparse" / "0" / "cameras.txt")
     lines = (tmp / "images.txt").read_text().splitlines()
     kept, i = [], 0
@@ -504,7 +509,7 @@ def evaluate_results(scene: str | Path, results: str | Path, cfg: EvaluateConfig
         res["maps"] = evaluate_maps(scene, textures, cfg, out_dir / "error_maps" if out_dir else None, progress)
     if cfg.views:
         hold = scene / "holdout.json"
-        if hold.is_file():
+        if hold.is_file() and read_json(hold)["held_out"]:
             info = read_json(hold)
             orig = load_scene(info["original_scene"], check_images=False)
             photos = [p for p in orig.photos if p.name in set(info["held_out"])]

@@ -93,8 +93,8 @@ def texrecon_available() -> bool:
     return shutil.which("texrecon") is not None
 
 
-def run_common(scene: Path, out: Path, cfg: dict) -> dict:
-    """Filter and visibility once per scene and config."""
+def run_common(scene: Path, out: Path, cfg: dict, only: list[str] | None = None) -> dict:
+    """Filter and visibility once per scene and config (``only``: texture just these polygons)."""
     from difftex.io import read_json
 
     c = out / "common"
@@ -106,7 +106,7 @@ def run_common(scene: Path, out: Path, cfg: dict) -> dict:
                   "--out-dir", c / "visibility")
     summary = read_json(c / "visibility" / "summary.json")
     return {"config": cfg_path, "visibility": c / "visibility", "filter_s": t_f, "visibility_s": t_v,
-            "polygons": [r for r in summary["polygons"] if r["photos"]]}
+            "polygons": [r for r in summary["polygons"] if r["photos"] and (not only or r["id"] in only)]}
 
 
 def _write_yaml(path: Path, data: dict) -> None:

@@ -1,0 +1,117 @@
+"""Speed/accuracy trade: Error 95% and SSIM against minutes for each difftex preset and resolution.
+
+    python evaluation/tradeoff.py                                    # fast/balanced/paper at 128 and 256 texels
+    python evaluation/tradeoff.py --runs fast@256,fast@512,balanced@512 --polygons all
+
+Writes evaluation/results/tradeoff.{md,json,png}: one point per preset@resolution (minutes of
+texturing, summed over the polygons), with the cheap baselines at the same resolutions as
+reference points, so a user can pick a preset from measured evidence.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from evaluation import common as C  # noqa: E402
+
+
+def plot(rows: list[dict], out: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from difftex.io import atomic_path
+
+    fig, axes = plt.subplots(1, 2, figsize=(10, 4), dpi=100)
+    for ax, key, label in ((axes[0], "error95", "Error (95%)  (lower is better)"), (axes[1], "ssim", "SSIM  (higher is better)")):
+        for r in rows:
+            o = r["metrics"]["maps"]["overall"]
+            x = r["run"]["total_s"] / 60
+            is_dt = r["method"] == "difftex"
+            ax.scatter([x], [o[key]], marker="o" if is_dt else "s", c="C0" if is_dt else "C3", s=30)
+            ax.annotate(r["label"], (x, o[key]), fontsize=7, xytext=(3, 3), textcoords="offset points")
+        ax.set_xscale("log")
+        ax.set_xlabel("minutes of texturing (log)")
+        ax.set_ylabel(label)
+        ax.grid(alpha=0.3)
+    fig.suptitle("difftex presets (circles) and baselines (squares)")
+    fig.tight_layout()
+    with atomic_path(out) as tmp:
+        fig.savefig(tmp, format="png")
+    plt.close(fig)
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--scene", default="evaluation/out/scenes/tiny")
+    ap.add_argument("--runs", default="fast@128,fast@256,balanced@128,balanced@256,paper@128",
+                    help="comma-separated preset@long_side")
+    ap.add_argument("--baselines", default="average,mrf", help="run at each resolution as reference points ('' for none)")
+    ap.add_argument("--polygons", default="wall00,wall01", help="comma-separated ids, or 'all'")
+    ap.add_argument("--lpips", default="auto")
+    ap.add_argument("--work", default="evaluation/out/tradeoff")
+    ap.add_argument("--out", default="evaluation/results/tradeoff")
+    ap.add_argument("--threads", type=int, default=2)
+    args = ap.parse_args(argv)
+
+    import torch
+
+    from evaluation.table1 import ensure_synth
+
+    torch.set_num_threads(args.threads)
+    t_all = time.perf_counter()
+    scene, work = Path(args.scene), Path(args.work)
+    ensure_synth(scene)
+    only = None if args.polygons == "all" else args.polygons.split(",")
+    runs = [(s.split("@")[0], int(s.split("@")[1])) for s in args.runs.split(",")]
+    commons, rows = {}, []
+    for preset, side in runs:
+        if side not in commons:
+            cfg = C.base_config(side, "fast", {"evaluate": {"views": False}})
+            commons[side] = C.run_common(scene, work / f"common{side}", cfg, only)
+            for b in [b for b in args.baselines.split(",") if b]:
+                r = C.run_method(b, scene, work / f"{b}@{side}", commons[side])
+                ev = C.evaluate(scene, work / f"{b}@{side}", args.lpips, config=commons[side]["config"])
+                rows.append({"label": f"{b}@{side}", "method": b, "preset": None, "long_side": side, "run": r, "metrics": ev})
+        cfg = C.base_config(side, preset, {"evaluate": {"views": False}})
+        r = C.run_method("difftex", scene, work / f"{preset}@{side}", commons[side], cfg)
+        ev = C.evaluate(scene, work / f"{preset}@{side}", args.lpips, config=commons[side]["config"])
+        rows.append({"label": f"{preset}@{side}", "method": "difftex", "preset": preset, "long_side": side, "run": r,
+                     "metrics": ev, "optimize": cfg["optimize"]})
+        print(f"tradeoff: {preset}@{side} done in {r['total_s']:.0f} s", flush=True)
+    out = Path(args.out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    plot(rows, out.with_suffix(".png"))
+    mach = C.machine()
+    notes = [f"Scene `{scene}`, polygons {args.polygons}.",
+             "Presets from config/presets/<name>.yaml with the texture long side overridden; minutes = texturing time "
+             "(init + optimize + histmatch for difftex) summed over the polygons, on this shared 2-core machine.",
+             f"Plot: `{out.with_suffix('.png').name}`."]
+    lines = [C.header("Speed/accuracy trade: presets and resolutions",
+                      "python evaluation/tradeoff.py " + " ".join(sys.argv[1:] if argv is None else argv), mach, notes)]
+    lv = next((r["metrics"]["maps"]["overall"]["lpips_variant"] for r in rows), "n/a")
+    lines.append(f"| Run | loss | iteration caps | Error (95%) | Error (90%) | SSIM | LPIPS ({lv}) | Minutes |")
+    lines.append("|---|---|---|---|---|---|---|---|")
+    for r in rows:
+        o = r["metrics"]["maps"]["overall"]
+        opt = r.get("optimize") or {}
+        lines.append(f"| {r['label']} | {opt.get('loss_mode', '-')} | {opt.get('max_iters_per_level', '-')} | {C.fmt(o['error95'])} | "
+                     f"{C.fmt(o['error90'])} | {C.fmt(o['ssim'])} | {C.fmt(o['lpips'])} | {r['run']['total_s'] / 60:.2f} |")
+    lines.append("")
+    lines.append(f"![trade-off]({out.with_suffix('.png').name})")
+    lines.append("")
+    lines.append(f"Whole command: {time.perf_counter() - t_all:.0f} s.")
+    md = "\n".join(lines) + "\n"
+    C.write_outputs(out, md, {"machine": mach, "args": vars(args), "rows": rows, "total_s": time.perf_counter() - t_all})
+    print(md)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
