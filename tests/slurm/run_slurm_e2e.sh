@@ -187,7 +187,7 @@ mkdir -p "$STATE/ctld" "$STATE/slurmd" "$(dirname "$SLURM_CONF_FILE")"
 if [[ -e "$SLURM_CONF_FILE" ]] && ! grep -qs 'written by tests/slurm/run_slurm_e2e.sh' "$SLURM_CONF_FILE"; then
     SLURM_CONF_BACKUP="$STATE/slurm.conf.orig"
     cp -p "$SLURM_CONF_FILE" "$SLURM_CONF_BACKUP"
-    log "moved the existing $SLURM_CONF aside; it is restored on exit"
+    log "moved the existing $SLURM_CONF_FILE aside; it is restored on exit"
 fi
 cat > "$SLURM_CONF_FILE" <<EOF
 # single-node test cluster written by tests/slurm/run_slurm_e2e.sh
