@@ -78,7 +78,8 @@ def main(argv=None) -> int:
         per_scene[sc.name]["runs"] = runs
     mach = C.machine()
     notes = [
-        f"Scenes: {', '.join(f'`{s.name}` ({per_scene[s.name]['kept']} photos kept, held out: ' + ', '.join(per_scene[s.name]['held_out']) + ')' for s in scenes)}.",
+        "Scenes: " + ", ".join(f"`{s.name}` ({per_scene[s.name]['kept']} photos kept, held out: "
+                               + ", ".join(per_scene[s.name]["held_out"]) + ")" for s in scenes) + ".",
         f"**Reduced sizes** (2 shared CPU cores): texture long side {args.long_side} for every method (paper: 2048); "
         f"difftex preset `{args.preset}` ({cfg['optimize'].get('loss_mode')} loss, iteration caps "
         f"{cfg['optimize'].get('max_iters_per_level')}); held-out views compared at {args.render_long_side} px long side.",
