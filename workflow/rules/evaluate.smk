@@ -5,14 +5,19 @@
 rule evaluate:
     input:
         scene=SCENE_MODEL,
-        model=f"{R}/model/summary.json",
+        # the textures and their frames, not the assembled model: assembly settings do not matter
+        summary=f"{R}/visibility/summary.json",
+        textures=lambda wc: expand(
+            f"{R}/textures/{{pid}}/texture.png",
+            pid=wf.textured_ids(checkpoints.visibility.get().output.summary),
+        ),
         config=STAGE_CFG["evaluate"],
     output:
         f"{R}/evaluation/metrics.json",
     params:
         stage_config=STAGE_TEXT["evaluate"],
         scene=lambda wc, input: Path(input.scene[0]).parent,
-        results=lambda wc, input: Path(input.model).parent.parent,
+        results=lambda wc, input: Path(input.summary).parent.parent,
     conda:
         "../envs/difftex.yaml"
     log:
