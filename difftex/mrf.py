@@ -8,6 +8,10 @@ plays the role of a mesh face). Each patch takes one photo (label) by minimising
 - data term ``D_p(l) = n_p (1 - mean_{t in p} vis_l(t) cos_l(t) res_l(t))``: view quality as
   frontality x resolution (texel footprint in photo pixels relative to the best photo there),
   zero where photo l does not see the texel, so partially seen patches are expensive;
+- photo consistency (LTBC's outlier removal, e.g. a tree in front of the facade in one photo):
+  per patch, each photo's mean colour (normalised by the photo's mean over the polygon, so
+  exposure differences do not count) is compared with the mode of all photos' means (a few
+  mean-shift steps from the median); ``n_p * consistency * min(1, (d / sigma)^2)`` is added;
 - Potts smoothness ``V = lambda * patch`` (the seam length in texels) between 4-neighbours
   with different labels;
 
@@ -44,6 +48,8 @@ class MRFConfig:
     leveling_band: int = 4  # texels on each side of a seam used to compare colours
     leveling_prior: float = 0.1  # regularisation of log gains towards 0, relative to the seam weights
     feather: float = 2.0  # Gaussian sigma (texels) of the label blending across seams; 0: hard seams
+    consistency: float = 1.0  # weight of the photo-consistency term (0: off)
+    consistency_sigma: float = 0.1  # colour distance (exposure-normalised RGB) at which a view counts as an outlier
 
     def __post_init__(self):
         if self.patch < 1 or self.max_cycles < 1 or self.smoothness < 0 or self.feather < 0:
@@ -121,6 +127,28 @@ def level_gains(pairs: dict[tuple[int, int], tuple[np.ndarray, np.ndarray, int]]
     return {n: np.exp(x[pos[n]]) for n in labels}
 
 
+def consistency_penalty(means: np.ndarray, ok: np.ndarray, sigma: float, steps: int = 5) -> np.ndarray:
+    """(L, ph, pw) penalty in [0, 1] of each photo's patch mean colour against the patches' colour mode.
+
+    The mode: mean shift with a Gaussian kernel of width ``sigma`` started at the per-channel
+    median of the photos that see the patch (``ok``); needs at least 3 such photos, else 0.
+    """
+    L = means.shape[0]
+    okf = ok.astype(np.float64)
+    cnt = okf.sum(0)
+    masked = np.where(ok[..., None], means, np.nan)
+    with np.errstate(all="ignore"):
+        mode = np.nanmedian(masked, axis=0)
+    mode = np.nan_to_num(mode)
+    for _ in range(steps):
+        d2 = ((means - mode[None]) ** 2).sum(-1)
+        w = np.exp(-0.5 * d2 / sigma**2) * okf
+        mode = np.where((w.sum(0) > 1e-9)[..., None], (w[..., None] * means).sum(0) / np.maximum(w.sum(0), 1e-9)[..., None], mode)
+    d2 = ((means - mode[None]) ** 2).sum(-1)
+    pen = np.minimum(1.0, d2 / sigma**2)
+    return np.where(ok & (cnt >= 3)[None], pen, 0.0)
+
+
 def mrf_texture(inp: PolygonInput, cfg: MRFConfig = MRFConfig(), device="cpu") -> tuple[np.ndarray, np.ndarray, np.ndarray, dict]:
     """(U (H, W, 3), weight sum (H, W), dominant photo (H, W), info), like baselines.baseline_texture."""
     t0 = time.perf_counter()
@@ -132,10 +160,14 @@ def mrf_texture(inp: PolygonInput, cfg: MRFConfig = MRFConfig(), device="cpu") -
     if not labels:
         return (np.zeros((H, W, 3), np.float32), np.zeros((H, W), np.float32), np.full((H, W), -1),
                 {"method": "mrf", "labels": 0})
-    # Pass 1: view quality per texel and photo -> patch data costs.
+    # Pass 1: view quality per texel and photo, patch mean colours -> patch data costs.
     qual = np.zeros((len(labels), H, W), np.float32)
     vis = np.zeros((len(labels), H, W), bool)
     fps = np.zeros((len(labels), H, W), np.float32)
+    P = cfg.patch
+    n_p = patch_sums(mask.astype(np.float64), P)
+    means = np.zeros((len(labels), *n_p.shape, 3))
+    seen_share = np.zeros((len(labels), *n_p.shape))
     for i, n in enumerate(labels):
         ph = inp.photos[n]
         m = map_texels(frame, ph)
@@ -144,13 +176,27 @@ def mrf_texture(inp: PolygonInput, cfg: MRFConfig = MRFConfig(), device="cpu") -
         vis[i] = v
         fps[i] = np.where(v, fp, 0.0)
         qual[i] = np.where(v, np.clip(np.nan_to_num(m.cos_angle), 0, 1), 0.0)
+        if cfg.consistency > 0 and len(labels) > 2:
+            mp = map_photo(inp, n, frame, samplers[n], mask, device)
+            if mp is None:
+                continue
+            col = mp.colour.cpu().numpy()
+            vv = mp.visible.cpu().numpy()
+            norm = col[:, vv].mean(1) + 1e-3 if vv.any() else np.ones(3)
+            cnt = patch_sums(vv.astype(np.float64), P)
+            seen_share[i] = cnt / np.maximum(n_p, 1)
+            for c in range(3):
+                means[i, ..., c] = patch_sums(col[c] * vv / norm[c], P) / np.maximum(cnt, 1)
     fp_max = fps.max(0)
     # footprint = texel size in pixels: a larger one means more photo pixels per texel
     res = np.where(fp_max > 0, fps / np.maximum(fp_max, 1e-12), 0.0)
     qual *= res
-    P = cfg.patch
-    n_p = patch_sums(mask.astype(np.float64), P)
     unary = np.stack([n_p - patch_sums(qual[i] * mask, P) for i in range(len(labels))], -1)
+    outliers = 0
+    if cfg.consistency > 0 and len(labels) > 2:
+        pen = consistency_penalty(means, seen_share >= 0.5, cfg.consistency_sigma)
+        unary += np.moveaxis(pen, 0, -1) * (cfg.consistency * n_p)[..., None]
+        outliers = int((pen >= 1).sum())
     t_solve = time.perf_counter()
     lab = solve_labels(unary, cfg.smoothness * P, cfg.max_cycles)
     t_solve = time.perf_counter() - t_solve
@@ -203,7 +249,7 @@ def mrf_texture(inp: PolygonInput, cfg: MRFConfig = MRFConfig(), device="cpu") -
     n_seams = int((lab[1:] != lab[:-1]).sum() + (lab[:, 1:] != lab[:, :-1]).sum())
     info = {"method": "mrf", "config": cfg.__dict__, "patches": list(lab.shape), "labels": len(labels),
             "photos_used": sorted({inp.photos[labels[i]].name for i in np.unique(lab_tex[lab_tex >= 0])}),
-            "seam_edges": n_seams, "energy": energy(unary, lab, cfg.smoothness * P),
+            "seam_edges": n_seams, "consistency_outliers": outliers, "energy": energy(unary, lab, cfg.smoothness * P),
             "energy_unary_only": energy(unary, np.argmin(unary, -1), cfg.smoothness * P),
             "gains": {inp.photos[labels[i]].name: [round(float(x), 4) for x in g] for i, g in gains.items()},
             "leveling_pairs": pairs_info, "time_solve_s": t_solve, "time_s": time.perf_counter() - t0}

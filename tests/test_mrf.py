@@ -186,3 +186,38 @@ def test_config_rejects_bad_values():
         MRFConfig.from_dict({"patch": 0})
     with pytest.raises(DifftexError):
         MRFConfig.from_dict({"bogus": 1})
+
+
+def test_consistency_penalty_flags_the_odd_photo_out():
+    from difftex.mrf import consistency_penalty
+
+    means = np.full((4, 2, 2, 3), 0.5)
+    means[2, 0, 0] = [0.1, 0.6, 0.1]  # an occluder (a green tree) in photo 2, patch (0, 0)
+    means[1] += 0.02  # small noise stays unpunished
+    ok = np.ones((4, 2, 2), bool)
+    pen = consistency_penalty(means, ok, sigma=0.1)
+    assert pen[2, 0, 0] == 1.0
+    assert pen[[0, 1, 3], 0, 0].max() < 0.1 and pen[:, 1, 1].max() < 0.1
+    ok[1:, 0, 0] = False  # fewer than 3 photos see the patch: no consensus, no penalty
+    assert consistency_penalty(means, ok, 0.1)[:, 0, 0].max() == 0.0
+
+
+def test_occluder_in_the_frontal_photo_is_avoided():
+    photos = [make_photo("left", -20.0), make_photo("front", 0.0), make_photo("right", 20.0)]
+    images = [render(p) for p in photos]
+    inp0 = make_input(photos, images)
+    # paint a green blob into the frontal photo over the wall's left part
+    ph = photos[1]
+    img = images[1].copy()
+    tx, ty = inp0.frame.centres()
+    X = inp0.frame.texel_to_world(tx, ty)
+    blob = (np.abs(X[..., 0] - 2.0) < 0.5) & (np.abs(X[..., 2] - 1.5) < 0.6)
+    pix, _ = ph.project(X[blob])
+    for x, y in pix.astype(int):
+        img[max(y - 1, 0) : y + 2, max(x - 1, 0) : x + 2] = [0.05, 0.6, 0.05]
+    images[1] = img
+    inp = make_input(photos, images)
+    _, _, dom_off, _ = mrf_texture(inp, MRFConfig(patch=8, leveling=False, feather=0, consistency=0))
+    _, _, dom_on, info = mrf_texture(inp, MRFConfig(patch=8, leveling=False, feather=0))
+    assert (dom_off[blob] == 1).mean() > 0.9  # quality alone picks the frontal photo, blob and all
+    assert (dom_on[blob] == 1).mean() < 0.2 and info["consistency_outliers"] > 0
