@@ -117,6 +117,17 @@ def resolve_config(repo: str | Path, user: dict | None) -> dict:
     return cfg
 
 
+def user_config(repo: str | Path, configfiles, cli_config) -> dict:
+    """The user's layer: --configfile files, then --config values. The repo's own
+    config/config.yaml given as --configfile is left out, or its values would override the preset."""
+    default = (Path(repo) / "config" / "config.yaml").resolve()
+    user: dict = {}
+    for f in configfiles or ():
+        if Path(f).resolve() != default:
+            user = deep_merge(user, _load_yaml(Path(f)))
+    return deep_merge(user, dict(cli_config or {}))
+
+
 def validate(cfg: dict, schema_path: str | Path) -> None:
     """Schema check with a one-line message naming the key (the snakemake.utils.validate error
     prints the whole schema)."""

@@ -58,6 +58,14 @@ def test_presets_and_user_values_merge_in_order():
     assert wf.resolve_config(REPO, {"preset": "paper"})["optimize"]["loss_mode"] == "render"
 
 
+def test_the_default_config_file_given_again_does_not_override_the_preset(tmp_path):
+    mine = tmp_path / "mine.yaml"
+    mine.write_text("optimize:\n  lr: 0.02\n")
+    user = wf.user_config(REPO, [REPO / "config" / "config.yaml", mine], {"preset": "fast"})
+    cfg = wf.resolve_config(REPO, user)
+    assert cfg["texture"]["long_side"] == 256 and cfg["optimize"]["lr"] == 0.02
+
+
 @pytest.mark.parametrize(
     "user, message",
     [

@@ -12,7 +12,10 @@ import difftex.workflow as wf
 from difftex.errors import DifftexError
 
 try:
-    _cfg = wf.resolve_config(workflow.basedir, workflow.config_settings.overwrite_config)
+    _user = wf.user_config(
+        workflow.basedir, workflow.config_settings.configfiles, workflow.config_settings.config
+    )
+    _cfg = wf.resolve_config(workflow.basedir, _user)
     wf.validate(_cfg, Path(workflow.basedir) / "workflow" / "schemas" / "config.schema.yaml")
     config.clear()
     config.update(_cfg)
