@@ -49,7 +49,7 @@ class MRFConfig:
     leveling_prior: float = 0.1  # regularisation of log gains towards 0, relative to the seam weights
     feather: float = 2.0  # Gaussian sigma (texels) of the label blending across seams; 0: hard seams
     consistency: float = 1.0  # weight of the photo-consistency term (0: off)
-    consistency_sigma: float = 0.1  # colour distance (exposure-normalised RGB) at which a view counts as an outlier
+    consistency_sigma: float = 0.2  # colour distance (exposure-normalised RGB) at which a view counts as an outlier
 
     def __post_init__(self):
         if self.patch < 1 or self.max_cycles < 1 or self.smoothness < 0 or self.feather < 0:
