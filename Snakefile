@@ -29,6 +29,7 @@ rule all:
     input:
         f"{R}/model/summary.json",
         f"{R}/report.md",
+        f"{R}/report/index.html",
     default_target: True
 
 

@@ -362,6 +362,9 @@ def run_summary(results: str | Path) -> dict:
     metrics = results / "evaluation" / "metrics.json"
     if metrics.is_file():
         out["evaluation"] = str(metrics)
+    html = results / "report" / "index.html"
+    if html.is_file():
+        out["html_report"] = str(html)
     return out
 
 
@@ -386,6 +389,8 @@ def format_summary(s: dict) -> str:
         lines.append(f"no photo sees: {', '.join(s['untextured'])}")
     if s.get("evaluation"):
         lines.append(f"metrics: {s['evaluation']}")
+    if s.get("html_report"):
+        lines.append(f"report: {s['html_report']}")
     lines.append(f"atlas: {', '.join(s['atlas_pages'])}")
     for k in ("obj", "glb"):
         if k in s["model"]:

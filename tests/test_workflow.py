@@ -120,7 +120,7 @@ def test_dry_run_plans_every_stage_and_a_wrong_key_stops_it(tmp_path):
     r = snakemake(tmp_path, "-n", "--config", f"scene={LUND}", "preset=fast")
     assert r.returncode == 0, r.stderr
     counts = job_counts(r.stdout)
-    assert {"filter", "visibility", "assemble", "report", "all"} <= set(counts)
+    assert {"filter", "visibility", "assemble", "report", "html_report", "all"} <= set(counts)
     assert (tmp_path / "results/lund-door/config/optimize.yaml").is_file()
     bad = snakemake(tmp_path, "-n", "--config", f"scene={LUND}", "optimize={lrr: 1}")
     assert bad.returncode != 0 and "lrr" in bad.stdout + bad.stderr
@@ -200,7 +200,7 @@ def test_workflow_end_to_end(tiny_scene, tmp_path):
     assert "filter" not in counts and "visibility" not in counts
     # ... and an assembly-only change only assembly
     counts = job_counts(snakemake(work, "-n", *args, "assemble={padding: 2}").stdout)
-    assert set(counts) == {"assemble", "report", "all"}
+    assert set(counts) == {"assemble", "report", "all"}  # evaluation and the HTML report read the textures
 
 
 def test_config_yaml_mirrors_the_stage_dataclasses():

@@ -1,5 +1,6 @@
 # The textured model: atlas pages, OBJ + MTL + PNG and GLB; every polygon of the proxy is in it,
-# those no photo sees with a grey patch. Then a short report.
+# those no photo sees with a grey patch. Then the reports: report.md (summary, stage times) and
+# report/index.html (difftex report: maps, loss curves, metrics).
 
 
 rule assemble:
@@ -55,3 +56,29 @@ rule report:
         runtime=5,
     script:
         "../scripts/report.py"
+
+
+rule html_report:
+    input:
+        # textures, optimizer stats and metrics; not the assembled model
+        summary=f"{R}/visibility/summary.json",
+        textures=lambda wc: expand(
+            f"{R}/textures/{{pid}}/texture.png",
+            pid=wf.textured_ids(checkpoints.visibility.get().output.summary),
+        ),
+        metrics=[f"{R}/evaluation/metrics.json"] if EVALUATE else [],
+    output:
+        f"{R}/report/index.html",
+    params:
+        results=lambda wc, input: Path(input.summary).parent.parent,
+        scene=SCENE,
+    conda:
+        "../envs/difftex.yaml"
+    log:
+        f"{R}/logs/html_report.log",
+    threads: 1
+    resources:
+        mem_mb=2000,
+        runtime=10,
+    shell:
+        "difftex report --results {params.results} --scene {params.scene} --out {output} > {log} 2>&1"
