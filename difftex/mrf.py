@@ -137,7 +137,10 @@ def consistency_penalty(means: np.ndarray, ok: np.ndarray, sigma: float, steps: 
     okf = ok.astype(np.float64)
     cnt = okf.sum(0)
     masked = np.where(ok[..., None], means, np.nan)
-    with np.errstate(all="ignore"):
+    import warnings
+
+    with warnings.catch_warnings():  # patches no photo sees fully: all-NaN, handled below
+        warnings.simplefilter("ignore", RuntimeWarning)
         mode = np.nanmedian(masked, axis=0)
     mode = np.nan_to_num(mode)
     for _ in range(steps):
