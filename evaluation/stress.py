@@ -1,6 +1,6 @@
 """Stress test: random photo subsets of decreasing size, every method, scored against ground truth.
 
-    python evaluation/stress.py                         # tiny scene, 2 facades, 20/12/8/5 photos, 128-texel maps
+    python evaluation/stress.py                         # tiny scene, 2 facades, 20/10/5 photos, 128-texel maps
     python evaluation/stress.py --sizes 20,10,5,3 --seed 1 --polygons all
 
 For each size a seeded random subset of the scene's photos is kept (the scene is copied with the
@@ -23,7 +23,7 @@ from evaluation import common as C  # noqa: E402
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--scene", default="evaluation/out/scenes/tiny")
-    ap.add_argument("--sizes", default="20,12,8,5", help="photo counts, decreasing")
+    ap.add_argument("--sizes", default="20,10,5", help="photo counts, decreasing")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--polygons", default="wall00,wall01", help="comma-separated ids, or 'all'")
     ap.add_argument("--long-side", type=int, default=128)
