@@ -192,3 +192,32 @@ def test_texrecon_cam_file_encodes_the_camera(tmp_path):
     np.testing.assert_allclose(np.reshape(l1[3:], (3, 3)), ph.R, atol=1e-9)
     K = ph.K()
     assert l2[0] * 96 == pytest.approx(K[0, 0]) and l2[4] * 96 == pytest.approx(K[0, 2]) and l2[5] * 72 == pytest.approx(K[1, 2])
+
+
+@pytest.mark.slow
+def test_evaluate_command_on_a_held_out_scene_copy(tmp_path):
+    """Scene copy without one photo -> visibility -> a baseline -> difftex evaluate (views + Q metrics)."""
+    import json
+
+    from difftex.cli import main
+
+    root = make_scene(tmp_path / "s", centers=((0, -6, 1), (2, -6, 1.5), (-2, -5, 0.5), (1, -7, 1)))
+    prepare_holdout(root, ["img01.png"], tmp_path / "copy")
+    cfg = tmp_path / "cfg.yaml"
+    cfg.write_text("texture: {long_side: 32}\nvisibility: {min_texels: 4}\noptimize: {device: cpu}\nevaluate: {lpips: none, render_long_side: 96}\n")
+    R = tmp_path / "R"
+    assert main(["visibility", "--quiet", "--scene", str(tmp_path / "copy"), "--config", str(cfg), "--out-dir", str(R / "visibility")]) == 0
+    assert main(["baseline", "--scene", str(tmp_path / "copy"), "--visibility", str(R / "visibility" / "front.npz"),
+                 "--config", str(cfg), "--method", "frontal", "--out-dir", str(R / "textures" / "front")]) == 0
+    out = R / "evaluation" / "metrics.json"
+    assert main(["evaluate", "--quiet", "--scene", str(tmp_path / "copy"), "--results", str(R), "--config", str(cfg),
+                 "--out", str(out)]) == 0
+    m = json.loads(out.read_text())
+    assert m["views"]["held_out"] == ["img01.png"] and m["views"]["overall"]["views"] == 1
+    assert m["views"]["views"][0]["compared_pixels"] > 100
+    # the photos are noise and the texture comes from other noise photos: no structure in common
+    assert -0.2 < m["views"]["overall"]["ssim"] < 0.3
+    assert 0 < m["perspective"]["q_front"] <= 1 and m["perspective"]["polygons"]["front"]["q_source"].startswith("dominant")
+    assert (R / "evaluation" / "views" / "img01_render.png").is_file()
+    # a bad scene is one line naming it
+    assert main(["evaluate", "--scene", str(tmp_path / "nope"), "--results", str(R), "--out", str(out)]) == 2
