@@ -71,6 +71,7 @@ def loss_curve(stats: dict, out: Path) -> Path | None:
         ax.axvline(s, color="#999", lw=0.5, ls="--")
     ax.set_xlabel("iteration (levels separated by dashes)")
     ax.set_yscale("symlog", linthresh=1e-3)
+    ax.set_ylim(bottom=0)  # losses are non-negative
     ax.legend(fontsize=7)
     fig.tight_layout()
     out.parent.mkdir(parents=True, exist_ok=True)
