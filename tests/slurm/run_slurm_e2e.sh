@@ -4,6 +4,8 @@
 #   bash tests/slurm/run_slurm_e2e.sh                 # tiny fan-out workflow (tests/slurm/Snakefile)
 #   bash tests/slurm/run_slurm_e2e.sh --real          # difftex Snakefile on `difftex synth --preset tiny`,
 #                                                     # once through SLURM, once locally, textures compared
+#                                                     # (tests/slurm/compare_outputs.py); add
+#                                                     # --config preset=fast for a ~30 min run on 2 cores
 #   bash tests/slurm/run_slurm_e2e.sh --snakefile F [--target T] [--config K=V ...] [--configfile C]
 #
 # Steps: install the Debian packages if missing (apt-get, needs root), write a slurm.conf
@@ -310,61 +312,6 @@ check_tiny() {  # the tiny workflow's results: every job ran as its own SLURM jo
     sed 's/^/    /' "$summary" >&2
 }
 
-compare_outputs() {  # compare_outputs <dir_a> <dir_b>: same PNGs within tolerance, same arrays
-    python - "$1" "$2" "$TOLERANCE" <<'PY'
-import sys
-from pathlib import Path
-
-import numpy as np
-from difftex.io import read_image
-
-a, b, tol = Path(sys.argv[1]), Path(sys.argv[2]), float(sys.argv[3])
-
-def files(root, ext):
-    return {p.relative_to(root) for p in root.rglob(f"*{ext}")
-            if ".snakemake" not in p.parts and "benchmarks" not in p.parts}
-
-def same_set(ext):
-    fa, fb = files(a, ext), files(b, ext)
-    if fa != fb:
-        sys.exit(f"different {ext} files: only slurm {sorted(map(str, fa - fb))[:5]}, "
-                 f"only local {sorted(map(str, fb - fa))[:5]}")
-    return sorted(fa)
-
-pngs, npzs = same_set(".png"), same_set(".npz")
-if not pngs and not npzs:
-    sys.exit(f"no PNG or NPZ written under {a}: nothing to compare")
-# Textures: optimisation is deterministic on CPU, so SLURM and local runs must agree up to
-# PNG quantisation and thread-count effects on float reductions.
-worst, worst_name = 0.0, ""
-for rel in pngs:
-    x, y = read_image(a / rel), read_image(b / rel)
-    if x.shape != y.shape:
-        sys.exit(f"{rel}: shape {x.shape} (slurm) != {y.shape} (local)")
-    d = float(np.abs(x - y).max()) if x.size else 0.0
-    if d >= worst:
-        worst, worst_name = d, str(rel)
-# Intermediate arrays (visibility masks, weights): same keys and shapes, difference reported.
-worst_arr, worst_arr_name = 0.0, ""
-for rel in npzs:
-    with np.load(a / rel) as za, np.load(b / rel) as zb:
-        if sorted(za.files) != sorted(zb.files):
-            sys.exit(f"{rel}: arrays {sorted(za.files)} (slurm) != {sorted(zb.files)} (local)")
-        for k in za.files:
-            x, y = za[k], zb[k]
-            if x.shape != y.shape:
-                sys.exit(f"{rel}[{k}]: shape {x.shape} (slurm) != {y.shape} (local)")
-            if x.dtype.kind in "biuf" and x.size:
-                d = float(np.abs(x.astype(np.float64) - y.astype(np.float64)).max())
-                if d >= worst_arr:
-                    worst_arr, worst_arr_name = d, f"{rel}[{k}]"
-print(f"compared {len(pngs)} PNGs: max abs difference {worst:.6f} ({worst_name or '-'}); "
-      f"{len(npzs)} NPZ files: max abs difference {worst_arr:.6g} ({worst_arr_name or '-'})")
-if worst > tol:
-    sys.exit(f"PNG max abs difference {worst:.6f} > tolerance {tol}")
-PY
-}
-
 T_RUN=$(now)
 case "$MODE" in
     tiny)
@@ -417,7 +364,10 @@ case "$MODE" in
         run_snakemake "$WORK/local" --profile "$REPO/workflow/profiles/local" "${args[@]}" -- "${TARGETS[@]}" \
             || die "snakemake (local) failed (log: $WORK/local/snakemake.out)"
         log "local run done in $(elapsed "$T_LOCAL") s"
-        compare_outputs "$WORK/slurm" "$WORK/local" || die "slurm and local outputs differ"
+        partial=()
+        [[ ${#TARGETS[@]} -gt 0 ]] && partial=(--partial)
+        python "$REPO/tests/slurm/compare_outputs.py" "$WORK/slurm" "$WORK/local" --tolerance "$TOLERANCE" "${partial[@]}" \
+            || die "slurm and local outputs differ"
         ;;
 esac
 RUN_S=$(elapsed "$T_RUN")
