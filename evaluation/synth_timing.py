@@ -56,6 +56,8 @@ def main(argv=None) -> int:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--views", type=int, help="override the number of photos (default: the preset's)")
     ap.add_argument("--result", default=str(HERE / "synth_timing"), help="result path without extension")
+    ap.add_argument("--note", help="free text stored with the rows timed now (e.g. what else loaded the machine)")
+    ap.add_argument("--markdown-only", action="store_true", help="rewrite the markdown from the JSON, generate nothing")
     args = ap.parse_args(argv)
 
     from difftex.io import write_json, write_text
@@ -69,7 +71,8 @@ def main(argv=None) -> int:
     old = json.loads(result_json.read_text()) if result_json.is_file() else {}
     rows = {r["building"]: r for r in old.get("buildings", []) if old.get("preset") == args.preset}
     mach = machine()
-    for name in names:
+    for name in ([] if args.markdown_only else names):
+        load0 = os.getloadavg()
         t0 = time.perf_counter()
         generate(cfg, out, seed=args.seed, buildings=[name], progress=True, **ov)
         wall = time.perf_counter() - t0
@@ -86,7 +89,13 @@ def main(argv=None) -> int:
             "held_out_s": tm["timing"]["held_out_s"], "total_s": round(wall, 1),
             "total_per_view_s": round(wall / tm["views"], 3), "machine": mach,
             "command": " ".join([Path(sys.executable).name, "evaluation/synth_timing.py", *(argv or sys.argv[1:])]),
+            # 1-minute load averages before and after: other work on the machine slows the renders
+            "load_before_after": [round(load0[0], 2), round(os.getloadavg()[0], 2)],
+            "note": args.note or "",
         }
+    if args.markdown_only and args.note:
+        for r in rows.values():
+            r["note"] = args.note
     res = {"preset": args.preset, "seed": args.seed, "buildings": [rows[k] for k in sorted(rows)]}
     write_json(result_json, res)
     lines = [f"# Synthetic data set generation time (`{args.preset}` preset)", "",
@@ -96,6 +105,9 @@ def main(argv=None) -> int:
     for r in res["buildings"]:
         lines.append(f"| {r['building']} | {r['style']} | {r['polygons']} | {r['views']} | {r['width']}x{r['height']} | {r['spp']} | "
                      f"{r['seconds_per_view']:.2f} | {r['gt_maps_s']:.0f} | {r['held_out_s']:.0f} | {r['total_s']:.0f} | {r['total_per_view_s']:.2f} |")
+    notes = [f"- {r['building']}: {r['note']}" for r in res["buildings"] if r.get("note")]
+    if notes:
+        lines += ["", "Notes:", ""] + notes
     lines += ["", "Machines:", ""]
     for m in {json.dumps(r["machine"], sort_keys=True) for r in res["buildings"]}:
         m = json.loads(m)
