@@ -15,6 +15,9 @@ from difftex.errors import DifftexError
 from difftex.proxy import Polygon
 
 
+_HORIZONTAL_SIN = float(np.sin(np.radians(10.0)))
+
+
 @dataclass(frozen=True, eq=False)
 class UVFrame:
     """Orthographic, fronto-parallel texel grid over a polygon's minimum-area bounding rectangle."""
@@ -123,7 +126,9 @@ def uv_frame(
     d2 = np.cross(n, d1)
     up = np.asarray(up, dtype=np.float64)
     down = -(up - (up @ n) * n)
-    if np.linalg.norm(down) > 1e-3:
+    # Below ~10 degrees of tilt the in-plane 'down' is dominated by the error of the estimated up
+    # (1-2 degrees), so such polygons take the horizontal rule to keep their frame stable.
+    if np.linalg.norm(down) > _HORIZONTAL_SIN:
         cands = [d1, -d1, d2, -d2]
         e_v = max(cands, key=lambda v: float(v @ down))
     else:

@@ -11,4 +11,10 @@ PY=${PYTHON:-python3}
 # These two wheels carry the LPIPS / ST-LPIPS weight files; their code needs torchvision, so they
 # are installed without dependencies and difftex loads only their weights (difftex/perceptual.py).
 .venv/bin/python -m pip install -q --no-deps stlpips-pytorch==0.0.2 lpips==0.1.4
+# Optional: Mitsuba's fast llvm_ad_rgb variant (synthetic scenes) needs Debian's libllvm19;
+# without it difftex synth falls back to scalar_rgb, about 2x slower.
+if [ "$(id -u)" = 0 ] && command -v apt-get >/dev/null && ! ldconfig -p 2>/dev/null | grep -q libLLVM.so.19; then
+  (apt-get install -y -qq libllvm19 >/dev/null 2>&1 || { apt-get update -qq >/dev/null 2>&1 && apt-get install -y -qq libllvm19 >/dev/null 2>&1; }) \
+    || echo "note: libllvm19 not installed; Mitsuba will use scalar_rgb"
+fi
 echo "difftex installed in $(pwd)/.venv"
