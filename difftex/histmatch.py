@@ -4,11 +4,11 @@ Each candidate photo k gets a monotone transfer per HSV channel (a quantile map)
 the polygon's texels that photo k and the reference both see, so occluders and content seen by
 only one photo do not bias it. References:
 
-- ``pooled`` (default): the histogram of all candidates together (the consensus illumination);
-  no single photo's exposure sets the texture's brightness.
-- ``best``: the photo with the largest sum of frontality over its visible texels (most
-  frontal x most coverage): the photo the optimizer leans on most, so matching the others to
-  it changes the final texture least; but its exposure error spreads over the whole texture.
+- ``best`` (default): the photo with the largest sum of frontality over its visible texels
+  (most frontal x most coverage): the photo the optimizer leans on most, so matching the others
+  to it changes the final texture least; its exposure error spreads over the whole texture.
+- ``pooled``: the histogram of all candidates together (the consensus illumination), which
+  occluders and content seen by only some photos also pull.
 
 Hue is circular and a quantile map on it produces false colours, so by default only S and V are
 matched (``histmatch_channels: sv``). skimage.exposure.match_histograms matches whole images and
@@ -91,7 +91,7 @@ def apply_transfer(rgb: np.ndarray, transfer: np.ndarray) -> np.ndarray:
 
 
 def transfers_from_mapped(colours: dict[int, torch.Tensor], visible: dict[int, torch.Tensor],
-                          frontality: dict[int, torch.Tensor], reference: str = "pooled",
+                          frontality: dict[int, torch.Tensor], reference: str = "best",
                           channels: str = "sv", min_overlap: int = 64) -> tuple[dict[int, np.ndarray], int | None]:
     """Transfers per photo from their mapped colours (3, h, w) and visibility (h, w) at one level.
 

@@ -66,7 +66,7 @@ class OptimizeConfig:
     data_elimination: bool = True
     coarse_to_fine: bool = True
     histogram_matching: bool = True
-    histmatch_reference: str = "pooled"  # "pooled" histogram of all candidates, or the "best" photo (frontality x coverage)
+    histmatch_reference: str = "best"  # the "best" photo (frontality x coverage) or the "pooled" histogram of all candidates
     histmatch_channels: str = "sv"  # HSV channels matched; hue is circular and left alone by default
     output_bits: int = 8  # texture.png bit depth (8 or 16)
     write_exr: bool = False  # also texture.exr (half float)
