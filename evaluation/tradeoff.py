@@ -1,6 +1,6 @@
 """Speed/accuracy trade: Error 95% and SSIM against minutes for each difftex preset and resolution.
 
-    python evaluation/tradeoff.py                                    # fast, balanced, paper presets at 128-256 texels, one facade
+    python evaluation/tradeoff.py                                    # fast and balanced presets at 128 and 256 texels, one facade
     python evaluation/tradeoff.py --runs fast@256,fast@512,balanced@512 --polygons all
 
 Writes evaluation/results/tradeoff.{md,json,png}: one point per preset@resolution (minutes of
@@ -50,7 +50,7 @@ def plot(rows: list[dict], out: Path) -> None:
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--scene", default="evaluation/out/scenes/tiny")
-    ap.add_argument("--runs", default="fast@128,fast@256,balanced@128,paper@128",
+    ap.add_argument("--runs", default="fast@128,fast@256,balanced@128,balanced@256",
                     help="comma-separated preset@long_side")
     ap.add_argument("--baselines", default="average,mrf", help="run at each resolution as reference points ('' for none)")
     ap.add_argument("--polygons", default="wall00", help="comma-separated ids, or 'all'")
