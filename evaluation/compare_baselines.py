@@ -175,7 +175,7 @@ def main() -> int:
     real = [r for r in results if r not in with_gt]
     if real:
         lines += ["## Real scenes (no ground truth: look at the figures)", "",
-                  "| scene/polygon | photos | method | sharpness (mean |grad|) | time (s) |", "|---|---|---|---|---|"]
+                  "| scene/polygon | photos | method | sharpness (mean abs. gradient) | time (s) |", "|---|---|---|---|---|"]
         for r in real:
             for meth, m in r["methods"].items():
                 lines.append(f"| {r['scene']}/{r['polygon']} | {r['photos']} | {meth} | {m['sharpness']} | {m['time_s']} |")
