@@ -1,6 +1,6 @@
 """Table 2 (real scenes): Q_front, Q_vc, and held-out-photo SSIM / LPIPS / PSNR, time per method.
 
-    python evaluation/table2.py                                   # the shared real scenes, 256-texel maps
+    python evaluation/table2.py                                   # the shared real scenes, 128-texel maps
     python evaluation/table2.py --scenes ../shared/data/lund-door --holdout 2 --long-side 512
 
 The paper's scheme: per scene, some photos are held out (``--holdout N``: N photos spread evenly
@@ -31,7 +31,7 @@ def main(argv=None) -> int:
                     help="comma-separated scene folders (default: every scene in ../shared/data)")
     ap.add_argument("--holdout", type=int, default=2, help="held-out photos per scene (evenly spread)")
     ap.add_argument("--holdout-names", default=None, help="comma-separated names instead (one scene only)")
-    ap.add_argument("--long-side", type=int, default=256)
+    ap.add_argument("--long-side", type=int, default=128)
     ap.add_argument("--preset", default="fast")
     ap.add_argument("--render-long-side", type=int, default=768, help="held-out views are compared at this size")
     ap.add_argument("--methods", default="difftex,average,frontal,mrf,texrecon")
