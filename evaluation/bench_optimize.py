@@ -15,36 +15,24 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
-import platform
 import resource
 import subprocess
 import sys
 import time
 from pathlib import Path
 
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+from evaluation import common as C  # noqa: E402
+
+
 
 def machine() -> dict:
+    """The shared machine description (evaluation/common.py) plus what this benchmark adds."""
+    m = C.machine()
     import torch
 
-    cpu = platform.processor()
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                cpu = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
-    mem = None
-    try:
-        for line in Path("/proc/meminfo").read_text().splitlines():
-            if line.startswith("MemTotal"):
-                mem = round(int(line.split()[1]) / 2**20, 1)
-    except OSError:
-        pass
-    return {"cpu": cpu, "cores": os.cpu_count(), "ram_gib": mem, "torch": torch.__version__,
-            "cuda": torch.cuda.get_device_name(0) if torch.cuda.is_available() else None,
-            "torch_threads": torch.get_num_threads(), "load_avg": os.getloadavg()}
+    m["cuda"] = torch.cuda.get_device_name(0) if torch.cuda.is_available() else None
+    return m
 
 
 def visibility_file(scene: str, polygon: str, size: int, cache: Path) -> Path:
@@ -63,7 +51,6 @@ def visibility_file(scene: str, polygon: str, size: int, cache: Path) -> Path:
 
 
 def run_one(args) -> dict:
-    import numpy as np
     import torch
 
     from difftex.optimize import OptimizeConfig, optimize_polygon, polygon_input_from_visibility, resample_nearest

@@ -52,8 +52,9 @@ def machine() -> dict:
         commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True, text=True).stdout.strip()
     except OSError:
         commit = ""
-    return {"cpu": cpu, "cores": os.cpu_count(), "ram_gb": ram, "torch": torch.__version__,
+    return {"cpu": cpu, "cores": os.cpu_count(), "ram_gib": ram, "torch": torch.__version__,
             "torch_threads": torch.get_num_threads(), "cuda": torch.cuda.is_available(),
+            "load_avg": os.getloadavg(), "platform": platform.platform(),
             "python": platform.python_version(), "git_commit": commit,
             "date_utc": _dt.datetime.now(_dt.timezone.utc).strftime("%Y-%m-%d %H:%M UTC")}
 
@@ -195,7 +196,7 @@ def write_outputs(stem: Path, md: str, data: dict) -> None:
 
 def header(title: str, command: str, m: dict, notes: list[str]) -> str:
     lines = [f"# {title}", "", f"Command: `{command}`  ", f"Date: {m['date_utc']}  ",
-             f"Machine: {m['cpu']}, {m['cores']} cores, {m['ram_gb']} GB RAM, torch {m['torch']} "
+             f"Machine: {m['cpu']}, {m['cores']} cores, {m['ram_gib']} GiB RAM, torch {m['torch']} "
              f"({m['torch_threads']} threads), CUDA {'yes' if m['cuda'] else 'no'}; git {m['git_commit']}", ""]
     lines += [f"- {n}" for n in notes]
     return "\n".join(lines) + "\n\n"

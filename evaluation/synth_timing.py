@@ -14,38 +14,26 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import platform
 import sys
 import time
 from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+from evaluation import common as C  # noqa: E402
+
 
 HERE = Path(__file__).resolve().parent
 
 
 def machine() -> dict:
-    cpu = "unknown"
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                cpu = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
-    ram = None
-    try:
-        for line in Path("/proc/meminfo").read_text().splitlines():
-            if line.startswith("MemTotal"):
-                ram = round(int(line.split()[1]) / 1024**2, 1)
-    except OSError:
-        pass
+    """The shared machine description (evaluation/common.py) plus what this benchmark adds."""
+    m = C.machine()
     import mitsuba
-    import torch
 
     from difftex.synth.render import choose_variant
 
-    return {"cpu": cpu, "cores": os.cpu_count(), "ram_gib": ram, "python": platform.python_version(),
-            "torch": torch.__version__, "mitsuba": mitsuba.__version__, "mitsuba_variant": choose_variant("auto"),
-            "platform": platform.platform()}
+    m.update(mitsuba=mitsuba.__version__, mitsuba_variant=choose_variant("auto"))
+    return m
 
 
 def main(argv=None) -> int:
