@@ -1,5 +1,6 @@
 # Configuration, paths and the per-stage config files. No rules here (see `snakemake --lint`).
 
+import os
 import sys
 from pathlib import Path
 
@@ -7,6 +8,10 @@ from snakemake.exceptions import WorkflowError
 
 # The workflow imports difftex from this checkout even when it is not installed.
 sys.path.insert(0, str(Path(workflow.basedir)))
+
+# Rules run the `difftex` command of the Python that runs Snakemake, so `.venv/bin/snakemake`
+# works without activating the environment (and cluster jobs use the same environment).
+os.environ["PATH"] = os.pathsep.join([str(Path(sys.executable).parent), os.environ.get("PATH", "")])
 
 import difftex.workflow as wf
 from difftex.errors import DifftexError
