@@ -1,6 +1,6 @@
 # Configuration, paths and the per-stage config files. No rules here (see `snakemake --lint`).
 
-import os
+import shlex
 import sys
 from pathlib import Path
 
@@ -11,7 +11,7 @@ sys.path.insert(0, str(Path(workflow.basedir)))
 
 # Rules run the `difftex` command of the Python that runs Snakemake, so `.venv/bin/snakemake`
 # works without activating the environment (and cluster jobs use the same environment).
-os.environ["PATH"] = os.pathsep.join([str(Path(sys.executable).parent), os.environ.get("PATH", "")])
+shell.prefix(f"set -euo pipefail; export PATH={shlex.quote(str(Path(sys.executable).parent))}:$PATH; ")
 
 import difftex.workflow as wf
 from difftex.errors import DifftexError
