@@ -34,7 +34,6 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from difftex.errors import DifftexError
 from difftex.mapping import map_texels
 from difftex.optimize import PolygonInput, build_samplers, map_photo, pick_device, texel_footprint
 
@@ -133,7 +132,6 @@ def consistency_penalty(means: np.ndarray, ok: np.ndarray, sigma: float, steps: 
     The mode: mean shift with a Gaussian kernel of width ``sigma`` started at the per-channel
     median of the photos that see the patch (``ok``); needs at least 3 such photos, else 0.
     """
-    L = means.shape[0]
     okf = ok.astype(np.float64)
     cnt = okf.sum(0)
     masked = np.where(ok[..., None], means, np.nan)

@@ -17,10 +17,10 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from difftex.optimize import PolygonInput, build_samplers, map_photo, pick_device
+from difftex.optimize import MappedPhoto, PolygonInput, build_samplers, map_photo, pick_device
 
 
-def compose_from_photos(inp: PolygonInput, weight_of: Callable[[int, "MappedPhoto"], torch.Tensor | None],
+def compose_from_photos(inp: PolygonInput, weight_of: Callable[[int, MappedPhoto], torch.Tensor | None],
                         device="cpu", samplers=None) -> tuple[np.ndarray, np.ndarray]:
     """(U (H, W, 3), weight sum (H, W)) at the target frame; ``weight_of(n, mapped)`` gives photo n's (H, W) weights."""
     device = torch.device(device) if not isinstance(device, torch.device) else device

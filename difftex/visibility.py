@@ -20,7 +20,7 @@ import numpy as np
 from difftex.camera import Photo
 from difftex.errors import DifftexError
 from difftex.mapping import UVFrame, texel_mask, texel_to_pixel, uv_frame
-from difftex.proxy import Polygon, Proxy
+from difftex.proxy import Proxy
 
 NO_POLYGON = -1
 
