@@ -37,10 +37,7 @@ def main(argv=None) -> int:
     ap.add_argument("--long-side", type=int, default=128)
     ap.add_argument("--preset", default="fast")
     ap.add_argument("--variants", default=",".join(VARIANTS))
-    ap.add_argument("--lpips", default="auto")
-    ap.add_argument("--work", default="evaluation/out/ablation")
-    ap.add_argument("--out", default="evaluation/results/ablation")
-    ap.add_argument("--threads", type=int, default=2)
+    C.add_table_args(ap, "ablation")
     args = ap.parse_args(argv)
 
     import torch
@@ -51,7 +48,7 @@ def main(argv=None) -> int:
     t_all = time.perf_counter()
     scene, work = Path(args.scene), Path(args.work)
     ensure_synth(scene)
-    only = None if args.polygons == "all" else args.polygons.split(",")
+    only = C.polygon_ids(args.polygons)
     cfg = C.base_config(args.long_side, args.preset, {"evaluate": {"views": False}})
     common = C.run_common(scene, work, cfg, only)
     rows = []

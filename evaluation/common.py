@@ -179,6 +179,19 @@ def evaluate(scene: Path, results: Path, lpips: str = "auto", config: Path | Non
     return m
 
 
+def add_table_args(ap, name: str) -> None:
+    """The options every table command shares: LPIPS variant, work folder, output stem, threads."""
+    ap.add_argument("--lpips", default="auto")
+    ap.add_argument("--work", default=f"evaluation/out/{name}", help="work folder (results per method)")
+    ap.add_argument("--out", default=f"evaluation/results/{name}", help="output stem (.md, .json)")
+    ap.add_argument("--threads", type=int, default=2)
+
+
+def polygon_ids(text: str) -> list[str] | None:
+    """--polygons value: comma-separated ids, or 'all' (None: every polygon)."""
+    return None if text == "all" else text.split(",")
+
+
 def fmt(v, nd=4) -> str:
     if v is None:
         return "n/a"

@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import json
 import sys
 import time
 from pathlib import Path
@@ -25,7 +24,6 @@ import numpy as np
 
 
 def sharpness(img: np.ndarray, mask: np.ndarray) -> float:
-    g = np.zeros(img.shape[:2])
     gx = np.abs(np.diff(img, axis=1)).mean(-1)
     gy = np.abs(np.diff(img, axis=0)).mean(-1)
     m = mask[:, 1:] & mask[:, :-1]
@@ -45,8 +43,6 @@ def area_down(x: np.ndarray, f: int) -> np.ndarray:
 
 
 def run_difftex(inp, cfg, device):
-    import torch
-
     from difftex.histmatch import polygon_transfers
     from difftex.optimize import optimize_polygon
     from difftex.texture import compose_slots, dominant_from_slots, finish_texture

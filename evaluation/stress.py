@@ -29,10 +29,7 @@ def main(argv=None) -> int:
     ap.add_argument("--long-side", type=int, default=128)
     ap.add_argument("--preset", default="fast")
     ap.add_argument("--methods", default="difftex,average,frontal,mrf")
-    ap.add_argument("--lpips", default="auto")
-    ap.add_argument("--work", default="evaluation/out/stress")
-    ap.add_argument("--out", default="evaluation/results/stress")
-    ap.add_argument("--threads", type=int, default=2)
+    C.add_table_args(ap, "stress")
     args = ap.parse_args(argv)
 
     import numpy as np
@@ -50,7 +47,7 @@ def main(argv=None) -> int:
     names = sorted(im.name for im in read_reconstruction(find_sparse(scene)).images.values())
     rng = np.random.default_rng(args.seed)
     order = list(rng.permutation(names))  # nested subsets: each smaller one is part of the larger
-    only = None if args.polygons == "all" else args.polygons.split(",")
+    only = C.polygon_ids(args.polygons)
     cfg = C.base_config(args.long_side, args.preset, {"evaluate": {"views": False}})
     rows = []
     for n in [int(s) for s in args.sizes.split(",")]:

@@ -34,10 +34,7 @@ def main(argv=None) -> int:
     ap.add_argument("--long-side", type=int, default=256, help="texture long side of every method")
     ap.add_argument("--preset", default="fast", help="difftex preset (config/presets/<name>.yaml)")
     ap.add_argument("--methods", default="difftex,average,frontal,mrf,texrecon")
-    ap.add_argument("--lpips", default="auto")
-    ap.add_argument("--work", default="evaluation/out/table1", help="work folder (results per method)")
-    ap.add_argument("--out", default="evaluation/results/table1", help="output stem (.md, .json)")
-    ap.add_argument("--threads", type=int, default=2)
+    C.add_table_args(ap, "table1")
     args = ap.parse_args(argv)
 
     import torch

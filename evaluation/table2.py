@@ -35,10 +35,7 @@ def main(argv=None) -> int:
     ap.add_argument("--preset", default="fast")
     ap.add_argument("--render-long-side", type=int, default=768, help="held-out views are compared at this size")
     ap.add_argument("--methods", default="difftex,average,frontal,mrf,texrecon")
-    ap.add_argument("--lpips", default="auto")
-    ap.add_argument("--work", default="evaluation/out/table2")
-    ap.add_argument("--out", default="evaluation/results/table2")
-    ap.add_argument("--threads", type=int, default=2)
+    C.add_table_args(ap, "table2")
     args = ap.parse_args(argv)
 
     import torch

@@ -54,10 +54,7 @@ def main(argv=None) -> int:
                     help="comma-separated preset@long_side")
     ap.add_argument("--baselines", default="average,mrf", help="run at each resolution as reference points ('' for none)")
     ap.add_argument("--polygons", default="wall00", help="comma-separated ids, or 'all'")
-    ap.add_argument("--lpips", default="auto")
-    ap.add_argument("--work", default="evaluation/out/tradeoff")
-    ap.add_argument("--out", default="evaluation/results/tradeoff")
-    ap.add_argument("--threads", type=int, default=2)
+    C.add_table_args(ap, "tradeoff")
     args = ap.parse_args(argv)
 
     import torch
@@ -68,7 +65,7 @@ def main(argv=None) -> int:
     t_all = time.perf_counter()
     scene, work = Path(args.scene), Path(args.work)
     ensure_synth(scene)
-    only = None if args.polygons == "all" else args.polygons.split(",")
+    only = C.polygon_ids(args.polygons)
     runs = [(s.split("@")[0], int(s.split("@")[1])) for s in args.runs.split(",")]
     commons, rows = {}, []
     for preset, side in runs:
