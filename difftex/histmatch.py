@@ -4,11 +4,14 @@ Each candidate photo k gets a monotone transfer per HSV channel (a quantile map)
 the polygon's texels that photo k and the reference both see, so occluders and content seen by
 only one photo do not bias it. References:
 
-- ``best`` (default): the photo with the largest sum of frontality over its visible texels
-  (most frontal x most coverage): the photo the optimizer leans on most, so matching the others
-  to it changes the final texture least; its exposure error spreads over the whole texture.
-- ``pooled``: the histogram of all candidates together (the consensus illumination), which
-  occluders and content seen by only some photos also pull.
+- ``median`` (default): the per-texel median of the photos that see the texel (the consensus
+  image). A minority of outliers (an occluder, one badly exposed photo) does not move it, and
+  its exposure is the median photo exposure, so no single photo sets the texture's brightness.
+- ``best``: the photo with the largest sum of frontality over its visible texels (most
+  frontal x most coverage): the photo the optimizer leans on most, so matching the others to it
+  changes the final texture least; but its exposure error spreads over the whole texture.
+- ``pooled``: the histogram of all candidates together, which occluders and content seen by
+  only some photos also pull.
 
 Hue is circular and a quantile map on it produces false colours, so by default only S and V are
 matched (``histmatch_channels: sv``). skimage.exposure.match_histograms matches whole images and
@@ -95,7 +98,7 @@ def transfers_from_mapped(colours: dict[int, torch.Tensor], visible: dict[int, t
                           channels: str = "sv", min_overlap: int = 64) -> tuple[dict[int, np.ndarray], int | None]:
     """Transfers per photo from their mapped colours (3, h, w) and visibility (h, w) at one level.
 
-    Returns ({photo: (3, 2, N_KNOTS)}, reference photo or None for pooled).
+    Returns ({photo: (3, 2, N_KNOTS)}, reference photo, or None for median and pooled).
     """
     chan_ids = ["hsv".index(c) for c in channels]
     hsv = {n: rgb_to_hsv(c.clamp(0, 1)).cpu().numpy() for n, c in colours.items()}
@@ -118,6 +121,8 @@ def transfers_from_mapped(colours: dict[int, torch.Tensor], visible: dict[int, t
             for c in chan_ids:
                 out[n][c] = quantile_knots(hsv[n][c][ms], hsv[ref][c][mr])
         return out, ref
+    if reference == "median":
+        return _median_transfers(hsv, vis, chan_ids, min_overlap), None
     pooled = {c: np.concatenate([hsv[n][c][vis[n]] for n in colours]) for c in chan_ids}
     for n in colours:
         if vis[n].sum() == 0 or any(len(p) == 0 for p in pooled.values()):
@@ -125,6 +130,38 @@ def transfers_from_mapped(colours: dict[int, torch.Tensor], visible: dict[int, t
         for c in chan_ids:
             out[n][c] = quantile_knots(hsv[n][c][vis[n]], pooled[c])
     return out, None
+
+
+def _median_transfers(hsv: dict[int, np.ndarray], vis: dict[int, np.ndarray], chan_ids: list[int],
+                      min_overlap: int) -> dict[int, np.ndarray]:
+    """Match every photo to the per-texel median of all photos (the consensus image).
+
+    The median over the photos that see a texel ignores a minority of outliers (an occluder in
+    one photo, a badly exposed photo), and the consensus exposure is the median photo exposure,
+    so no single dark or bright photo sets the texture's brightness. Each photo is matched on
+    the texels it sees where at least two photos define the median: the same content on both
+    sides, unlike the pooled histogram, which mixes content only some photos see.
+    """
+    names = list(hsv)
+    out = {n: identity_transfer() for n in names}
+    stack = np.stack([np.where(vis[n][None], hsv[n], np.nan) for n in names])  # (P, 3, h, w)
+    count = np.stack([vis[n] for n in names]).sum(0)
+    defined = count >= 2
+    if not defined.any():
+        return out  # one photo per texel: nothing to agree on
+    with np.errstate(all="ignore"):
+        med = np.nanmedian(stack[:, :, defined], axis=0)  # (3, n_defined)
+    for i, n in enumerate(names):
+        ov = vis[n][defined]
+        if ov.sum() >= max(min_overlap, 0.05 * vis[n].sum()):
+            src, ref = hsv[n][:, vis[n] & defined], med[:, ov]
+        else:  # the photo sees little of the consensus area: compare whole views
+            src, ref = hsv[n][:, vis[n]], med
+        if src.shape[1] == 0 or ref.shape[1] == 0:
+            continue
+        for c in chan_ids:
+            out[n][c] = quantile_knots(src[c], ref[c])
+    return out
 
 
 def polygon_transfers(inp, cfg, device, samplers=None, long_side: int | None = None) -> tuple[list, str | None]:

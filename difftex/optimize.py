@@ -66,7 +66,7 @@ class OptimizeConfig:
     data_elimination: bool = True
     coarse_to_fine: bool = True
     histogram_matching: bool = True
-    histmatch_reference: str = "best"  # the "best" photo (frontality x coverage) or the "pooled" histogram of all candidates
+    histmatch_reference: str = "median"  # per-texel "median" of the candidates, the "best" photo, or the "pooled" histogram
     histmatch_channels: str = "sv"  # HSV channels matched; hue is circular and left alone by default
     output_bits: int = 8  # texture.png bit depth (8 or 16)
     write_exr: bool = False  # also texture.exr (half float)
@@ -82,8 +82,8 @@ class OptimizeConfig:
             bad(f"device must be auto, cpu or cuda, got {self.device!r}")
         if self.elimination_test not in ("loo", "paper"):
             bad(f"elimination_test must be 'loo' or 'paper', got {self.elimination_test!r}")
-        if self.histmatch_reference not in ("best", "pooled"):
-            bad(f"histmatch_reference must be 'best' or 'pooled', got {self.histmatch_reference!r}")
+        if self.histmatch_reference not in ("best", "median", "pooled"):
+            bad(f"histmatch_reference must be 'best', 'median' or 'pooled', got {self.histmatch_reference!r}")
         if not set(self.histmatch_channels) <= set("hsv") or not self.histmatch_channels:
             bad(f"histmatch_channels must be letters of 'hsv', got {self.histmatch_channels!r}")
         if self.output_bits not in (8, 16):

@@ -33,7 +33,7 @@ def test_identity_transfer_changes_nothing_and_knots_are_monotone():
     assert (np.diff(k[0]) > 0).all() and (np.diff(k[1]) >= 0).all()
 
 
-@pytest.mark.parametrize("reference", ["best", "pooled"])
+@pytest.mark.parametrize("reference", ["best", "median", "pooled"])
 def test_two_exposures_are_brought_together(reference):
     from test_optimize import make_input, make_photo, render
 
@@ -55,3 +55,33 @@ def test_two_exposures_are_brought_together(reference):
     if reference == "best":
         assert ref == "a"  # the more frontal photo, seeing the whole wall
         assert torch.allclose(after[0].colour, before[0].colour, atol=1e-4)  # the reference is unchanged
+
+
+@pytest.mark.parametrize("reference", ["best", "median"])
+def test_a_dark_frontal_photo_does_not_set_the_brightness_under_median(reference):
+    """The most frontal photo is a stop darker than two agreeing oblique ones. ``best`` makes it
+    the reference (the whole texture goes dark); ``median`` matches everything to the consensus,
+    so the two agreeing photos stay as they are and the dark one is brought up to them."""
+    from test_optimize import make_input, make_photo, render
+
+    cams = [make_photo("dark", 0.0), make_photo("b", -20.0), make_photo("c", 22.0)]
+    imgs = [np.clip(render(cams[0]) * 0.5, 0, 1), render(cams[1]), render(cams[2])]
+    inp = make_input(cams, imgs, long_side=64)
+    cfg = OptimizeConfig(device="cpu", histmatch_reference=reference, long_side_start=64)
+    dev = torch.device("cpu")
+    tr, ref = histmatch.polygon_transfers(inp, cfg, dev)
+    samplers = build_samplers(inp, dev)
+    before = [map_photo(inp, n, inp.frame, samplers[n], inp.texel_mask, dev) for n in range(3)]
+    inp.transfers = tr
+    after = [map_photo(inp, n, inp.frame, samplers[n], inp.texel_mask, dev) for n in range(3)]
+    seen = before[0].visible & before[1].visible & before[2].visible
+    bright = 0.5 * (before[1].colour + before[2].colour).mean(0)[seen].mean()
+    dark = before[0].colour.mean(0)[seen].mean()
+    assert dark < 0.7 * bright  # the set-up: the frontal photo really is darker
+    level = [a.colour.mean(0)[seen].mean() for a in after]
+    if reference == "best":
+        assert ref == "dark"
+        assert all(abs(v - dark) < 0.1 * dark for v in level)
+    else:
+        assert ref is None
+        assert all(abs(v - bright) < 0.05 * bright for v in level)

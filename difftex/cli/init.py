@@ -49,5 +49,6 @@ def run(args) -> int:
         info=np.array(json.dumps(info)),
         **pack_transfers(transfers, len(inp.photos)),
     )
-    print(f"init {inp.polygon_id}: {len(samplers)}/{len(inp.photos)} photos see it, reference {ref}")
+    refname = ref or (f"per-texel {cfg.histmatch_reference}" if cfg.histogram_matching else "none (matching off)")
+    print(f"init {inp.polygon_id}: {len(samplers)}/{len(inp.photos)} photos see it, brightness reference {refname}")
     return 0
