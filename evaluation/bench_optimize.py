@@ -6,8 +6,10 @@
 Visibility is computed once at the largest size and resampled to the smaller ones. Each
 (size, mode) runs in a fresh subprocess so that its peak resident memory (ru_maxrss) is its own.
 With ``--iters N`` every level runs exactly N iterations (no convergence stop), so the per-level
-iteration time is measured on equal terms; the time of a full run is then
-setup + iterations x time per iteration for the configured caps (both are reported).
+iteration time is measured on equal terms; the time of a full run is then estimated as
+setup + first iteration + (cap - 1) x the median later iteration, per level, for the default
+caps (both are reported). The first iteration is separate because it carries torch.compile's
+cost; ``--compile off auto`` compares eager with the default (compiled at large levels).
 Writes <out>.json and <out>.md with the machine description.
 """
 
@@ -66,7 +68,7 @@ def run_one(args) -> dict:
         inp.texel_visible = resample_nearest(inp.texel_visible, inp.frame, frame)
         inp.texel_mask = resample_nearest(inp.texel_mask, inp.frame, frame)
         inp.frame = frame
-    kw = dict(loss_mode=args.mode, device=args.device, histogram_matching=False)
+    kw = dict(loss_mode=args.mode, device=args.device, histogram_matching=False, compile=args.compile_one)
     if args.iters:
         kw.update(max_iters_per_level=(args.iters,), min_iters_per_level=args.iters + 1, conv_window=args.iters)
     cfg = OptimizeConfig(**kw)
@@ -78,14 +80,14 @@ def run_one(args) -> dict:
     levels = []
     est = res.stats["time_read_photos_s"]
     for i, lv in enumerate(res.stats["levels"]):
-        it = max(lv["iterations"], 1)
-        per_it = (lv["time_s"] - lv["time_setup_s"]) / it
-        est += lv["time_setup_s"] + per_it * full_cfg.cap(i)
+        per_it = lv["time_per_iter_s"]
+        est += lv["time_setup_s"] + lv["time_first_iter_s"] + per_it * max(full_cfg.cap(i) - 1, 0)
         levels.append({"long_side": lv["long_side"], "shape": lv["shape"], "candidates": lv["candidates"],
                        "top_k": lv["top_k"], "setup_s": round(lv["time_setup_s"], 3), "iter_s": round(per_it, 4),
+                       "first_iter_s": round(lv["time_first_iter_s"], 3), "compiled": lv["compiled"],
                        "iterations": lv["iterations"], "tensor_mib": round(lv["tensor_bytes"] / 2**20, 1),
                        "render_pixels": lv.get("render_pixels")})
-    out = {"size": args.one, "mode": args.mode, "texels": res.stats["texels"], "photos": len(inp.photos),
+    out = {"size": args.one, "mode": args.mode, "compile": args.compile_one, "texels": res.stats["texels"], "photos": len(inp.photos),
            "time_s": round(total, 2), "read_photos_s": round(res.stats["time_read_photos_s"], 2),
            "est_full_run_s": round(est, 1), "peak_rss_mib": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1),
            "rss_before_mib": round(rss0 / 1024, 1), "levels": levels, "coverage": res.stats["coverage"]}
@@ -103,11 +105,14 @@ def main() -> int:
     ap.add_argument("--iters", type=int, default=10, help="iterations per level (0: the config's caps and convergence)")
     ap.add_argument("--device", default="auto")
     ap.add_argument("--threads", type=int, default=1)
+    ap.add_argument("--compile", nargs="+", default=["off", "auto"], choices=["off", "auto", "on"],
+                    help="OptimizeConfig.compile settings to compare")
     ap.add_argument("--cache", default="/tmp/difftex_bench")
     ap.add_argument("--out", default="evaluation/bench_optimize")
     ap.add_argument("--one", type=int, help=argparse.SUPPRESS)
     ap.add_argument("--mode", default="texel", help=argparse.SUPPRESS)
     ap.add_argument("--vis", help=argparse.SUPPRESS)
+    ap.add_argument("--compile-one", default="auto", help=argparse.SUPPRESS)
     args = ap.parse_args()
     if args.one:
         print("RESULT " + json.dumps(run_one(args)))
@@ -117,40 +122,45 @@ def main() -> int:
     vis = visibility_file(args.scene, args.polygon, max(args.sizes), cache)
     rows = []
     for size in args.sizes:
-        for mode in args.modes:
+        for mode, comp in [(m, c) for m in args.modes for c in args.compile]:
             cmd = [sys.executable, __file__, "--scene", args.scene, "--polygon", args.polygon, "--one", str(size),
                    "--mode", mode, "--vis", str(vis), "--iters", str(args.iters), "--device", args.device,
-                   "--threads", str(args.threads)]
+                   "--threads", str(args.threads), "--compile-one", comp]
             p = subprocess.run(cmd, capture_output=True, text=True)
             line = [l for l in p.stdout.splitlines() if l.startswith("RESULT ")]
             if p.returncode or not line:
                 print(p.stderr[-2000:], file=sys.stderr)
-                rows.append({"size": size, "mode": mode, "error": p.stderr.strip().splitlines()[-1] if p.stderr.strip() else "failed"})
+                rows.append({"size": size, "mode": mode, "compile": comp, "error": p.stderr.strip().splitlines()[-1] if p.stderr.strip() else "failed"})
                 continue
             r = json.loads(line[0][7:])
             rows.append(r)
-            print(f"{size:5d} {mode:6s} {r['time_s']:8.1f}s  full~{r['est_full_run_s']:8.1f}s  rss {r['peak_rss_mib']:8.1f} MiB", flush=True)
+            print(f"{size:5d} {mode:6s} {comp:4s} {r['time_s']:8.1f}s  full~{r['est_full_run_s']:8.1f}s  rss {r['peak_rss_mib']:8.1f} MiB", flush=True)
     info = {"command": " ".join(sys.argv), "scene": args.scene, "polygon": args.polygon, "iters_per_level": args.iters,
             "machine": machine(), "results": rows}
     from difftex.io import write_json, write_text
 
     write_json(args.out + ".json", info)
     m = info["machine"]
+    from difftex.optimize import OptimizeConfig
+
     lines = [f"# Optimizer time and memory per polygon ({Path(args.scene).name} / {args.polygon})", "",
              f"Command: `{info['command']}`", "",
              f"Machine: {m['cpu']}, {m['cores']} cores, {m['ram_gib']} GiB RAM, torch {m['torch']}, "
              f"CUDA: {m['cuda'] or 'none'}, torch threads {args.threads}, load average at the end {tuple(round(x, 1) for x in m['load_avg'])}.", "",
-             f"Each level ran {args.iters} iterations (0 = config caps). 'full run' = read + setup + default caps "
-             "(300, 150, 80, 40 iterations per level) x measured time per iteration.", "",
-             "| texels | mode | photos | run (s) | est. full run (s) | peak RSS (MiB) | last level: s/iter | last level tensors (MiB) |",
-             "|---|---|---|---|---|---|---|---|"]
+             f"Each level ran {args.iters} iterations (0 = config caps). 'full run' = read + setup + first iteration "
+             "(which carries torch.compile's cost) + the rest of the default caps (300, 150, 80, 40 iterations per level) "
+             "x the median time of the later iterations. `compile`: OptimizeConfig.compile (auto compiles levels with "
+             f"at least {OptimizeConfig().compile_min_slots} K x H x W slot entries); 'compiled' lists the levels that were.", "",
+             "| texels | mode | compile | photos | run (s) | est. full run (s) | peak RSS (MiB) | last level: s/iter | last level: first iter (s) | compiled levels | last level tensors (MiB) |",
+             "|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
         if "error" in r:
-            lines.append(f"| {r['size']} | {r['mode']} | | failed: {r['error']} | | | | |")
+            lines.append(f"| {r['size']} | {r['mode']} | {r.get('compile', '')} | | failed: {r['error']} | | | | | | |")
             continue
         last = r["levels"][-1]
-        lines.append(f"| {r['size']} ({r['texels']} in polygon) | {r['mode']} | {r['photos']} | {r['time_s']} | {r['est_full_run_s']} | "
-                     f"{r['peak_rss_mib']} | {last['iter_s']} | {last['tensor_mib']} |")
+        comp_lv = ", ".join(str(lv["long_side"]) for lv in r["levels"] if lv.get("compiled")) or "none"
+        lines.append(f"| {r['size']} ({r['texels']} in polygon) | {r['mode']} | {r['compile']} | {r['photos']} | {r['time_s']} | "
+                     f"{r['est_full_run_s']} | {r['peak_rss_mib']} | {last['iter_s']} | {last['first_iter_s']} | {comp_lv} | {last['tensor_mib']} |")
     write_text(args.out + ".md", "\n".join(lines) + "\n")
     return 0
 
