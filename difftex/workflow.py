@@ -264,12 +264,15 @@ def _photo_pixels(scene: str | Path, row: dict) -> int:
     return 4000 * 3000
 
 
-def polygon_mem_mb(scene: str | Path, row: dict, run: dict) -> int:
-    """Memory of one polygon's optimization: texels x candidate photos x bytes per pair (parameters,
-    Adam state, mappings, masks), plus the candidate photos as float32 RGB, plus Python/torch."""
+def polygon_mem_mb(scene: str | Path, row: dict, run: dict, top_k: int | None = None) -> int:
+    """Memory of one polygon's optimization: texels x slots x bytes per slot (parameters, Adam
+    state, mapped colours, masks, autograd temporaries), plus the candidate photos as float32 RGB,
+    plus Python/torch. The optimizer keeps min(candidates, top_k) slots per texel, not one per
+    candidate; every candidate photo is held (cropped) to map it at each level."""
     texels = int(row.get("width", 0)) * int(row.get("height", 0))
     k = len(row.get("photos", []))
-    data = texels * k * float(run["bytes_per_texel_photo"]) + k * _photo_pixels(scene, row) * 12
+    slots = min(k, int(top_k)) if top_k else k
+    data = texels * slots * float(run["bytes_per_texel_photo"]) + k * _photo_pixels(scene, row) * 12
     return int(run["base_mem_mb"] + math.ceil(data / 2**20))
 
 

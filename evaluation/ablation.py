@@ -26,6 +26,8 @@ VARIANTS = {
     "no_para": ({"use_para": False}, "without L_Para"),
     "no_elimination": ({"data_elimination": False}, "without photo / pixel elimination"),
     "no_histmatch": ({"histogram_matching": False}, "without HSV histogram matching"),
+    "histmatch_best": ({"histmatch_reference": "best"}, "histogram matching to the best photo (not the per-texel median)"),
+    "histmatch_pooled": ({"histmatch_reference": "pooled"}, "histogram matching to the pooled histogram (not the per-texel median)"),
     "no_coarse_to_fine": ({"coarse_to_fine": False}, "target level only (no coarse-to-fine)"),
 }
 
@@ -64,7 +66,8 @@ def main(argv=None) -> int:
              f"**Reduced sizes**: texture long side {args.long_side}, difftex preset `{args.preset}` "
              f"({cfg['optimize'].get('loss_mode')} loss, iteration caps {cfg['optimize'].get('max_iters_per_level')}).",
              "One switch of the `optimize:` section off per row (OptimizeConfig: use_render, use_sparsity, use_persp, "
-             "use_para, data_elimination, histogram_matching, coarse_to_fine); everything else as in `full`.",
+             "use_para, data_elimination, histogram_matching, coarse_to_fine), or another histogram-matching reference "
+             "(histmatch_reference; default median); everything else as in `full`.",
              "Maps scored against ground truth as in Table 1; time is texturing (init + optimize + histmatch) summed over the polygons."]
     lines = [C.header("Ablation: each loss term and data-quality step off in turn",
                       "python evaluation/ablation.py " + " ".join(sys.argv[1:] if argv is None else argv), mach, notes)]

@@ -101,6 +101,11 @@ def test_memory_estimate_grows_with_texels_and_photos():
     small = wf.polygon_mem_mb(".", {"width": 256, "height": 256, "photos": ["a"]}, run)
     big = wf.polygon_mem_mb(".", {"width": 2048, "height": 2048, "photos": ["a"] * 8}, run)
     assert run["base_mem_mb"] < small < big
+    # slots are capped at top_k: 40 candidates cost 8 slots per texel plus their (cropped) photos
+    row = {"width": 2048, "height": 2048, "photos": ["a"] * 40}
+    capped, uncapped = wf.polygon_mem_mb(".", row, run, top_k=8), wf.polygon_mem_mb(".", row, run)
+    slot_mb = 2048 * 2048 * float(run["bytes_per_texel_photo"]) / 2**20
+    assert abs((uncapped - capped) - 32 * slot_mb) < 2
 
 
 # ---------------------------------------------------------------------------------------------

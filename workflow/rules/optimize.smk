@@ -25,7 +25,8 @@ rule init:
     threads: RUN["polygon_threads"]
     resources:
         mem_mb=lambda wc: wf.polygon_mem_mb(
-            SCENE, wf.polygon_row(checkpoints.visibility.get().output.summary, wc.pid), RUN
+            SCENE, wf.polygon_row(checkpoints.visibility.get().output.summary, wc.pid), RUN,
+            config["optimize"]["top_k"],
         ),
         runtime=30,
         gpu=RUN["gpu"],
@@ -59,7 +60,8 @@ rule optimize:
     threads: RUN["polygon_threads"]
     resources:
         mem_mb=lambda wc: wf.polygon_mem_mb(
-            SCENE, wf.polygon_row(checkpoints.visibility.get().output.summary, wc.pid), RUN
+            SCENE, wf.polygon_row(checkpoints.visibility.get().output.summary, wc.pid), RUN,
+            config["optimize"]["top_k"],
         ),
         runtime=lambda wc: wf.polygon_runtime_min(
             wf.polygon_row(checkpoints.visibility.get().output.summary, wc.pid), config
@@ -98,7 +100,8 @@ rule histmatch:
     threads: RUN["polygon_threads"]
     resources:
         mem_mb=lambda wc: wf.polygon_mem_mb(
-            SCENE, wf.polygon_row(checkpoints.visibility.get().output.summary, wc.pid), RUN
+            SCENE, wf.polygon_row(checkpoints.visibility.get().output.summary, wc.pid), RUN,
+            config["optimize"]["top_k"],
         ),
         runtime=30,
         gpu=RUN["gpu"],
