@@ -33,6 +33,19 @@ def test_identity_transfer_changes_nothing_and_knots_are_monotone():
     assert (np.diff(k[0]) > 0).all() and (np.diff(k[1]) >= 0).all()
 
 
+def matched_before_after(inp, reference: str):
+    """Every photo mapped into texel space without and with the transfers of ``reference``."""
+    cfg = OptimizeConfig(device="cpu", histmatch_reference=reference, long_side_start=64)
+    dev = torch.device("cpu")
+    tr, ref = histmatch.polygon_transfers(inp, cfg, dev)
+    samplers = build_samplers(inp, dev)
+    n = len(inp.photos)
+    before = [map_photo(inp, k, inp.frame, samplers[k], inp.texel_mask, dev) for k in range(n)]
+    inp.transfers = tr
+    after = [map_photo(inp, k, inp.frame, samplers[k], inp.texel_mask, dev) for k in range(n)]
+    return before, after, ref
+
+
 @pytest.mark.parametrize("reference", ["best", "median", "pooled"])
 def test_two_exposures_are_brought_together(reference):
     from test_optimize import make_input, make_photo, render
@@ -40,14 +53,7 @@ def test_two_exposures_are_brought_together(reference):
     a, b = make_photo("a", -10.0), make_photo("b", 15.0)
     img_a = render(a)
     img_b = np.clip(render(b) * 0.6, 0, 1)  # one stop and a bit darker
-    inp = make_input([a, b], [img_a, img_b], long_side=64)
-    cfg = OptimizeConfig(device="cpu", histmatch_reference=reference, long_side_start=64)
-    dev = torch.device("cpu")
-    tr, ref = histmatch.polygon_transfers(inp, cfg, dev)
-    samplers = build_samplers(inp, dev)
-    before = [map_photo(inp, n, inp.frame, samplers[n], inp.texel_mask, dev) for n in range(2)]
-    inp.transfers = tr
-    after = [map_photo(inp, n, inp.frame, samplers[n], inp.texel_mask, dev) for n in range(2)]
+    before, after, ref = matched_before_after(make_input([a, b], [img_a, img_b], long_side=64), reference)
     both = before[0].visible & before[1].visible
     d0 = (before[0].colour - before[1].colour).abs().mean(0)[both].mean()
     d1 = (after[0].colour - after[1].colour).abs().mean(0)[both].mean()
@@ -66,14 +72,7 @@ def test_a_dark_frontal_photo_does_not_set_the_brightness_under_median(reference
 
     cams = [make_photo("dark", 0.0), make_photo("b", -20.0), make_photo("c", 22.0)]
     imgs = [np.clip(render(cams[0]) * 0.5, 0, 1), render(cams[1]), render(cams[2])]
-    inp = make_input(cams, imgs, long_side=64)
-    cfg = OptimizeConfig(device="cpu", histmatch_reference=reference, long_side_start=64)
-    dev = torch.device("cpu")
-    tr, ref = histmatch.polygon_transfers(inp, cfg, dev)
-    samplers = build_samplers(inp, dev)
-    before = [map_photo(inp, n, inp.frame, samplers[n], inp.texel_mask, dev) for n in range(3)]
-    inp.transfers = tr
-    after = [map_photo(inp, n, inp.frame, samplers[n], inp.texel_mask, dev) for n in range(3)]
+    before, after, ref = matched_before_after(make_input(cams, imgs, long_side=64), reference)
     seen = before[0].visible & before[1].visible & before[2].visible
     bright = 0.5 * (before[1].colour + before[2].colour).mean(0)[seen].mean()
     dark = before[0].colour.mean(0)[seen].mean()
