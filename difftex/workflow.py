@@ -278,9 +278,10 @@ def polygon_mem_mb(scene: str | Path, row: dict, run: dict, top_k: int | None = 
 
 def polygon_runtime_min(row: dict, cfg: dict) -> int:
     """Wall-clock minutes for a cluster's time limit: coarse-to-fine levels doubling from
-    long_side_start to the target, each at most its iteration cap over texels x photos; 3x margin."""
+    long_side_start to the target, each at most its iteration cap over texels x slots
+    (min(candidates, top_k)); 3x margin."""
     texels = int(row.get("width", 0)) * int(row.get("height", 0))
-    k = max(1, len(row.get("photos", [])))
+    k = max(1, min(len(row.get("photos", [])), int(cfg["optimize"].get("top_k", 8))))
     long_side = max(int(row.get("width", 1)), int(row.get("height", 1)))
     start = int(cfg["optimize"]["long_side_start"])
     levels = max(1, math.ceil(math.log2(max(long_side / max(start, 1), 1))) + 1)

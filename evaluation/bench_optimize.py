@@ -17,9 +17,11 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import resource
 import subprocess
 import sys
+import tempfile
 import time
 from pathlib import Path
 
@@ -126,7 +128,11 @@ def main() -> int:
             cmd = [sys.executable, __file__, "--scene", args.scene, "--polygon", args.polygon, "--one", str(size),
                    "--mode", mode, "--vis", str(vis), "--iters", str(args.iters), "--device", args.device,
                    "--threads", str(args.threads), "--compile-one", comp]
-            p = subprocess.run(cmd, capture_output=True, text=True)
+            # a fresh inductor cache per run: the first iteration then carries a cold compile,
+            # as in a cluster job on a new node, not kernels cached by an earlier run
+            with tempfile.TemporaryDirectory(prefix="difftex_inductor_") as cache_dir:
+                env = dict(os.environ, TORCHINDUCTOR_CACHE_DIR=cache_dir)
+                p = subprocess.run(cmd, capture_output=True, text=True, env=env)
             line = [l for l in p.stdout.splitlines() if l.startswith("RESULT ")]
             if p.returncode or not line:
                 print(p.stderr[-2000:], file=sys.stderr)
