@@ -70,7 +70,7 @@ class OptimizeConfig:
     histmatch_reference: str = "median"  # per-texel "median" of the candidates, the "best" photo, or the "pooled" histogram
     histmatch_channels: str = "sv"  # HSV channels matched; hue is circular and left alone by default
     compile: str = "auto"  # torch.compile the objective: auto (large levels only) | on | off
-    compile_min_slots: int = 8_388_608  # auto: compile levels with at least this many K x H x W slot entries
+    compile_min_slots: int = 4_194_304  # auto: compile levels with at least this many K x H x W slot entries
     output_bits: int = 8  # texture.png bit depth (8 or 16)
     write_exr: bool = False  # also texture.exr (half float)
     seed: int = 0
@@ -752,9 +752,11 @@ def compiled_objective(lv: Level, cfg: OptimizeConfig, device: torch.device):
     """torch.compile'd ``objective`` for this level, or None to run eagerly.
 
     On the CPU, eager L costs some 30 elementwise passes over (K, H, W) tensors per iteration;
-    inductor fuses them into a few loops (measured about 2.5x per iteration at 1024 x 768 x 8,
-    after about 25 s of compilation), which only pays at large levels: ``auto`` compiles levels
-    with at least ``compile_min_slots`` slot entries.
+    inductor fuses them into a few loops. Measured on one thread (evaluation/bench_optimize.md,
+    2048-texel level, 19.8 M slots): 4.3 s eager vs 2.3 s compiled per iteration, after about
+    13 s of cold compilation. Saving ~0.1 us per slot and iteration repays that at about 130 M
+    slot-iterations, i.e. from ~4 M slots at the finer levels' 40-80 iteration caps: ``auto``
+    compiles levels with at least ``compile_min_slots`` slot entries.
     """
     mode = cfg.compile
     if mode == "off" or (mode == "auto" and lv.idx.numel() < cfg.compile_min_slots):
