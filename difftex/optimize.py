@@ -752,9 +752,9 @@ def compiled_objective(lv: Level, cfg: OptimizeConfig, device: torch.device):
     """torch.compile'd ``objective`` for this level, or None to run eagerly.
 
     On the CPU, eager L costs some 30 elementwise passes over (K, H, W) tensors per iteration;
-    inductor fuses them into a few loops. Measured on one thread (evaluation/bench_optimize.md,
-    2048-texel level, 19.8 M slots): 4.3 s eager vs 2.3 s compiled per iteration, after about
-    13 s of cold compilation. Saving ~0.1 us per slot and iteration repays that at about 130 M
+    inductor fuses them into a few loops. Measured on one thread (evaluation/bench_optimize.md):
+    at a 19.8 M-slot level 4.3-5.7 s eager vs 2.3 s compiled per iteration, after 13-15 s of
+    cold compilation. Saving ~0.1 us per slot and iteration repays that at about 130 M
     slot-iterations, i.e. from ~4 M slots at the finer levels' 40-80 iteration caps: ``auto``
     compiles levels with at least ``compile_min_slots`` slot entries.
     """
