@@ -25,6 +25,7 @@ import numpy as np
 import torch
 
 N_KNOTS = 129
+MEDIAN_BLOCK_VALUES = 1 << 24  # floats per block of the per-texel median (64 MB)
 _Q = np.linspace(0.005, 0.995, N_KNOTS - 2)
 
 
@@ -144,14 +145,21 @@ def _median_transfers(hsv: dict[int, np.ndarray], vis: dict[int, np.ndarray], ch
     """
     names = list(hsv)
     out = {n: identity_transfer() for n in names}
-    stack = np.stack([np.where(vis[n][None], hsv[n], np.nan) for n in names])  # (P, 3, h, w)
-    count = np.stack([vis[n] for n in names]).sum(0)
+    count = np.sum([vis[n] for n in names], axis=0)
     defined = count >= 2
     if not defined.any():
         return out  # one photo per texel: nothing to agree on
-    with np.errstate(all="ignore"):
-        med = np.nanmedian(stack[:, :, defined], axis=0)  # (3, n_defined)
-    for i, n in enumerate(names):
+    flat = np.flatnonzero(defined)
+    med = np.empty((3, flat.size), np.float32)
+    # In blocks of texels: the (photos, 3, texels) stack of a polygon seen by hundreds of photos
+    # would not fit in memory at once.
+    block = max(1, MEDIAN_BLOCK_VALUES // (3 * len(names)))
+    for b0 in range(0, flat.size, block):
+        sel = flat[b0 : b0 + block]
+        stack = np.stack([np.where(vis[n].ravel()[sel][None], hsv[n].reshape(3, -1)[:, sel], np.nan) for n in names])
+        with np.errstate(all="ignore"):
+            med[:, b0 : b0 + block] = np.nanmedian(stack, axis=0)
+    for n in names:
         ov = vis[n][defined]
         if ov.sum() >= max(min_overlap, 0.05 * vis[n].sum()):
             src, ref = hsv[n][:, vis[n] & defined], med[:, ov]

@@ -84,3 +84,23 @@ def test_a_dark_frontal_photo_does_not_set_the_brightness_under_median(reference
     else:
         assert ref is None
         assert all(abs(v - bright) < 0.05 * bright for v in level)
+
+
+def test_median_reference_is_the_same_computed_in_blocks(monkeypatch):
+    """The per-texel median is computed in blocks of texels to bound memory; block size must
+    not change the transfers. Also: texels seen by one photo only do not define the median."""
+    rng = np.random.default_rng(3)
+    h, w = 20, 30
+    colours = {n: torch.from_numpy(rng.random((3, h, w)).astype(np.float32) * (0.5 + 0.2 * n)) for n in range(4)}
+    visible = {n: torch.from_numpy(rng.random((h, w)) > 0.3) for n in range(4)}
+    front = {n: torch.ones(h, w) for n in range(4)}
+    whole, _ = histmatch.transfers_from_mapped(colours, visible, front, reference="median", min_overlap=8)
+    monkeypatch.setattr(histmatch, "MEDIAN_BLOCK_VALUES", 37)
+    blocked, ref = histmatch.transfers_from_mapped(colours, visible, front, reference="median", min_overlap=8)
+    assert ref is None
+    for n in range(4):
+        assert np.array_equal(whole[n], blocked[n])
+        assert not np.array_equal(whole[n], histmatch.identity_transfer())  # exposures differ: real maps
+    single = {0: colours[0]}
+    alone, _ = histmatch.transfers_from_mapped(single, {0: visible[0]}, {0: front[0]}, reference="median")
+    assert np.array_equal(alone[0], histmatch.identity_transfer())
