@@ -79,11 +79,7 @@ def main(argv=None) -> int:
         q = r["metrics"].get("perspective", {})
         lines.append(f"| {r['what']} | {C.fmt(o['error90'])} | {C.fmt(o['error95'])} | {C.fmt(o['ssim'])} | {C.fmt(o['lpips'])} | "
                      f"{C.fmt(o['psnr'], 2)} | {C.fmt(q.get('q_front'))} | {C.fmt(q.get('q_vc'))} | {r['run']['total_s']:.0f} |")
-    lines.append("")
-    lines.append(f"Whole command: {time.perf_counter() - t_all:.0f} s.")
-    md = "\n".join(lines) + "\n"
-    C.write_outputs(Path(args.out), md, {"machine": mach, "args": vars(args), "rows": rows, "total_s": time.perf_counter() - t_all})
-    print(md)
+    C.finish_table(Path(args.out), lines, t_all, mach, args, rows)
     return 0
 
 

@@ -207,6 +207,15 @@ def write_outputs(stem: Path, md: str, data: dict) -> None:
     write_json(stem.with_suffix(".json"), json.loads(json.dumps(data, default=str)))
 
 
+def finish_table(stem: Path, lines: list[str], t_all: float, mach: dict, args, rows: list) -> str:
+    """Close a table with the whole command's time, write <stem>.md/.json, print and return the markdown."""
+    total = time.perf_counter() - t_all
+    md = "\n".join(lines + ["", f"Whole command: {total:.0f} s."]) + "\n"
+    write_outputs(Path(stem), md, {"machine": mach, "args": vars(args), "rows": rows, "total_s": total})
+    print(md)
+    return md
+
+
 def header(title: str, command: str, m: dict, notes: list[str]) -> str:
     lines = [f"# {title}", "", f"Command: `{command}`  ", f"Date: {m['date_utc']}  ",
              f"Machine: {m['cpu']}, {m['cores']} cores, {m['ram_gib']} GiB RAM, torch {m['torch']} "

@@ -82,11 +82,7 @@ def main(argv=None) -> int:
         o = r["metrics"]["maps"]["overall"]
         lines.append(f"| {r['photos']} | {C.LABELS.get(r['method'], r['method'])} | {r['coverage']:.3f} | {C.fmt(o['error90'])} | "
                      f"{C.fmt(o['error95'])} | {C.fmt(o['ssim'])} | {C.fmt(o['lpips'])} | {r['run']['total_s']:.0f} |")
-    lines.append("")
-    lines.append(f"Whole command: {time.perf_counter() - t_all:.0f} s.")
-    md = "\n".join(lines) + "\n"
-    C.write_outputs(Path(args.out), md, {"machine": mach, "args": vars(args), "rows": rows, "total_s": time.perf_counter() - t_all})
-    print(md)
+    C.finish_table(Path(args.out), lines, t_all, mach, args, rows)
     return 0
 
 

@@ -102,11 +102,7 @@ def main(argv=None) -> int:
                      f"{C.fmt(o['error90'])} | {C.fmt(o['ssim'])} | {C.fmt(o['lpips'])} | {r['run']['total_s'] / 60:.2f} |")
     lines.append("")
     lines.append(f"![trade-off]({out.with_suffix('.png').name})")
-    lines.append("")
-    lines.append(f"Whole command: {time.perf_counter() - t_all:.0f} s.")
-    md = "\n".join(lines) + "\n"
-    C.write_outputs(out, md, {"machine": mach, "args": vars(args), "rows": rows, "total_s": time.perf_counter() - t_all})
-    print(md)
+    C.finish_table(out, lines, t_all, mach, args, rows)
     return 0
 
 
