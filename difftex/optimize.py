@@ -748,7 +748,16 @@ def loss_terms(lv: Level, st: LevelState, cfg: OptimizeConfig, matches, fn=objec
     return fn(st.theta, st.active, lv.colours, lv.Q, lv.cost, st.D, matches, lv.pixel_sets, support, lv.n_tex, cfg)
 
 
-def compiled_objective(lv: Level, cfg: OptimizeConfig, device: torch.device):
+def _gradient_step(lv: Level, st: LevelState, cfg: OptimizeConfig, matches, fn, opt) -> dict[str, torch.Tensor]:
+    """Evaluate the terms with ``fn``, backpropagate and take one Adam step; returns the terms."""
+    terms = loss_terms(lv, st, cfg, matches, fn)
+    opt.zero_grad(set_to_none=True)
+    terms["total"].backward()
+    opt.step()
+    return terms
+
+
+def compiled_objective(lv: Level, cfg: OptimizeConfig):
     """torch.compile'd ``objective`` for this level, or None to run eagerly.
 
     On the CPU, eager L costs some 30 elementwise passes over (K, H, W) tensors per iteration;
@@ -760,10 +769,6 @@ def compiled_objective(lv: Level, cfg: OptimizeConfig, device: torch.device):
     """
     mode = cfg.compile
     if mode == "off" or (mode == "auto" and lv.idx.numel() < cfg.compile_min_slots):
-        return None
-    try:
-        import torch._dynamo  # noqa: F401
-    except Exception:  # pragma: no cover - torch without dynamo
         return None
     return torch.compile(objective, dynamic=False)
 
@@ -816,7 +821,7 @@ def optimize_polygon(inp: PolygonInput, cfg: OptimizeConfig, progress: bool = Fa
         st = LevelState(level=lv, theta=theta.requires_grad_(True), active=active, eliminated=eliminated)
         matches = {a: losses.neighbour_match(lv.idx, lv.mask, a, fixed=lv.fixed_slots) for a in (1, 2)} if cfg.use_para else {}
         opt = torch.optim.Adam([st.theta], lr=cfg.lr, betas=cfg.betas)
-        fn = compiled_objective(lv, cfg, device) or objective
+        fn = compiled_objective(lv, cfg) or objective
         hist: dict[str, list] = {k: [] for k in ("total", "render", "sparsity", "persp", "para")}
         n_elim = 0
         dropped_here = []
@@ -838,19 +843,15 @@ def optimize_polygon(inp: PolygonInput, cfg: OptimizeConfig, progress: bool = Fa
             st.it = it
             t_it = time.perf_counter()
             try:
-                terms = loss_terms(lv, st, cfg, matches, fn)
-                opt.zero_grad(set_to_none=True)
-                terms["total"].backward()
+                terms = _gradient_step(lv, st, cfg, matches, fn, opt)
             except Exception as e:  # noqa: BLE001 - compilation needs a C++ toolchain; eager always works
                 if fn is objective:
                     raise
-                warnings.warn(f"torch.compile failed ({type(e).__name__}: {str(e).splitlines()[0][:200]}); running eagerly")
-                stats["compile_failed"] = f"{type(e).__name__}: {str(e).splitlines()[0][:200]}"
+                reason = f"{type(e).__name__}: {str(e).splitlines()[0][:200]}"
+                warnings.warn(f"torch.compile failed ({reason}); running eagerly")
+                stats["compile_failed"] = reason
                 fn = objective
-                terms = loss_terms(lv, st, cfg, matches, fn)
-                opt.zero_grad(set_to_none=True)
-                terms["total"].backward()
-            opt.step()
+                terms = _gradient_step(lv, st, cfg, matches, fn, opt)
             for k in hist:
                 hist[k].append(float(terms[k].detach()) if k in terms else 0.0)
             with torch.no_grad():
