@@ -94,6 +94,12 @@ def apply_transfer(rgb: np.ndarray, transfer: np.ndarray) -> np.ndarray:
     return np.moveaxis(apply_transfer_torch(t, transfer).numpy(), 0, -1)
 
 
+def _shares_enough(overlap: int, seen: int, min_overlap: int) -> bool:
+    """Whether a photo's texels shared with its reference (>= min_overlap and >= 5 % of what it
+    sees) are enough to match on; otherwise whole views are compared."""
+    return overlap >= max(min_overlap, 0.05 * seen)
+
+
 def transfers_from_mapped(colours: dict[int, torch.Tensor], visible: dict[int, torch.Tensor],
                           frontality: dict[int, torch.Tensor], reference: str = "best",
                           channels: str = "sv", min_overlap: int = 64) -> tuple[dict[int, np.ndarray], int | None]:
@@ -113,7 +119,7 @@ def transfers_from_mapped(colours: dict[int, torch.Tensor], visible: dict[int, t
             if n == ref:
                 continue
             ov = vis[n] & vis[ref]
-            if ov.sum() >= max(min_overlap, 0.05 * vis[n].sum()):
+            if _shares_enough(int(ov.sum()), int(vis[n].sum()), min_overlap):
                 ms, mr = ov, ov
             else:  # too little common area: compare each photo's whole view of the polygon
                 ms, mr = vis[n], vis[ref]
@@ -161,7 +167,7 @@ def _median_transfers(hsv: dict[int, np.ndarray], vis: dict[int, np.ndarray], ch
             med[:, b0 : b0 + block] = np.nanmedian(stack, axis=0)
     for n in names:
         ov = vis[n][defined]
-        if ov.sum() >= max(min_overlap, 0.05 * vis[n].sum()):
+        if _shares_enough(int(ov.sum()), int(vis[n].sum()), min_overlap):
             src, ref = hsv[n][:, vis[n] & defined], med[:, ov]
         else:  # the photo sees little of the consensus area: compare whole views
             src, ref = hsv[n][:, vis[n]], med
