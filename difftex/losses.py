@@ -23,10 +23,21 @@ import torch.nn.functional as F
 THETA_FLOOR = 1e-6
 
 
+def clamp_unit(theta: torch.Tensor) -> torch.Tensor:
+    """theta clamped to [0, 1] in value, with the identity as its gradient (straight-through).
+
+    The optimizer projects theta into [0, 1] after every step, so the clamp only guards the
+    value. torch.clamp's own gradient is zero at the bounds since torch 2.14 (it was one
+    before): a texel's largest weight, which the gauge sets to exactly 1, could then never
+    decrease, and results would depend on the torch version.
+    """
+    return theta + (theta.clamp(0.0, 1.0) - theta).detach()
+
+
 def blend_weights(theta: torch.Tensor, active: torch.Tensor) -> torch.Tensor:
     """W (K, H, W): active raw weights normalised per texel (all zero where nothing is active)."""
     a = active.to(theta.dtype)
-    w = (theta.clamp(0.0, 1.0) + THETA_FLOOR) * a
+    w = (clamp_unit(theta) + THETA_FLOOR) * a
     return w / w.sum(0, keepdim=True).clamp_min(THETA_FLOOR)
 
 

@@ -1,20 +1,28 @@
 #!/usr/bin/env bash
-# Set up difftex in ./.venv: CPU torch pinned by constraints.txt (an unpinned torch pulls a
-# multi-GB CUDA build), the package in editable mode, and the perceptual-metric weight files.
+# Set up difftex in ./.venv: the registry's standard torch + torchvision pair (pinned together in
+# constraints.txt; CUDA builds that also run on a CPU), piq, the package in editable mode, and the
+# reference LPIPS / ST-LPIPS packages with their weight files.
+#
+# CPU-only torch instead (about 1.5 GB smaller): install it first, then run this script with
+#   TORCH_INDEX=https://download.pytorch.org/whl/cpu bash scripts/install.sh
 set -euo pipefail
 cd "$(dirname "$0")/.."
 PY=${PYTHON:-python3}
 [ -x .venv/bin/python ] || "$PY" -m venv .venv
+PIP=(.venv/bin/python -m pip install -q -c constraints.txt)
 .venv/bin/python -m pip install -q --upgrade pip
-.venv/bin/python -m pip install -q -c constraints.txt torch==2.13.0
-.venv/bin/python -m pip install -q -c constraints.txt -e ".[test]"
-# These two wheels carry the LPIPS / ST-LPIPS weight files; their code needs torchvision, so they
-# are installed without dependencies and difftex loads only their weights (difftex/perceptual.py).
-.venv/bin/python -m pip install -q --no-deps stlpips-pytorch==0.0.2 lpips==0.1.4
+if [ -n "${TORCH_INDEX:-}" ]; then
+  "${PIP[@]}" --index-url "$TORCH_INDEX" torch torchvision
+fi
+"${PIP[@]}" torch torchvision piq
+"${PIP[@]}" -e ".[test]"
+# The reference perceptual metrics: lpips (classic LPIPS v0.1) and stlpips-pytorch (ST-LPIPS).
+# difftex runs their networks through their own code where they import (difftex/perceptual.py).
+"${PIP[@]}" stlpips-pytorch==0.0.2 lpips==0.1.4
 # Optional: Mitsuba's fast llvm_ad_rgb variant (synthetic scenes) needs Debian's libllvm19;
 # without it difftex synth falls back to scalar_rgb, about 2x slower.
 if [ "$(id -u)" = 0 ] && command -v apt-get >/dev/null && ! ldconfig -p 2>/dev/null | grep -q libLLVM.so.19; then
   (apt-get install -y -qq libllvm19 >/dev/null 2>&1 || { apt-get update -qq >/dev/null 2>&1 && apt-get install -y -qq libllvm19 >/dev/null 2>&1; }) \
     || echo "note: libllvm19 not installed; Mitsuba will use scalar_rgb"
 fi
-echo "difftex installed in $(pwd)/.venv"
+.venv/bin/python -c "import torch, torchvision, piq; print(f'difftex installed in $(pwd)/.venv: torch {torch.__version__}, torchvision {torchvision.__version__}, piq {piq.__version__}, CUDA ' + ('available' if torch.cuda.is_available() else 'not available (CPU)'))"
