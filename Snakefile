@@ -2,7 +2,7 @@
 #
 #   snakemake --cores all                                   # the bundled synthetic example
 #   snakemake --cores all --config scene=path/to/scene      # any scene (images/, sparse/0/, proxy.obj)
-#   snakemake --cores all --config scene=... preset=fast optimize.lr=0.01
+#   snakemake --cores all --config scene=... preset=fast 'optimize={lr: 0.01}'
 #
 # Results: <results>/<scene name>/ in the working directory (see docs/workflow.md).
 
@@ -15,7 +15,7 @@ include: "workflow/rules/common.smk"
 include: "workflow/rules/scene.smk"
 include: "workflow/rules/filter.smk"
 include: "workflow/rules/visibility.smk"
-include: "workflow/rules/optimize.smk"
+include: "workflow/rules/texture.smk"
 include: "workflow/rules/assemble.smk"
 include: "workflow/rules/evaluate.smk"
 
@@ -23,6 +23,7 @@ include: "workflow/rules/evaluate.smk"
 localrules:
     all,
     report,
+    finish,
 
 
 rule all:

@@ -452,7 +452,8 @@ def render_view(glb: str | Path, proxy, photo, long_side: int = 512) -> tuple[np
 # ---------------------------------------------------------------------------------------------
 
 
-def assemble(items: list[PolygonTexture], out_dir: str | Path, cfg: AssembleConfig = AssembleConfig(), name: str = "model") -> dict:
+def assemble(items: list[PolygonTexture], out_dir: str | Path, cfg: AssembleConfig = AssembleConfig(), name: str = "model",
+             bits: int = 8) -> dict:
     """Write atlas pages, OBJ + MTL and GLB for ``items`` into ``out_dir``; return the summary."""
     from difftex.io import write_image
 
@@ -467,7 +468,7 @@ def assemble(items: list[PolygonTexture], out_dir: str | Path, cfg: AssembleConf
     page_paths = []
     for k, page in enumerate(atlas.pages):
         p = out_dir / f"{name}_atlas{k}.png"
-        write_image(p, page)
+        write_image(p, page, bits=bits)
         page_paths.append(p)
     obj, mtl = write_obj(out_dir, items, atlas, [p.name for p in page_paths], pad, name=name)
     summary = {

@@ -13,21 +13,20 @@ import numpy as np
 import torch
 
 from difftex.errors import DifftexError
-from difftex.optimize import PolygonInput, build_samplers, map_photo, pick_device
+from difftex.sampling import PhotoSet, PolygonInput, level_frame, pick_device, resample_nearest
 from difftex.texture import compose_from_photos
 
 METHODS = ("average", "frontal")
 
 
-def frontality_ranking(inp: PolygonInput, samplers, device) -> list[int]:
+def frontality_ranking(photos: PhotoSet) -> list[int]:
     """Photo indices, most frontal first (mean cos over the texels each sees at a coarse level)."""
-    from difftex.optimize import level_frame, resample_nearest
-
+    inp = photos.inp
     frame = level_frame(inp.frame, min(256, max(inp.frame.shape)))
     mask = resample_nearest(inp.texel_mask, inp.frame, frame)
     scores = {}
-    for n, smp in samplers.items():
-        mp = map_photo(inp, n, frame, smp, mask, device)
+    for n in photos.samplers:
+        mp = photos.map(n, frame, mask)
         if mp is None:
             continue
         scores[n] = float(mp.cos[mp.visible].mean())
@@ -38,8 +37,8 @@ def baseline_texture(inp: PolygonInput, method: str, device="cpu") -> tuple[np.n
     """(U (H, W, 3), weight sum (H, W), dominant photo (H, W), info) for a baseline method."""
     if method not in METHODS:
         raise DifftexError(f"unknown baseline method '{method}' (known: {', '.join(METHODS)})")
-    device = pick_device(device) if isinstance(device, str) else device
-    samplers = build_samplers(inp, device)
+    device = pick_device(device)
+    photos = PhotoSet.load(inp, device)
     H, W = inp.frame.shape
     if method == "average":
         best = torch.full((H, W), -1, dtype=torch.long)
@@ -52,20 +51,20 @@ def baseline_texture(inp: PolygonInput, method: str, device="cpu") -> tuple[np.n
             best_cos[better] = mp.cos.cpu()[better]
             return mp.visible.float()
 
-        U, wsum = compose_from_photos(inp, weight_of, device, samplers)
-        return U, wsum, best.numpy(), {"method": "average", "photos": [inp.photos[n].name for n in sorted(samplers)]}
-    order = frontality_ranking(inp, samplers, device)
+        U, wsum = compose_from_photos(photos, weight_of)
+        return U, wsum, best.numpy(), {"method": "average", "photos": [inp.photos[n].name for n in sorted(photos.samplers)]}
+    order = frontality_ranking(photos)
     taken = torch.zeros(H, W, dtype=torch.bool, device=device)
     dominant = torch.full((H, W), -1, dtype=torch.long, device=device)
     weights = {}
     for n in order:
-        mp = map_photo(inp, n, inp.frame, samplers[n], inp.texel_mask, device)
+        mp = photos.map(n, inp.frame, inp.texel_mask)
         if mp is None:
             continue
         w = mp.visible & ~taken
         weights[n] = w.float()
         dominant[w] = n
         taken |= w
-    U, wsum = compose_from_photos(inp, lambda n, mp: weights.get(n), device, samplers)
+    U, wsum = compose_from_photos(photos, lambda n, mp: weights.get(n))
     info = {"method": "frontal", "ranking": [inp.photos[n].name for n in order]}
     return U, wsum, dominant.cpu().numpy(), info

@@ -55,16 +55,48 @@ def section(path: str | Path | None, name: str, cls: type[T]) -> T:
 
 @dataclass(frozen=True)
 class TextureConfig:
-    """Texture resolution, shared by visibility (texel masks) and optimization (target level)."""
+    """Texture resolution, shared by visibility (texel masks) and texturing (the target level).
 
-    long_side: int | None = 2048  # texels on the longest side of each polygon's map (256...4096)
-    density: float | None = None  # texels per scene unit; overrides long_side when set
+    What sets each polygon's texel size (``mode``): a numeric ``density`` (texels per scene
+    unit); else ``long_side`` when it is given; else ``density: auto``, per polygon from its
+    photos' ground sampling distance (difftex.density).
+    """
+
+    density: str | float | None = "auto"
+    long_side: int | None = None  # texels on the longest side of every map (density None)
+    density_scale: float = 1.0  # share of the photos' density that auto picks
+    gsd_percentile: float = 25.0  # percentile over the polygon's texels of their finest frontal GSD
+    max_long_side: int = 4096  # cap on a map's longer side (auto and numeric density)
+    min_long_side: int = 16  # floor on a map's longer side (auto)
+    max_mb: float = 2500.0  # cap on a polygon's optimization memory, MiB (auto and numeric density)
 
     def __post_init__(self):
-        if self.density is None and self.long_side is None:
-            raise ValueError("set long_side or density")
-        if self.density is None and not 1 <= int(self.long_side) <= 8192:
-            raise ValueError(f"long_side must be in 1..8192, got {self.long_side}")
+        d = self.density
+        if isinstance(d, str):
+            if d != "auto":
+                raise ValueError(f"density must be 'auto', a number of texels per scene unit or null, got {d!r}")
+        elif d is not None:
+            if isinstance(d, bool) or not float(d) > 0:
+                raise ValueError(f"density must be > 0, got {d}")
+        elif self.long_side is None:
+            raise ValueError("set density (auto or texels per scene unit) or long_side")
+        if self.long_side is not None and not 1 <= int(self.long_side) <= 16384:
+            raise ValueError(f"long_side must be in 1..16384, got {self.long_side}")
+        if not 0 < float(self.density_scale) <= 4:
+            raise ValueError(f"density_scale must be in (0, 4], got {self.density_scale}")
+        if not 0 <= float(self.gsd_percentile) <= 100:
+            raise ValueError(f"gsd_percentile must be in [0, 100], got {self.gsd_percentile}")
+        if not 1 <= int(self.min_long_side) <= int(self.max_long_side) <= 16384:
+            raise ValueError("need 1 <= min_long_side <= max_long_side <= 16384")
+        if not float(self.max_mb) > 0:
+            raise ValueError(f"max_mb must be > 0, got {self.max_mb}")
+
+    @property
+    def mode(self) -> str:
+        """"density", "long_side" or "auto": what sets each polygon's texel size."""
+        if self.density is not None and self.density != "auto":
+            return "density"
+        return "long_side" if self.long_side is not None else "auto"
 
 
 @dataclass(frozen=True)

@@ -24,37 +24,9 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-N_KNOTS = 129
+from difftex.colour import QUANTILES, N_KNOTS, identity_transfer, rgb_to_hsv
+
 MEDIAN_BLOCK_VALUES = 1 << 24  # floats per block of the per-texel median (64 MB)
-_Q = np.linspace(0.005, 0.995, N_KNOTS - 2)
-
-
-def rgb_to_hsv(rgb: torch.Tensor) -> torch.Tensor:
-    """(3, ...) RGB in [0, 1] to HSV with H in [0, 1)."""
-    r, g, b = rgb[0], rgb[1], rgb[2]
-    v, _ = rgb.max(0)
-    mn, _ = rgb.min(0)
-    c = v - mn
-    s = torch.where(v > 0, c / v.clamp_min(1e-12), torch.zeros_like(v))
-    cz = c.clamp_min(1e-12)
-    h = torch.where(v == r, ((g - b) / cz) % 6, torch.where(v == g, (b - r) / cz + 2, (r - g) / cz + 4))
-    h = torch.where(c > 0, h / 6.0, torch.zeros_like(h)) % 1.0
-    return torch.stack([h, s, v])
-
-
-def hsv_to_rgb(hsv: torch.Tensor) -> torch.Tensor:
-    h, s, v = hsv[0] % 1.0, hsv[1].clamp(0, 1), hsv[2]
-    out = []
-    for n in (5.0, 3.0, 1.0):
-        k = (n + h * 6.0) % 6.0
-        out.append(v - v * s * torch.clamp(torch.minimum(k, 4.0 - k), 0.0, 1.0))
-    return torch.stack(out)
-
-
-def identity_transfer() -> np.ndarray:
-    """(3, 2, N_KNOTS) knots (source, reference) per HSV channel that map every value to itself."""
-    x = np.concatenate([[0.0], _Q, [1.0]])
-    return np.stack([np.stack([x, x])] * 3).astype(np.float32)
 
 
 def quantile_knots(src: np.ndarray, ref: np.ndarray) -> np.ndarray:
@@ -63,35 +35,13 @@ def quantile_knots(src: np.ndarray, ref: np.ndarray) -> np.ndarray:
     End knots (0 -> 0, 1 -> 1) make values outside the observed range interpolate towards the
     ends instead of clipping; a tiny ramp keeps the source knots strictly increasing.
     """
-    sq = np.quantile(src, _Q)
-    rq = np.quantile(ref, _Q)
+    sq = np.quantile(src, QUANTILES)
+    rq = np.quantile(ref, QUANTILES)
     xs = np.concatenate([[0.0], sq, [1.0]])
     ys = np.concatenate([[0.0], rq, [1.0]])
     xs = np.maximum.accumulate(xs) + np.linspace(0.0, 1e-6, N_KNOTS)
     ys = np.maximum.accumulate(ys)
     return np.stack([xs, ys]).astype(np.float32)
-
-
-def _interp(x: torch.Tensor, xs: torch.Tensor, ys: torch.Tensor) -> torch.Tensor:
-    """Piecewise-linear map (np.interp for torch, clamped at the ends)."""
-    i = torch.searchsorted(xs, x.contiguous().clamp(float(xs[0]), float(xs[-1])), right=True).clamp(1, len(xs) - 1)
-    x0, x1, y0, y1 = xs[i - 1], xs[i], ys[i - 1], ys[i]
-    t = ((x - x0) / (x1 - x0).clamp_min(1e-12)).clamp(0.0, 1.0)
-    return y0 + t * (y1 - y0)
-
-
-def apply_transfer_torch(rgb: torch.Tensor, transfer: np.ndarray) -> torch.Tensor:
-    """Apply a (3, 2, N_KNOTS) HSV transfer to colours (3, ...) in [0, 1]."""
-    t = torch.as_tensor(np.asarray(transfer), dtype=rgb.dtype, device=rgb.device)
-    hsv = rgb_to_hsv(rgb.clamp(0.0, 1.0))
-    chans = [_interp(hsv[c].reshape(-1), t[c, 0], t[c, 1]).reshape(hsv[c].shape) for c in range(3)]
-    return hsv_to_rgb(torch.stack(chans))
-
-
-def apply_transfer(rgb: np.ndarray, transfer: np.ndarray) -> np.ndarray:
-    """numpy (..., 3) convenience wrapper of apply_transfer_torch."""
-    t = torch.from_numpy(np.moveaxis(np.asarray(rgb, np.float32), -1, 0).copy())
-    return np.moveaxis(apply_transfer_torch(t, transfer).numpy(), 0, -1)
 
 
 def _shares_enough(overlap: int, seen: int, min_overlap: int) -> bool:
@@ -178,25 +128,21 @@ def _median_transfers(hsv: dict[int, np.ndarray], vis: dict[int, np.ndarray], ch
     return out
 
 
-def polygon_transfers(inp, cfg, device, samplers=None, long_side: int | None = None) -> tuple[list, str | None]:
-    """Transfers for every candidate of a PolygonInput, estimated at the coarse level.
+def mapped_transfers(mapped: dict, n_photos: int, reference: str = "median", channels: str = "sv",
+                     names: list[str] | None = None) -> tuple[list, str | None]:
+    """Transfers of every candidate from its raw mapped photo at one (coarse) level.
 
-    Returns (list per photo: (3, 2, N_KNOTS) or None when the photo sees nothing, reference name).
+    Args:
+        mapped: {photo index: difftex.sampling.MappedPhoto or None} without transfers.
+        n_photos: number of candidates (the list's length).
+
+    Returns:
+        (list per photo: (3, 2, N_KNOTS), or None when the photo sees nothing; the reference
+        photo's name for "best", else None).
     """
-    from difftex.optimize import build_samplers, level_frame, map_photo, resample_nearest
-
-    samplers = samplers if samplers is not None else build_samplers(inp, device)
-    frame = level_frame(inp.frame, min(long_side or cfg.long_side_start, max(inp.frame.shape)))
-    mask = resample_nearest(inp.texel_mask, inp.frame, frame)
-    saved, inp.transfers = inp.transfers, None
-    try:
-        cols, vis, fr = {}, {}, {}
-        for n, smp in samplers.items():
-            mp = map_photo(inp, n, frame, smp, mask, device)
-            if mp is None:
-                continue
-            cols[n], vis[n], fr[n] = mp.colour, mp.visible, mp.cos
-    finally:
-        inp.transfers = saved
-    tr, ref = transfers_from_mapped(cols, vis, fr, cfg.histmatch_reference, cfg.histmatch_channels)
-    return [tr.get(n) for n in range(len(inp.photos))], (inp.photos[ref].name if ref is not None else None)
+    cols = {n: mp.colour for n, mp in mapped.items() if mp is not None}
+    vis = {n: mp.visible for n, mp in mapped.items() if mp is not None}
+    fr = {n: mp.cos for n, mp in mapped.items() if mp is not None}
+    tr, ref = transfers_from_mapped(cols, vis, fr, reference, channels)
+    name = names[ref] if (ref is not None and names is not None) else None
+    return [tr.get(n) for n in range(n_photos)], name

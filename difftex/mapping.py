@@ -198,6 +198,21 @@ def texel_to_pixel(frame: UVFrame, photo: Photo, tx: np.ndarray, ty: np.ndarray)
     return photo.project(X)
 
 
+def texel_footprint(frame: UVFrame, photo: Photo, pix: np.ndarray) -> np.ndarray:
+    """Texel size in pixels, sqrt(|det J|) of f_k^i by forward differences (h, w).
+
+    Args:
+        pix: (h, w, 2) f_k^i at the texel centres (``map_texels(...).pix``).
+    """
+    tx, ty = frame.centres()
+    px, _ = texel_to_pixel(frame, photo, tx + 1.0, ty)
+    py, _ = texel_to_pixel(frame, photo, tx, ty + 1.0)
+    dx, dy = px - pix, py - pix
+    with np.errstate(invalid="ignore"):
+        area = np.abs(dx[..., 0] * dy[..., 1] - dx[..., 1] * dy[..., 0])
+    return np.sqrt(area)
+
+
 def pixel_to_texel(frame: UVFrame, photo: Photo, pix: np.ndarray) -> np.ndarray:
     """Inverse of f_k^i: pixels (..., 2) to texel coordinates (..., 2) on the polygon's plane.
 

@@ -34,8 +34,9 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from difftex.mapping import map_texels
-from difftex.optimize import PolygonInput, build_samplers, map_photo, pick_device, texel_footprint
+from difftex.sampling import MappedPhoto, PhotoSet, PolygonInput, pick_device
+
+MAP_CACHE_BYTES = 1 << 30  # mapped photos kept between the passes (else mapped again)
 
 
 @dataclass(frozen=True)
@@ -153,11 +154,22 @@ def consistency_penalty(means: np.ndarray, ok: np.ndarray, sigma: float, steps: 
 def mrf_texture(inp: PolygonInput, cfg: MRFConfig = MRFConfig(), device="cpu") -> tuple[np.ndarray, np.ndarray, np.ndarray, dict]:
     """(U (H, W, 3), weight sum (H, W), dominant photo (H, W), info), like baselines.baseline_texture."""
     t0 = time.perf_counter()
-    device = pick_device(device) if isinstance(device, str) else device
-    samplers = build_samplers(inp, device)
+    device = pick_device(device)
+    photos = PhotoSet.load(inp, device)
     frame, mask = inp.frame, inp.texel_mask
     H, W = frame.shape
-    labels = sorted(samplers)
+    labels = sorted(photos.samplers)
+    keep = len(labels) * H * W * 4 * 9 <= MAP_CACHE_BYTES
+    cache: dict[int, MappedPhoto | None] = {}
+
+    def mapped(n: int) -> MappedPhoto | None:
+        if n in cache:
+            return cache[n]
+        mp = photos.map(n, frame, mask)
+        if keep:
+            cache[n] = mp
+        return mp
+
     if not labels:
         return (np.zeros((H, W, 3), np.float32), np.zeros((H, W), np.float32), np.full((H, W), -1),
                 {"method": "mrf", "labels": 0})
@@ -170,17 +182,14 @@ def mrf_texture(inp: PolygonInput, cfg: MRFConfig = MRFConfig(), device="cpu") -
     means = np.zeros((len(labels), *n_p.shape, 3))
     seen_share = np.zeros((len(labels), *n_p.shape))
     for i, n in enumerate(labels):
-        ph = inp.photos[n]
-        m = map_texels(frame, ph)
-        v = inp.texel_visible[n] & m.valid & mask
-        fp = np.nan_to_num(texel_footprint(frame, ph, m.pix), nan=0.0)
+        mp = mapped(n)
+        if mp is None:
+            continue
+        v = mp.visible.cpu().numpy()
         vis[i] = v
-        fps[i] = np.where(v, fp, 0.0)
-        qual[i] = np.where(v, np.clip(np.nan_to_num(m.cos_angle), 0, 1), 0.0)
+        fps[i] = np.where(v, mp.footprint.cpu().numpy(), 0.0)
+        qual[i] = np.where(v, mp.cos.cpu().numpy(), 0.0)
         if cfg.consistency > 0 and len(labels) > 2:
-            mp = map_photo(inp, n, frame, samplers[n], mask, device)
-            if mp is None:
-                continue
             col = mp.colour.cpu().numpy()
             vv = mp.visible.cpu().numpy()
             norm = col[:, vv].mean(1) + 1e-3 if vv.any() else np.ones(3)
@@ -221,7 +230,7 @@ def mrf_texture(inp: PolygonInput, cfg: MRFConfig = MRFConfig(), device="cpu") -
         for i, n in enumerate(labels):
             if not any(i in k for k in bands):
                 continue
-            mp = map_photo(inp, n, frame, samplers[n], mask, device)
+            mp = mapped(n)
             col = mp.colour.cpu().numpy()
             for k, band in bands.items():
                 if i in k:
@@ -240,7 +249,7 @@ def mrf_texture(inp: PolygonInput, cfg: MRFConfig = MRFConfig(), device="cpu") -
         w = _gauss(sel[None], cfg.feather)[0].to(device) * torch.from_numpy(vis[i]).to(device)
         # keep hard ownership inside a region: feathering only reaches across seams
         w = torch.maximum(w, sel.to(device) * torch.from_numpy(vis[i]).to(device))
-        mp = map_photo(inp, n, frame, samplers[n], mask, device)
+        mp = mapped(n)
         g = torch.as_tensor(gains[i], dtype=torch.float32, device=device)[:, None, None]
         acc += (mp.colour * g).clamp(0, 1) * w[None]
         wsum += w
@@ -257,10 +266,10 @@ def mrf_texture(inp: PolygonInput, cfg: MRFConfig = MRFConfig(), device="cpu") -
     return U.permute(1, 2, 0).cpu().numpy(), wsum.cpu().numpy(), dominant, info
 
 
-def run_polygon(inp: PolygonInput, out_dir, cfg: MRFConfig = MRFConfig(), device="cpu", output_bits: int = 8,
-                exr: bool = False) -> dict:
+def run_polygon(inp: PolygonInput, out_dir, cfg: MRFConfig = MRFConfig(), device="cpu") -> dict:
     """Texture one polygon and write the baseline outputs; returns the report."""
-    from difftex.texture import finish_texture, write_texture_outputs
+    from difftex.outputs import write_texture_outputs
+    from difftex.texture import finish_texture
 
     t0 = time.perf_counter()
     U, wsum, dominant, info = mrf_texture(inp, cfg, device)
@@ -268,7 +277,6 @@ def run_polygon(inp: PolygonInput, out_dir, cfg: MRFConfig = MRFConfig(), device
     seen = (wsum > 0) & inp.texel_mask
     report = {"polygon_id": inp.polygon_id, **info, **fill, "histogram_matching": False,
               "time_s": time.perf_counter() - t0}
-    write_texture_outputs(out_dir, U, inp.texel_mask, seen, dominant, [p.name for p in inp.photos], report,
-                          bits=output_bits, exr=exr)
+    write_texture_outputs(out_dir, U, inp.texel_mask, seen, dominant, [p.name for p in inp.photos], report)
     return report
 

@@ -150,7 +150,8 @@ def run_scene(scene_dir: Path, out: Path, visibility_dir: Path, polygon_ids: lis
     import time
 
     from difftex.scene import load_scene
-    from difftex.texture import finish_texture, write_texture_outputs
+    from difftex.outputs import write_texture_outputs
+    from difftex.texture import finish_texture
     from difftex.visibility import load_visibility
 
     if not available():

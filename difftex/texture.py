@@ -1,15 +1,14 @@
-"""Final composition of a polygon's texture, hole filling, the texel source map, and the outputs.
+"""Composition of a polygon's texture from per-photo weights, hole filling, the texel source
+map, and the per-polygon output files.
 
-The composition streams the candidate photos one at a time at the target resolution:
-U(t) = sum_k w_k(t) I^_k(t) / sum_k w_k(t), with I^_k the photo mapped into texel space (through
-its brightness transfer when histogram matching is on) and w_k any per-photo weight field: the
-optimized weights, or a baseline's.
+``compose_from_photos`` streams the candidate photos one at a time at the target resolution:
+U(t) = sum_k w_k(t) I^_k(t) / sum_k w_k(t), with I^_k the photo mapped into texel space and w_k
+any per-photo weight field (a baseline's). The method composes from its own slots instead
+(difftex.texturing), with no second pass over the photos.
 """
 
 from __future__ import annotations
 
-import colorsys
-import zlib
 from pathlib import Path
 from typing import Callable
 
@@ -17,19 +16,18 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from difftex.optimize import MappedPhoto, PolygonInput, build_samplers, map_photo, pick_device
+from difftex.sampling import MappedPhoto, PhotoSet
 
 
-def compose_from_photos(inp: PolygonInput, weight_of: Callable[[int, MappedPhoto], torch.Tensor | None],
-                        device="cpu", samplers=None) -> tuple[np.ndarray, np.ndarray]:
+def compose_from_photos(photos: PhotoSet, weight_of: Callable[[int, MappedPhoto], torch.Tensor | None],
+                        transfers: list | None = None) -> tuple[np.ndarray, np.ndarray]:
     """(U (H, W, 3), weight sum (H, W)) at the target frame; ``weight_of(n, mapped)`` gives photo n's (H, W) weights."""
-    device = torch.device(device) if not isinstance(device, torch.device) else device
-    samplers = samplers if samplers is not None else build_samplers(inp, device)
+    inp, device = photos.inp, photos.device
     H, W = inp.frame.shape
     acc = torch.zeros(3, H, W, device=device)
     wsum = torch.zeros(H, W, device=device)
-    for n in sorted(samplers):
-        mp = map_photo(inp, n, inp.frame, samplers[n], inp.texel_mask, device)
+    for n in sorted(photos.samplers):
+        mp = photos.map(n, inp.frame, inp.texel_mask, transfers[n] if transfers is not None else None)
         if mp is None:
             continue
         w = weight_of(n, mp)
@@ -76,35 +74,6 @@ def fill_holes(img: np.ndarray, known: np.ndarray, levels: int = 16) -> np.ndarr
     return res
 
 
-def photo_colour(name: str) -> tuple[float, float, float]:
-    """A stable, distinct-looking colour per photo name (same photo, same colour in every map)."""
-    h = zlib.crc32(name.encode()) / 2**32
-    s = 0.55 + 0.45 * ((zlib.crc32(name.encode()[::-1]) % 1000) / 1000)
-    return colorsys.hsv_to_rgb(h, s, 0.95)
-
-
-def source_map(dominant: np.ndarray, names: list[str], mask: np.ndarray, filled: np.ndarray | None = None) -> np.ndarray:
-    """The paper's texel source map: each texel coloured by its dominant photo (Fig. 5).
-
-    ``dominant`` (H, W) is a photo index (-1: none). Outside the polygon black; filled holes grey.
-    """
-    out = np.zeros((*dominant.shape, 3), np.float32)
-    for n, name in enumerate(names):
-        out[dominant == n] = photo_colour(name)
-    if filled is not None:
-        out[filled] = 0.5
-    out[~mask] = 0.0
-    return out
-
-
-def coverage_image(mask: np.ndarray, seen: np.ndarray) -> np.ndarray:
-    """Grey image: 255 texel seen by a photo, 128 filled from neighbours, 0 outside the polygon."""
-    img = np.zeros(mask.shape, np.float32)
-    img[mask & ~seen] = 128 / 255
-    img[mask & seen] = 1.0
-    return img
-
-
 def finish_texture(U: np.ndarray, weight_sum: np.ndarray, mask: np.ndarray) -> tuple[np.ndarray, dict]:
     """Fill the polygon's unseen texels (and the margin outside it, so bilinear lookups at its
     border never fetch black), and describe what was filled."""
@@ -122,35 +91,8 @@ def finish_texture(U: np.ndarray, weight_sum: np.ndarray, mask: np.ndarray) -> t
     return out, info
 
 
-def write_texture_outputs(out_dir: str | Path, U: np.ndarray, mask: np.ndarray, seen: np.ndarray,
-                          dominant: np.ndarray, names: list[str], report: dict, bits: int = 8, exr: bool = False) -> None:
-    """texture.png, source.png, coverage.png, report.json (and texture.exr), each written atomically."""
-    from difftex.io import write_image, write_json
-
-    out_dir = Path(out_dir)
-    write_image(out_dir / "texture.png", np.clip(U, 0, 1), bits=bits)
-    if exr:
-        write_image(out_dir / "texture.exr", U)
-    write_image(out_dir / "source.png", source_map(dominant, names, mask, mask & ~seen))
-    write_image(out_dir / "coverage.png", coverage_image(mask, seen))
-    report = dict(report)
-    report["source_colours"] = {n: "#%02x%02x%02x" % tuple(int(round(255 * c)) for c in photo_colour(n)) for n in names}
-    write_json(out_dir / "report.json", report)
-
-
 def dominant_from_slots(idx: np.ndarray, W: np.ndarray) -> np.ndarray:
     """Dominant photo per texel from a slot layout (-1 where no weight)."""
     j = W.argmax(0)
     d = np.take_along_axis(idx, j[None], 0)[0]
     return np.where(W.max(0) > 0, d, -1)
-
-
-def compose_slots(inp: PolygonInput, idx: np.ndarray, W: np.ndarray, device="cpu") -> tuple[np.ndarray, np.ndarray]:
-    """Texture from optimized slot weights (photo weights summed over the slots holding them)."""
-    idx_t = torch.from_numpy(idx.astype(np.int64))
-    W_t = torch.from_numpy(W.astype(np.float32))
-
-    def weight_of(n, mp):
-        return (W_t * (idx_t == n)).sum(0)
-
-    return compose_from_photos(inp, weight_of, device=pick_device(device) if isinstance(device, str) else device)

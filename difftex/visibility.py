@@ -13,6 +13,7 @@ From the id buffer, for polygon i and photo k:
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 
 import numpy as np
@@ -150,6 +151,7 @@ class PolygonVisibility:
     texel_visible: np.ndarray  # (K, H, W) bool
     a_bbox: np.ndarray  # (K, 4) int: x0, y0, x1, y1 (exclusive) of a_k^i in photo pixels
     a_masks: list[np.ndarray]  # K crops (y1-y0, x1-x0) bool of a_k^i
+    texel_size: dict | None = None  # difftex.density.TexelSize as a dict: how the texel size was chosen
 
     def a_mask_full(self, k: int, width: int, height: int) -> np.ndarray:
         m = np.zeros((height, width), bool)
@@ -164,61 +166,6 @@ class PolygonVisibility:
             return 0.0
         seen = self.texel_visible.any(axis=0) if len(self.photos) else np.zeros_like(self.texel_mask)
         return float((seen & self.texel_mask).sum() / self.texel_mask.sum())
-
-
-def polygon_visibility(
-    proxy: Proxy,
-    index: int,
-    frame: UVFrame,
-    photos: list[Photo],
-    id_buffers: dict[str, np.ndarray],
-    min_texels: int = 1,
-    mask: np.ndarray | None = None,
-) -> PolygonVisibility:
-    """Texel and photo-space visibility of polygon ``index`` in the given photos.
-
-    ``id_buffers`` maps photo name to its full-resolution id buffer. Photos that see fewer
-    than ``min_texels`` texels are left out of the candidates.
-    """
-    poly = proxy.polygons[index]
-    tmask = texel_mask(poly, frame) if mask is None else mask
-    names, vis, boxes, crops = [], [], [], []
-    ty_all, tx_all = np.nonzero(tmask)
-    for ph in photos:
-        ids = id_buffers[ph.name]
-        if (poly.normal @ (ph.center - poly.centroid)) <= 0:
-            continue  # the camera is behind the plane: it sees none of this face's outside
-        # Only the polygon's own texels are mapped: f_k^i on the mask, not the whole rectangle.
-        pix, depth = texel_to_pixel(frame, ph, tx_all + 0.5, ty_all + 0.5)
-        ok = (depth > 1e-9) & ph.in_image(pix)
-        seen = np.zeros_like(tmask)
-        if ok.any():
-            px = np.clip(pix[ok, 0].astype(np.int64), 0, ph.width - 1)
-            py = np.clip(pix[ok, 1].astype(np.int64), 0, ph.height - 1)
-            hit = ids[py, px] == index
-            seen[ty_all[ok][hit], tx_all[ok][hit]] = True
-        if seen.sum() < min_texels:
-            continue
-        a = ids == index
-        ys, xs = np.nonzero(a)
-        if len(ys):
-            x0, y0, x1, y1 = xs.min(), ys.min(), xs.max() + 1, ys.max() + 1
-        else:
-            x0 = y0 = x1 = y1 = 0
-        names.append(ph.name)
-        vis.append(seen)
-        boxes.append((x0, y0, x1, y1))
-        crops.append(a[y0:y1, x0:x1])
-    K = len(names)
-    return PolygonVisibility(
-        polygon_id=poly.id,
-        frame=frame,
-        texel_mask=tmask,
-        photos=names,
-        texel_visible=np.stack(vis) if K else np.zeros((0, *frame.shape), bool),
-        a_bbox=np.asarray(boxes, dtype=np.int64).reshape(K, 4),
-        a_masks=crops,
-    )
 
 
 def save_visibility(path, vis: PolygonVisibility) -> None:
@@ -241,6 +188,7 @@ def save_visibility(path, vis: PolygonVisibility) -> None:
         a_sizes=sizes,
         a_masks=np.packbits(a_flat),
         shape=np.array([H, W]),
+        texel_size=np.array(json.dumps(vis.texel_size)),
     )
 
 
@@ -271,37 +219,45 @@ def load_visibility(path) -> PolygonVisibility:
             texel_visible=tv,
             a_bbox=d["a_bbox"].astype(np.int64).reshape(K, 4),
             a_masks=crops,
+            texel_size=json.loads(str(d["texel_size"])) if "texel_size" in d else None,
         )
     except (KeyError, ValueError) as exc:
         raise DifftexError(f"{path}: not a difftex visibility file ({exc})") from None
 
 
-def visible_texels_at(vis: PolygonVisibility, frame: UVFrame) -> np.ndarray:
-    """(K, h, w) texel visibility resampled to another level of the same UV frame.
+def crop_texel_visibility(frame: UVFrame, photo: Photo, mask: np.ndarray, bbox, crop: np.ndarray) -> np.ndarray:
+    """(H, W) bool: texels of ``mask`` whose centre projects onto a pixel of the crop of a_k^i.
 
-    A coarse texel counts as seen when most of the fine texels it covers are seen; a finer level
-    takes its nearest coarse texel.
+    Args:
+        bbox: (x0, y0, x1, y1) of ``crop`` in full-resolution pixels.
+        crop: (y1 - y0, x1 - x0) bool, the pixels whose nearest proxy surface is the polygon.
     """
-    K = len(vis.photos)
-    H, W = vis.frame.shape
-    h, w = frame.shape
-    if (h, w) == (H, W):
-        return vis.texel_visible.copy()
-    if K == 0:
-        return np.zeros((0, h, w), bool)
-    import torch
-    import torch.nn.functional as F
-
-    t = torch.from_numpy(vis.texel_visible.astype(np.float32))[:, None]
-    if h <= H and w <= W:
-        out = F.adaptive_avg_pool2d(t, (h, w)) > 0.5
-    else:
-        out = F.interpolate(t, size=(h, w), mode="nearest") > 0.5
-    return out[:, 0].numpy()
+    x0, y0, x1, y1 = (int(v) for v in bbox)
+    seen = np.zeros(frame.shape, bool)
+    if x1 <= x0 or y1 <= y0:
+        return seen
+    ty, tx = np.nonzero(mask)
+    pix, depth = texel_to_pixel(frame, photo, tx + 0.5, ty + 0.5)
+    ok = (depth > 1e-9) & photo.in_image(pix)
+    px = np.floor(np.where(ok, pix[:, 0], -1)).astype(np.int64) - x0
+    py = np.floor(np.where(ok, pix[:, 1], -1)).astype(np.int64) - y0
+    inside = ok & (px >= 0) & (py >= 0) & (px < x1 - x0) & (py < y1 - y0)
+    hit = np.zeros_like(inside)
+    hit[inside] = crop[py[inside], px[inside]]
+    seen[ty[hit], tx[hit]] = True
+    return seen
 
 
-def polygon_frames(proxy: Proxy, up: np.ndarray, long_side: int | None, density: float | None) -> list[UVFrame]:
-    return [uv_frame(p, up, long_side=long_side, density=density) for p in proxy.polygons]
+@dataclass
+class _Sighting:
+    """What one photo's id buffer says of one polygon (kept until the texel sizes are chosen)."""
+
+    name: str
+    bbox: tuple[int, int, int, int]
+    crop: np.ndarray  # packed bits of the (y1 - y0, x1 - x0) a_k^i crop
+    mean_cos: float
+    gsd: np.ndarray | None  # (h, w) at the probe frame (auto density)
+    cos: np.ndarray | None
 
 
 def scene_visibility(
@@ -309,60 +265,86 @@ def scene_visibility(
     photos: list[Photo],
     up: np.ndarray,
     candidates: dict[str, list[str]],
-    long_side: int | None,
-    density: float | None,
+    texture: "TextureConfig | int",
     min_texels: int = 16,
     max_photos: int | None = None,
     progress: bool = True,
+    top_k: int = 8,
 ) -> list[PolygonVisibility]:
     """Visibility of every polygon in its candidate photos (photo names per polygon id).
 
-    Photos are processed one at a time (one full-resolution id buffer in memory), so memory
-    does not grow with the number of photos beyond the packed per-polygon masks.
+    One pass over the photos: each photo's id buffer gives, per polygon it sees, the crop of
+    a_k^i and (``density: auto``) the photo's ground sampling distance on a probe grid. Then each
+    polygon's texel size is chosen (difftex.density), and its texel visibility per photo is read
+    from the crops. Only one full-resolution id buffer is in memory at a time.
+
+    ``texture``: the texture section, or an int long side (tests and tools).
     """
     from rich.progress import track
 
+    from difftex.config import TextureConfig
+    from difftex.density import PROBE_LONG_SIDE, choose_texel_size, photo_texel_size, probe_gsd
+
+    cfg = texture if isinstance(texture, TextureConfig) else TextureConfig(density=None, long_side=int(texture))
     pp = prepare(proxy)
-    frames = polygon_frames(proxy, up, long_side, density)
-    masks = [texel_mask(p, f) for p, f in zip(proxy.polygons, frames)]
+    index = {p.id: i for i, p in enumerate(proxy.polygons)}
+    probes = [uv_frame(p, up, long_side=PROBE_LONG_SIDE) for p in proxy.polygons] if cfg.mode == "auto" else None
+    probe_masks = [texel_mask(p, f) for p, f in zip(proxy.polygons, probes)] if probes else None
     wanted = {pid: set(names) for pid, names in candidates.items()}
-    parts: list[list] = [[] for _ in proxy.polygons]  # (name, seen, box, crop, mean_cos)
+    parts: list[list[_Sighting]] = [[] for _ in proxy.polygons]
     used = [ph for ph in photos if any(ph.name in s for s in wanted.values())]
     for ph in track(used, description="visibility", disable=not progress, transient=True):
         ids, _ = id_buffer(pp, ph)
         for i, poly in enumerate(proxy.polygons):
             if ph.name not in wanted.get(poly.id, ()):
                 continue
-            single = polygon_visibility(proxy, i, frames[i], [ph], {ph.name: ids}, min_texels=min_texels, mask=masks[i])
-            if not single.photos:
+            if (poly.normal @ (ph.center - poly.centroid)) <= 0:
+                continue  # the camera is behind the plane: it sees none of this face's outside
+            a = ids == i
+            ys, xs = np.nonzero(a)
+            if len(ys) == 0:
                 continue
-            seen = single.texel_visible[0]
-            ty, tx = np.nonzero(seen)
-            v = ph.center - frames[i].texel_to_world(tx + 0.5, ty + 0.5)
-            mean_cos = float((v @ poly.normal / np.linalg.norm(v, axis=-1)).mean()) if len(tx) else 0.0
-            parts[i].append((ph.name, np.packbits(seen.ravel()), single.a_bbox[0], single.a_masks[0], mean_cos))
+            box = (int(xs.min()), int(ys.min()), int(xs.max()) + 1, int(ys.max()) + 1)
+            crop = a[box[1] : box[3], box[0] : box[2]]
+            gsd = cos = None
+            if probes is not None:
+                seen_p = crop_texel_visibility(probes[i], ph, probe_masks[i], box, crop)
+                gsd, cos = probe_gsd(probes[i], ph, seen_p)
+            v = ph.center - poly.centroid
+            mean_cos = float(v @ poly.normal / np.linalg.norm(v))
+            parts[i].append(_Sighting(ph.name, box, np.packbits(crop.ravel()), mean_cos, gsd, cos))
+        del ids
+    by_name = {p.name: p for p in photos}
     out = []
     for i, poly in enumerate(proxy.polygons):
         items = parts[i]
-        if max_photos is not None and len(items) > max_photos:
-            items = sorted(items, key=lambda it: -it[4])[:max_photos]
-            items = sorted(items, key=lambda it: it[0])
-        H, W = frames[i].shape
-        K = len(items)
-        tv = (
-            np.stack([np.unpackbits(it[1], count=H * W).astype(bool).reshape(H, W) for it in items])
-            if K
-            else np.zeros((0, H, W), bool)
+        rect = uv_frame(poly, up, long_side=PROBE_LONG_SIDE)
+        extent = (rect.width * rect.texel_size, rect.height * rect.texel_size)
+        photo_size = None
+        if probes is not None and items:
+            photo_size = photo_texel_size(np.stack([it.gsd for it in items]), np.stack([it.cos for it in items]),
+                                          cfg.gsd_percentile)
+        size = choose_texel_size(extent, extent[0] * extent[1], photo_size, cfg, min(max(len(items), 1), top_k))
+        frame = uv_frame(poly, up, density=1.0 / size.texel_size) if cfg.mode != "long_side" \
+            else uv_frame(poly, up, long_side=int(cfg.long_side))
+        tmask = texel_mask(poly, frame)
+        kept = []
+        for it in items:
+            h, w = it.bbox[3] - it.bbox[1], it.bbox[2] - it.bbox[0]
+            crop = np.unpackbits(it.crop, count=h * w).astype(bool).reshape(h, w)
+            seen = crop_texel_visibility(frame, by_name[it.name], tmask, it.bbox, crop)
+            if seen.sum() >= min_texels:
+                kept.append((it, crop, seen))
+        if max_photos is not None and len(kept) > max_photos:
+            kept = sorted(kept, key=lambda k: -k[0].mean_cos)[:max_photos]
+            kept = sorted(kept, key=lambda k: k[0].name)
+        K = len(kept)
+        H, W = frame.shape
+        vis = PolygonVisibility(
+            polygon_id=poly.id, frame=frame, texel_mask=tmask, photos=[k[0].name for k in kept],
+            texel_visible=np.stack([k[2] for k in kept]) if K else np.zeros((0, H, W), bool),
+            a_bbox=np.asarray([k[0].bbox for k in kept], dtype=np.int64).reshape(K, 4),
+            a_masks=[k[1] for k in kept],
         )
-        out.append(
-            PolygonVisibility(
-                polygon_id=poly.id,
-                frame=frames[i],
-                texel_mask=masks[i],
-                photos=[it[0] for it in items],
-                texel_visible=tv,
-                a_bbox=np.asarray([it[2] for it in items], dtype=np.int64).reshape(K, 4),
-                a_masks=[it[3] for it in items],
-            )
-        )
+        out.append(dataclasses.replace(vis, texel_size=dataclasses.asdict(size)))
     return out

@@ -19,9 +19,13 @@ from difftex.errors import DifftexError
 # so a change elsewhere leaves its file, and therefore its outputs, untouched.
 STAGE_SECTIONS = {
     "filter": ("filter",),
-    "visibility": ("texture", "visibility"),
-    "optimize": ("texture", "optimize"),
-    "assemble": ("assemble",),
+    # the texel sizes' memory cap counts optimize.top_k slots per texel
+    "visibility": ("texture", "visibility", "optimize.top_k"),
+    "texture": ("optimize",),
+    # device and compilation: read by the texture jobs, but not an input of them (no result changes)
+    "compute": ("compute",),
+    "output": ("output",),
+    "assemble": ("assemble", "output"),
     "evaluate": ("evaluate",),
 }
 
@@ -79,6 +83,11 @@ def coerce_types(user: Any, default: Any) -> Any:
         try:
             return yaml.safe_load(user) if user.strip() else user
         except yaml.YAMLError:
+            return user
+    if isinstance(user, str) and default == "auto":  # "auto" modes that also take a number (texture.density)
+        try:
+            return float(user)
+        except ValueError:
             return user
     return user
 
@@ -146,7 +155,13 @@ def validate(cfg: dict, schema_path: str | Path) -> None:
 def stage_config_text(cfg: dict, stage: str) -> str:
     import yaml
 
-    sections = {s: cfg[s] for s in STAGE_SECTIONS[stage]}
+    sections: dict = {}
+    for s in STAGE_SECTIONS[stage]:
+        if "." in s:  # one key of a section
+            sec, key = s.split(".", 1)
+            sections.setdefault(sec, {})[key] = cfg[sec][key]
+        else:
+            sections[s] = cfg[s]
     return f"# written by the difftex workflow: the '{stage}' stage's sections\n" + yaml.safe_dump(sections, sort_keys=True)
 
 
@@ -427,6 +442,19 @@ def write_report(results: str | Path, out: str | Path) -> None:
     if s.get("evaluation"):
         md += ["## Evaluation", "", "```json", json.dumps(read_json(s["evaluation"]), indent=2)[:20000], "```", ""]
     write_text(out, "\n".join(md))
+
+
+def finish_polygon_job(composite: str | Path, config: str | Path, out_dir: str | Path, log: str | Path) -> None:
+    """The ``finish`` rule (run inside Snakemake, no interpreter start-up): a polygon's PNGs and
+    report from its composite.npz, in the format of the config's ``output`` section."""
+    from difftex.config import section
+    from difftex.io import write_text
+    from difftex.outputs import OutputConfig, finish_polygon
+
+    cfg = section(config, "output", OutputConfig)
+    report = finish_polygon(composite, out_dir, cfg)
+    write_text(log, f"finish {report.get('polygon_id')}: {out_dir} ({cfg.bits}-bit"
+               + (", exr" if cfg.exr else "") + ")\n")
 
 
 def want_evaluation(cfg: dict) -> bool:

@@ -70,7 +70,7 @@ def test_check_same_plane_rejects_other_planes():
 
 
 def test_source_map_decodes_back_to_photo_indices(tmp_path):
-    from difftex.texture import photo_colour, source_map
+    from difftex.outputs import photo_colour, source_map
 
     names = ["a.jpg", "b.jpg", "c.jpg"]
     dom = np.random.default_rng(2).integers(-1, 3, (20, 30))
@@ -204,7 +204,7 @@ def test_evaluate_command_on_a_held_out_scene_copy(tmp_path):
     root = make_scene(tmp_path / "s", centers=((0, -6, 1), (2, -6, 1.5), (-2, -5, 0.5), (1, -7, 1)))
     prepare_holdout(root, ["img01.png"], tmp_path / "copy")
     cfg = tmp_path / "cfg.yaml"
-    cfg.write_text("texture: {long_side: 32}\nvisibility: {min_texels: 4}\noptimize: {device: cpu}\nevaluate: {lpips: none, render_long_side: 96}\n")
+    cfg.write_text("texture: {long_side: 32}\nvisibility: {min_texels: 4}\ncompute: {device: cpu}\nevaluate: {lpips: none, render_long_side: 96}\n")
     R = tmp_path / "R"
     assert main(["visibility", "--quiet", "--scene", str(tmp_path / "copy"), "--config", str(cfg), "--out-dir", str(R / "visibility")]) == 0
     assert main(["baseline", "--scene", str(tmp_path / "copy"), "--visibility", str(R / "visibility" / "front.npz"),

@@ -14,7 +14,7 @@ torch.set_num_threads(1)
 from difftex.camera import Photo
 from difftex.mapping import map_texels, texel_mask, uv_frame
 from difftex.mrf import MRFConfig, energy, level_gains, mrf_texture, patch_sums, run_polygon, solve_labels
-from difftex.optimize import PolygonInput
+from difftex.sampling import PolygonInput
 from difftex.proxy import Polygon
 
 WALL_W, WALL_H = 4.0, 3.0

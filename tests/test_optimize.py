@@ -1,8 +1,5 @@
-"""The optimizer on small analytic scenes: a textured wall photographed by pinhole cameras.
-
-The photos are rendered here by ray casting onto the wall plane and evaluating a procedural
-texture (2x2 supersampled), so every expectation follows from the geometry, not from a run.
-"""
+"""The optimizer on the analytic wall (tests/analytic.py): occluders, pose errors, numerics,
+compiled vs eager, the stage command, ablation switches."""
 
 from __future__ import annotations
 
@@ -15,91 +12,12 @@ import torch
 
 torch.set_num_threads(1)  # the CI machine has 2 shared cores; intra-op threads only contend
 
-from difftex.camera import Photo
-from difftex.mapping import map_texels, sample_photo, texel_mask, uv_frame
-from difftex.optimize import OptimizeConfig, PolygonInput, level_sides, optimize_polygon, photo_weight
-from difftex.proxy import Polygon
-
-WALL_W, WALL_H = 4.0, 3.0
-UP = np.array([0.0, 0.0, 1.0])
-CENTRE = np.array([WALL_W / 2, 0.0, WALL_H / 2])
-
-
-def wall() -> Polygon:
-    # plane y = 0, outward normal -y (towards the cameras at y < 0)
-    return Polygon("wall", np.array([[0, 0, 0], [WALL_W, 0, 0], [WALL_W, 0, WALL_H], [0, 0, WALL_H]], float))
-
-
-def pattern(x: np.ndarray, z: np.ndarray, kind: str = "checker") -> np.ndarray:
-    """Ground-truth colour at wall point (x, z)."""
-    if kind == "flat":
-        return np.broadcast_to(np.array([0.4, 0.5, 0.6], np.float32), (*x.shape, 3)).copy()
-    chk = ((np.floor(x / 0.25) + np.floor(z / 0.25)) % 2).astype(np.float32)
-    r = 0.2 + 0.6 * chk
-    g = 0.3 + 0.4 * (0.5 + 0.5 * np.sin(2.0 * x))
-    b = 0.25 + 0.5 * chk * (z / WALL_H)
-    return np.stack([r, g, b], -1).astype(np.float32)
-
-
-def look_at(C: np.ndarray, target: np.ndarray) -> np.ndarray:
-    z = target - C
-    z /= np.linalg.norm(z)
-    y = -(UP - (UP @ z) * z)
-    y /= np.linalg.norm(y)
-    x = np.cross(y, z)
-    return np.stack([x, y, z])
-
-
-def make_photo(name: str, yaw_deg: float, dist: float = 6.0, pitch_deg: float = 0.0, f: float = 150.0,
-               size=(160, 120)) -> Photo:
-    import pycolmap
-
-    a, p = math.radians(yaw_deg), math.radians(pitch_deg)
-    C = CENTRE + dist * np.array([math.sin(a) * math.cos(p), -math.cos(a) * math.cos(p), math.sin(p)])
-    R = look_at(C, CENTRE)
-    w, h = size
-    cam = pycolmap.Camera(model="PINHOLE", width=w, height=h, params=[f, f, w / 2, h / 2])
-    return Photo(name=name, image_path=None, camera=cam, R=R, t=-R @ C, width=w, height=h, model="PINHOLE")
-
-
-def render(photo: Photo, kind: str = "checker", background=(0.9, 0.1, 0.9)) -> np.ndarray:
-    """The wall seen by ``photo`` (2x2 supersampling); pixels missing the wall get ``background``."""
-    ss = 2
-    ys, xs = np.mgrid[0 : photo.height * ss, 0 : photo.width * ss].astype(np.float64)
-    pix = np.stack([(xs + 0.5) / ss, (ys + 0.5) / ss], -1)
-    d = photo.unproject(pix)
-    C = photo.center
-    with np.errstate(divide="ignore", invalid="ignore"):
-        s = -C[1] / d[..., 1]
-    X = C + s[..., None] * d
-    hit = (s > 0) & (X[..., 0] >= 0) & (X[..., 0] <= WALL_W) & (X[..., 2] >= 0) & (X[..., 2] <= WALL_H)
-    img = np.empty((*hit.shape, 3), np.float32)
-    img[:] = background
-    img[hit] = pattern(X[..., 0][hit], X[..., 2][hit], kind)
-    return img.reshape(photo.height, ss, photo.width, ss, 3).mean((1, 3))
-
-
-def make_input(photos, images, long_side=64, transfers=None) -> PolygonInput:
-    poly = wall()
-    frame = uv_frame(poly, UP, long_side=long_side)
-    mask = texel_mask(poly, frame)
-    vis = np.stack([map_texels(frame, ph).valid & mask for ph in photos])
-    by_name = {ph.name: im for ph, im in zip(photos, images)}
-    return PolygonInput("wall", frame, mask, list(photos), vis, lambda ph: by_name[ph.name], transfers=transfers)
-
-
-def fast_cfg(**kw) -> OptimizeConfig:
-    base = dict(long_side_start=32, max_iters_per_level=(300, 150, 80), min_iters_per_level=20, device="cpu",
-                histogram_matching=False)
-    base.update(kw)
-    return OptimizeConfig(**base)
-
-
-def gt_texture(inp: PolygonInput) -> np.ndarray:
-    tx, ty = inp.frame.centres()
-    X = inp.frame.texel_to_world(tx, ty)
-    return pattern(X[..., 0], X[..., 2])
-
+from analytic import (UP, fast_cfg, gt_texture, make_input, make_photo, occluded_region, optimize, paint_occluder,
+                      photo_masks, render, wall, write_scene)
+from difftex.mapping import map_texels, sample_photo
+from difftex.method.config import OptimizeConfig
+from difftex.method.loop import photo_weight
+from difftex.sampling import level_sides
 
 # ------------------------------------------------------------------------------------------
 
@@ -132,52 +50,13 @@ def test_single_frontal_photo_gives_the_rectified_photo(mode):
         from difftex.visibility import id_buffer  # noqa: F401  (only the masks are needed)
 
         inp.a_bbox, inp.a_masks = photo_masks(inp)
-    res = optimize_polygon(inp, fast_cfg(loss_mode=mode))
+    res = optimize(inp, fast_cfg(loss_mode=mode))
     m = map_texels(inp.frame, ph)
     rect = sample_photo(img, m.pix)
     ok = inp.texel_visible[0]
     assert res.stats["coverage"] == 1.0
     assert np.abs(res.U[ok] - rect[ok]).max() < 3e-3  # float16 photo storage
     assert np.allclose(photo_weight(res.idx, res.W, 0)[inp.texel_mask], 1.0)
-
-
-def photo_masks(inp: PolygonInput):
-    """a_k^i for the analytic wall: pixels whose ray hits the wall inside its outline."""
-    from difftex.mapping import pixel_to_texel
-
-    boxes, crops = [], []
-    for ph in inp.photos:
-        ys, xs = np.mgrid[0 : ph.height, 0 : ph.width] + 0.5
-        t = pixel_to_texel(inp.frame, ph, np.stack([xs, ys], -1))
-        ok = np.isfinite(t).all(-1)
-        ix = np.clip(np.floor(np.nan_to_num(t[..., 0])).astype(int), 0, inp.frame.width - 1)
-        iy = np.clip(np.floor(np.nan_to_num(t[..., 1])).astype(int), 0, inp.frame.height - 1)
-        inside = ok & (t[..., 0] >= 0) & (t[..., 0] < inp.frame.width) & (t[..., 1] >= 0) & (t[..., 1] < inp.frame.height)
-        a = inside & inp.texel_mask[iy, ix]
-        r, c = np.nonzero(a)
-        x0, y0, x1, y1 = c.min(), r.min(), c.max() + 1, r.max() + 1
-        boxes.append((x0, y0, x1, y1))
-        crops.append(a[y0:y1, x0:x1])
-    return np.array(boxes), crops
-
-
-def occluded_region(inp: PolygonInput) -> np.ndarray:
-    """Texels of the wall rectangle x in [1.5, 2.5], z in [1.0, 2.0]."""
-    tx, ty = inp.frame.centres()
-    X = inp.frame.texel_to_world(tx, ty)
-    return (X[..., 0] > 1.5) & (X[..., 0] < 2.5) & (X[..., 2] > 1.0) & (X[..., 2] < 2.0)
-
-
-def paint_occluder(ph: Photo, img: np.ndarray, colour=(0.05, 0.6, 0.05), grow=0.15) -> np.ndarray:
-    """Paint the photo pixels of the occluded region (slightly enlarged) with a flat colour."""
-    img = img.copy()
-    ys, xs = np.mgrid[0 : ph.height, 0 : ph.width] + 0.5
-    d = ph.unproject(np.stack([xs, ys], -1))
-    s = -ph.center[1] / d[..., 1]
-    X = ph.center + s[..., None] * d
-    occ = (X[..., 0] > 1.5 - grow) & (X[..., 0] < 2.5 + grow) & (X[..., 2] > 1.0 - grow) & (X[..., 2] < 2.0 + grow)
-    img[occ] = colour
-    return img
 
 
 def test_two_photos_occluded_pixels_are_not_used():
@@ -187,7 +66,7 @@ def test_two_photos_occluded_pixels_are_not_used():
     clean, occl = make_photo("clean", -8.0), make_photo("occl", 30.0)
     imgs = [render(clean), paint_occluder(occl, render(occl))]
     inp = make_input([clean, occl], imgs, long_side=64)
-    res = optimize_polygon(inp, fast_cfg())
+    res = optimize(inp, fast_cfg())
     reg = occluded_region(inp) & inp.texel_visible.all(0)
     assert photo_weight(res.idx, res.W, 1)[reg].mean() < 0.1
     err = np.abs(res.U - gt_texture(inp)).mean(-1)[reg].mean()
@@ -198,7 +77,7 @@ def test_three_photos_occluder_in_the_most_frontal_photo_is_rejected():
     front, left, right = make_photo("front", 0.0), make_photo("left", -30.0), make_photo("right", 30.0)
     imgs = [paint_occluder(front, render(front)), render(left), render(right)]
     inp = make_input([front, left, right], imgs, long_side=64)
-    res = optimize_polygon(inp, fast_cfg())
+    res = optimize(inp, fast_cfg())
     vis = inp.texel_visible.all(0)
     reg = occluded_region(inp) & vis
     w_front = photo_weight(res.idx, res.W, 0)
@@ -221,12 +100,12 @@ def test_pose_error_photo_loses_weight():
     R = Ry @ bad.R
     photos[3] = dataclasses.replace(bad, R=R, t=-R @ bad.center)
     inp = make_input(photos, imgs, long_side=64)
-    res = optimize_polygon(inp, fast_cfg())
+    res = optimize(inp, fast_cfg())
     m = inp.texel_mask & inp.texel_visible.all(0)
     share = np.array([photo_weight(res.idx, res.W, n)[m].mean() for n in range(4)])
     # reference: the same scene with accurate poses
     inp_ok = make_input([make_photo(n, y, pitch_deg=p) for n, y, p in zip(names, yaws, pitches)], imgs, long_side=64)
-    res_ok = optimize_polygon(inp_ok, fast_cfg())
+    res_ok = optimize(inp_ok, fast_cfg())
     share_ok = np.array([photo_weight(res_ok.idx, res_ok.W, n)[m].mean() for n in range(4)])
     assert share[3] < 0.5 * share_ok[3]
     assert share[3] < 0.5 * share[:3].mean()
@@ -248,7 +127,7 @@ def test_numerics_stay_finite(case):
     for mode in ("texel", "render"):
         if mode == "render":
             inp.a_bbox, inp.a_masks = photo_masks(inp)
-        res = optimize_polygon(inp, dataclasses.replace(cfg, loss_mode=mode))
+        res = optimize(inp, dataclasses.replace(cfg, loss_mode=mode))
         assert np.isfinite(res.U).all() and np.isfinite(res.W).all()
         for lvl in res.stats["levels"]:
             assert all(np.isfinite(v) for v in lvl["loss"]["total"])
@@ -274,8 +153,8 @@ def test_compiled_objective_matches_eager(mode):
     if mode == "render":
         inp.a_bbox, inp.a_masks = photo_masks(inp)
     cfg = fast_cfg(top_k=3, loss_mode=mode, max_iters_per_level=(25,), min_iters_per_level=25, coarse_to_fine=False)
-    eager = optimize_polygon(inp, dataclasses.replace(cfg, compile="off"))
-    comp = optimize_polygon(inp, dataclasses.replace(cfg, compile="on"))
+    eager = optimize(inp, cfg, compile="off")
+    comp = optimize(inp, cfg, compile="on")
     assert not eager.stats["levels"][0]["compiled"]
     assert comp.stats["levels"][0]["compiled"] or "compile_failed" in comp.stats
     assert np.abs(comp.W - eager.W).max() < 1e-4
@@ -289,8 +168,8 @@ def test_cuda_matches_cpu():
     photos = [make_photo("a", -20.0), make_photo("b", 5.0), make_photo("c", 25.0)]
     imgs = [render(ph) for ph in photos]
     inp = make_input(photos, imgs, long_side=64)
-    a = optimize_polygon(inp, fast_cfg(device="cpu"))
-    b = optimize_polygon(inp, fast_cfg(device="cuda"))
+    a = optimize(inp, fast_cfg(), device="cpu")
+    b = optimize(inp, fast_cfg(), device="cuda")
     assert np.abs(a.U - b.U).max() < 2e-3
     assert np.abs(a.W - b.W).mean() < 2e-3
 
@@ -313,7 +192,7 @@ def test_fill_holes_fills_everything_and_keeps_known_texels():
 
 
 def test_source_map_colours_are_stable_per_photo():
-    from difftex.texture import photo_colour, source_map
+    from difftex.outputs import photo_colour, source_map
 
     dom = np.array([[0, 1], [-1, 1]])
     mask = np.array([[True, True], [True, False]])
@@ -321,28 +200,6 @@ def test_source_map_colours_are_stable_per_photo():
     assert np.allclose(sm[0, 0], photo_colour("x.jpg")) and np.allclose(sm[0, 1], photo_colour("y.jpg"))
     assert np.allclose(sm[1, 1], 0) and np.allclose(sm[1, 0], 0)
     assert not np.allclose(photo_colour("x.jpg"), photo_colour("y.jpg"))
-
-
-def write_scene(root, photos, images):
-    """The analytic wall as a scene folder: COLMAP text model, PNG photos, proxy.obj."""
-    from scipy.spatial.transform import Rotation
-
-    from difftex.io import write_image
-
-    (root / "sparse" / "0").mkdir(parents=True)
-    (root / "images").mkdir()
-    cams, ims = [], []
-    for i, (ph, img) in enumerate(zip(photos, images), 1):
-        K = ph.K()
-        cams.append(f"{i} PINHOLE {ph.width} {ph.height} {K[0, 0]} {K[1, 1]} {K[0, 2]} {K[1, 2]}")
-        x, y, z, w = Rotation.from_matrix(ph.R).as_quat()
-        ims.append(f"{i} {w} {x} {y} {z} {ph.t[0]} {ph.t[1]} {ph.t[2]} {i} {ph.name}\n\n")  # + empty POINTS2D line
-        write_image(root / "images" / ph.name, img, bits=16)
-    (root / "sparse" / "0" / "cameras.txt").write_text("\n".join(cams) + "\n")
-    (root / "sparse" / "0" / "images.txt").write_text("".join(ims))
-    (root / "sparse" / "0" / "points3D.txt").write_text("")
-    v = wall().outer
-    (root / "proxy.obj").write_text("".join(f"v {a} {b} {c}\n" for a, b, c in v) + "g wall\nf 1 2 3 4\n")
 
 
 @pytest.mark.slow
@@ -358,14 +215,13 @@ def test_command_chain_on_the_analytic_wall(tmp_path):
     scene = tmp_path / "scene"
     write_scene(scene, photos, imgs)
     cfg = tmp_path / "cfg.yaml"
-    cfg.write_text("texture:\n  long_side: 64\noptimize:\n  long_side_start: 32\n  max_iters_per_level: [100, 60]\n  device: cpu\n")
+    cfg.write_text("texture:\n  long_side: 64\noptimize:\n  long_side_start: 32\n  max_iters_per_level: [100, 60]\n"
+                   "compute:\n  device: cpu\n")
     R = tmp_path / "R"
     assert main(["visibility", "--scene", str(scene), "--config", str(cfg), "--out-dir", str(R / "visibility"), "--quiet"]) == 0
     vis = str(R / "visibility" / "wall.npz")
     common = ["--scene", str(scene), "--visibility", vis, "--config", str(cfg), "--threads", "1"]
-    assert main(["init", *common, "--out", str(R / "init" / "wall.npz")]) == 0
-    assert main(["optimize", *common, "--init", str(R / "init" / "wall.npz"), "--out-dir", str(R / "opt"), "--no-progress"]) == 0
-    assert main(["histmatch", *common, "--optimized", str(R / "opt"), "--out-dir", str(R / "tex")]) == 0
+    assert main(["texture", *common, "--out-dir", str(R / "opt"), "--png-dir", str(R / "tex"), "--no-progress"]) == 0
     assert main(["baseline", *common, "--method", "average", "--out-dir", str(R / "avg")]) == 0
     stats = json.loads((R / "opt" / "stats.json").read_text())
     assert len(stats["levels"]) == 2 and set(stats["levels"][0]["loss"]) >= {"render", "persp", "para", "sparsity", "total"}
@@ -382,8 +238,8 @@ def test_command_chain_on_the_analytic_wall(tmp_path):
     gt = gt_texture(inp)
     # the occluder (green) is averaged in by the baseline, not by the optimizer
     assert np.abs(tex - gt).mean(-1)[reg].mean() < 0.5 * np.abs(avg - gt).mean(-1)[reg].mean()
-    # a stage given another polygon's files fails with one line
-    assert main(["histmatch", *common, "--optimized", str(R / "nope"), "--out-dir", str(R / "x")]) == 2
+    # a stage given a missing visibility file fails with one line
+    assert main(["texture", "--scene", str(scene), "--visibility", str(R / "nope.npz"), "--out-dir", str(R / "x")]) == 2
 
 
 def test_ablation_switches():
@@ -391,16 +247,16 @@ def test_ablation_switches():
     imgs = [render(ph) for ph in photos]
     inp = make_input(photos, imgs, long_side=48)
     # no loss term: no iteration, the weights stay the initial Q (normalised)
-    res = optimize_polygon(inp, fast_cfg(use_render=False, use_persp=False, use_para=False, data_elimination=False))
+    res = optimize(inp, fast_cfg(use_render=False, use_persp=False, use_para=False, data_elimination=False))
     assert all(lv["iterations"] == 0 for lv in res.stats["levels"])
     # single level without coarse-to-fine; terms switched off stay at zero in the curves
-    res = optimize_polygon(inp, fast_cfg(coarse_to_fine=False, use_para=False, use_sparsity=False, max_iters_per_level=(30,)))
+    res = optimize(inp, fast_cfg(coarse_to_fine=False, use_para=False, use_sparsity=False, max_iters_per_level=(30,)))
     assert len(res.stats["levels"]) == 1 and res.stats["levels"][0]["shape"] == list(inp.frame.shape)
     lv = res.stats["levels"][0]
     assert max(lv["loss"]["para"]) == 0 and max(lv["loss"]["sparsity"]) == 0 and max(lv["loss"]["persp"]) > 0
     # data elimination off: nothing eliminated or dropped even with an aggressive threshold
-    res = optimize_polygon(inp, fast_cfg(data_elimination=False, sigma_k=0.1, tau_w=0.01))
+    res = optimize(inp, fast_cfg(data_elimination=False, sigma_k=0.1, tau_w=0.01))
     assert res.stats["dropped"] == [] and all(lv["eliminated_pixels"] == 0 for lv in res.stats["levels"])
-    res = optimize_polygon(inp, fast_cfg(sigma_k=0.1, tau_w=0.01))
+    res = optimize(inp, fast_cfg(sigma_k=0.1, tau_w=0.01))
     assert res.stats["dropped"] and sum(lv["eliminated_pixels"] for lv in res.stats["levels"]) > 0
     assert np.isfinite(res.U).all() and res.stats["coverage"] == 1.0

@@ -48,12 +48,17 @@ def job_counts(out: str) -> dict[str, int]:
 def test_presets_and_user_values_merge_in_order():
     cfg = wf.resolve_config(REPO, {"preset": "fast", "optimize": {"lr": "0.01"}})
     wf.validate(cfg, REPO / "workflow/schemas/config.schema.yaml")
-    assert cfg["texture"]["long_side"] == 256  # from the preset
+    assert cfg["texture"]["density_scale"] == 0.25 and cfg["texture"]["density"] == "auto"  # from the preset
     assert cfg["optimize"]["lr"] == 0.01  # the user's string coerced to the default's type
     assert cfg["optimize"]["alpha"] == 1.0  # untouched default
-    # a user value beats the preset
+    # a user value beats the preset: a long side given by the user sets the size, not auto
     cfg = wf.resolve_config(REPO, {"preset": "fast", "texture": {"long_side": "64"}})
     assert cfg["texture"]["long_side"] == 64
+    from difftex.config import TextureConfig
+
+    assert TextureConfig(**cfg["texture"]).mode == "long_side"
+    cfg = wf.resolve_config(REPO, {"preset": "fast", "texture": {"density": "12.5", "long_side": 64}})
+    assert TextureConfig(**cfg["texture"]).mode == "density" and cfg["texture"]["density"] == 12.5
     # the paper preset renders into the photos
     assert wf.resolve_config(REPO, {"preset": "paper"})["optimize"]["loss_mode"] == "render"
 
@@ -63,7 +68,7 @@ def test_the_default_config_file_given_again_does_not_override_the_preset(tmp_pa
     mine.write_text("optimize:\n  lr: 0.02\n")
     user = wf.user_config(REPO, [REPO / "config" / "config.yaml", mine], {"preset": "fast"})
     cfg = wf.resolve_config(REPO, user)
-    assert cfg["texture"]["long_side"] == 256 and cfg["optimize"]["lr"] == 0.02
+    assert cfg["texture"]["density_scale"] == 0.25 and cfg["optimize"]["lr"] == 0.02
 
 
 @pytest.mark.parametrize(
@@ -85,7 +90,8 @@ def test_bad_config_is_a_one_line_error(user, message):
 def test_stage_files_hold_only_their_sections_and_are_rewritten_only_on_change(tmp_path):
     cfg = wf.resolve_config(REPO, {})
     paths = wf.write_stage_configs(cfg, tmp_path)
-    assert "lr:" in Path(paths["optimize"]).read_text()
+    assert "lr:" in Path(paths["texture"]).read_text()
+    assert "device:" in Path(paths["compute"]).read_text() and "device:" not in Path(paths["texture"]).read_text()
     assert "lr:" not in Path(paths["filter"]).read_text()
     before = {s: Path(p).stat().st_mtime_ns for s, p in paths.items()}
     os.utime(paths["filter"], ns=(1, 1))  # so a rewrite would show
@@ -93,7 +99,7 @@ def test_stage_files_hold_only_their_sections_and_are_rewritten_only_on_change(t
     wf.write_stage_configs(cfg2, tmp_path)
     assert Path(paths["filter"]).stat().st_mtime_ns == 1
     assert Path(paths["visibility"]).stat().st_mtime_ns == before["visibility"]
-    assert "0.02" in Path(paths["optimize"]).read_text()
+    assert "0.02" in Path(paths["texture"]).read_text()
 
 
 def test_memory_estimate_grows_with_texels_and_photos():
@@ -126,7 +132,7 @@ def test_dry_run_plans_every_stage_and_a_wrong_key_stops_it(tmp_path):
     assert r.returncode == 0, r.stderr
     counts = job_counts(r.stdout)
     assert {"filter", "visibility", "assemble", "report", "html_report", "all"} <= set(counts)
-    assert (tmp_path / "results/lund-door/config/optimize.yaml").is_file()
+    assert (tmp_path / "results/lund-door/config/texture.yaml").is_file()
     bad = snakemake(tmp_path, "-n", "--config", f"scene={LUND}", "optimize={lrr: 1}")
     assert bad.returncode != 0 and "lrr" in bad.stdout + bad.stderr
     missing = snakemake(tmp_path, "-n", "--config", f"scene={tmp_path / 'nowhere'}")
@@ -136,7 +142,7 @@ def test_dry_run_plans_every_stage_and_a_wrong_key_stops_it(tmp_path):
 # ---------------------------------------------------------------------------------------------
 # End to end on the tiny synthetic scene
 
-STAGES = ("init", "optimize", "histmatch")
+STAGES = ("filter", "visibility", "texture", "assemble", "evaluate")
 
 
 @pytest.fixture(scope="session")
@@ -198,11 +204,18 @@ def test_workflow_end_to_end(tiny_scene, tmp_path):
     again = snakemake(work, "-n", *args)
     assert again.returncode == 0 and "Nothing to be done" in again.stdout, again.stdout[-2000:]
 
-    # an optimization-only change reruns optimization and what follows, not filter/visibility
+    # an optimization-only change reruns texturing and what follows, not filter/visibility
+    n_tex = len([p for p in summary["polygons"] if p["textured"]])
     changed = snakemake(work, "-n", *args, "optimize={lr: 0.01}")
     counts = job_counts(changed.stdout)
-    assert counts.get("optimize", 0) == len([p for p in summary["polygons"] if p["textured"]])
+    assert counts.get("texture", 0) == n_tex
     assert "filter" not in counts and "visibility" not in counts
+    # device or compilation: nothing to do (same result to float tolerance)
+    same = snakemake(work, "-n", *args, "compute={device: cpu, compile: 'off'}")
+    assert same.returncode == 0 and "Nothing to be done" in same.stdout, same.stdout[-2000:]
+    # an output-format change rewrites the files, no texturing
+    counts = job_counts(snakemake(work, "-n", *args, "output={bits: 16}").stdout)
+    assert counts.get("finish", 0) == n_tex and "texture" not in counts
     # ... and an assembly-only change only assembly
     counts = job_counts(snakemake(work, "-n", *args, "assemble={padding: 2}").stdout)
     assert set(counts) == {"assemble", "report", "all"}  # evaluation and the HTML report read the textures
@@ -219,13 +232,16 @@ def test_config_yaml_mirrors_the_stage_dataclasses():
     from difftex.config import FilterConfig, TextureConfig, VisibilityConfig
 
     from difftex.evaluate import EvaluateConfig
-    from difftex.optimize import OptimizeConfig
+    from difftex.method.config import ComputeConfig, OptimizeConfig
+    from difftex.outputs import OutputConfig
 
     classes = {
         "texture": TextureConfig,
         "filter": FilterConfig,
         "visibility": VisibilityConfig,
         "optimize": OptimizeConfig,
+        "compute": ComputeConfig,
+        "output": OutputConfig,
         "assemble": AssembleConfig,
         "evaluate": EvaluateConfig,
     }

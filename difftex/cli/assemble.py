@@ -79,11 +79,13 @@ def run(args) -> int:
     from difftex.errors import DifftexError
     from difftex.io import read_image, read_json, write_json
     from difftex.proxy import load_proxy
+    from difftex.outputs import OutputConfig
     from difftex.scene import find_proxy
 
     t0 = time.time()
     console = Console(stderr=True)
     cfg = section(args.config, "assemble", AssembleConfig)
+    out_cfg = section(args.config, "output", OutputConfig)
     scene = Path(args.scene)
     if not scene.is_dir():
         raise DifftexError(f"{scene}: scene folder not found")
@@ -121,7 +123,7 @@ def run(args) -> int:
 
     out_dir = Path(args.out_dir)
     with console.status(f"packing {len(items)} textures and writing the model"):
-        summary = assemble(items, out_dir, cfg, name=args.name)
+        summary = assemble(items, out_dir, cfg, name=args.name, bits=out_cfg.bits)
     if cfg.glb and cfg.verify:
         with console.status("rendering a view of the model"):
             summary["view_check"] = _view_check(scene, proxy, info, out_dir / summary["glb"], out_dir / f"{args.name}_view.png")

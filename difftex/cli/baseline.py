@@ -19,16 +19,15 @@ def run(args) -> int:
 
     from difftex.baselines import baseline_texture
     from difftex.cli._polygon import load
-    from difftex.optimize import pick_device
-    from difftex.texture import finish_texture, write_texture_outputs
+    from difftex.outputs import write_texture_outputs
+    from difftex.texture import finish_texture
 
     t0 = time.perf_counter()
-    cfg, inp = load(args)
-    U, wsum, dominant, info = baseline_texture(inp, args.method, pick_device(cfg.device))
+    _, compute, inp = load(args)
+    U, wsum, dominant, info = baseline_texture(inp, args.method, compute.device)
     U, fill = finish_texture(U, wsum, inp.texel_mask)
     seen = (wsum > 0) & inp.texel_mask
     report = {"polygon_id": inp.polygon_id, **info, **fill, "histogram_matching": False, "time_s": time.perf_counter() - t0}
-    write_texture_outputs(args.out_dir, U, inp.texel_mask, seen, dominant, [p.name for p in inp.photos], report,
-                          bits=cfg.output_bits, exr=cfg.write_exr)
+    write_texture_outputs(args.out_dir, U, inp.texel_mask, seen, dominant, [p.name for p in inp.photos], report)
     print(f"baseline {args.method} {inp.polygon_id}: coverage {fill['coverage']:.3f}")
     return 0

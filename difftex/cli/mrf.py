@@ -21,15 +21,14 @@ def run(args) -> int:
     from difftex.cli._polygon import load
     from difftex.config import section
     from difftex.mrf import MRFConfig, run_polygon
-    from difftex.optimize import pick_device
 
-    cfg, inp = load(args)
+    _, compute, inp = load(args)
     mcfg = section(args.config, "mrf", MRFConfig)
     if args.patch is not None:
         mcfg = dataclasses.replace(mcfg, patch=args.patch)
     if args.smoothness is not None:
         mcfg = dataclasses.replace(mcfg, smoothness=args.smoothness)
-    rep = run_polygon(inp, args.out_dir, mcfg, pick_device(cfg.device), cfg.output_bits, cfg.write_exr)
+    rep = run_polygon(inp, args.out_dir, mcfg, compute.device)
     print(f"mrf {inp.polygon_id}: {rep['labels']} photos, {len(rep['photos_used'])} used, "
           f"coverage {rep['coverage']:.3f}, {rep['time_s']:.1f}s")
     return 0

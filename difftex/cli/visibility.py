@@ -19,7 +19,7 @@ def run(args) -> int:
     from pathlib import Path
 
     from difftex.errors import DifftexError
-    from difftex.config import TextureConfig, VisibilityConfig, section
+    from difftex.config import TextureConfig, VisibilityConfig, read_config, section
     from difftex.io import read_json, write_json
     from difftex.scene import load_scene
     from difftex.visibility import save_visibility, scene_visibility
@@ -36,20 +36,25 @@ def run(args) -> int:
             raise DifftexError(f"{args.photos}: not a difftex filter table") from None
     else:
         cands = {p.id: [ph.name for ph in scene.photos] for p in scene.proxy.polygons}
+    top_k = int((read_config(args.config).get("optimize") or {}).get("top_k", 8))
     vis = scene_visibility(
-        scene.proxy, scene.photos, scene.up, cands, tex.long_side, tex.density,
-        min_texels=vcfg.min_texels, max_photos=vcfg.max_photos, progress=not args.quiet,
+        scene.proxy, scene.photos, scene.up, cands, tex,
+        min_texels=vcfg.min_texels, max_photos=vcfg.max_photos, progress=not args.quiet, top_k=top_k,
     )
     out = Path(args.out_dir)
     out.mkdir(parents=True, exist_ok=True)
     rows = []
     for v in vis:
         save_visibility(out / f"{v.polygon_id}.npz", v)
+        ts = v.texel_size or {}
         rows.append({
             "id": v.polygon_id, "photos": v.photos, "coverage": round(v.coverage, 4),
             "width": v.frame.width, "height": v.frame.height, "texels": int(v.texel_mask.sum()),
+            "texel_size": v.frame.texel_size, "photo_texel_size": ts.get("photo_texel_size"),
+            "texel_size_bound": ts.get("bound"),
         })
-        print(f"  {v.polygon_id}: {len(v.photos)} photos, coverage {100 * v.coverage:.1f}%, {v.frame.width}x{v.frame.height} texels")
+        print(f"  {v.polygon_id}: {len(v.photos)} photos, coverage {100 * v.coverage:.1f}%, {v.frame.width}x{v.frame.height} "
+              f"texels of {v.frame.texel_size:.4g} units (set by {ts.get('bound')})")
     secs = time.perf_counter() - t0
     write_json(out / "summary.json", {"scene": str(scene.root), "polygons": rows, "seconds": round(secs, 2)})
     print(f"{scene.name}: visibility of {len(vis)} polygons in {secs:.1f} s -> {out}")

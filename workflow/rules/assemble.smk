@@ -7,10 +7,7 @@ rule assemble:
     input:
         scene=SCENE_MODEL,
         summary=f"{R}/visibility/summary.json",
-        textures=lambda wc: expand(
-            f"{R}/textures/{{pid}}/texture.png",
-            pid=wf.textured_ids(checkpoints.visibility.get().output.summary),
-        ),
+        textures=get_textures,
         config=STAGE_CFG["assemble"],
     output:
         summary=f"{R}/model/summary.json",
@@ -62,10 +59,7 @@ rule html_report:
     input:
         # textures, optimizer stats and metrics; not the assembled model
         summary=f"{R}/visibility/summary.json",
-        textures=lambda wc: expand(
-            f"{R}/textures/{{pid}}/texture.png",
-            pid=wf.textured_ids(checkpoints.visibility.get().output.summary),
-        ),
+        textures=get_textures,
         metrics=[f"{R}/evaluation/metrics.json"] if EVALUATE else [],
     output:
         f"{R}/report/index.html",

@@ -50,3 +50,30 @@ RUN = config["run"]
 
 wildcard_constraints:
     pid="[A-Za-z0-9_-]+",
+
+
+# Named input functions of the per-polygon rules (their rows come from the visibility checkpoint).
+
+
+def get_polygon_row(wc):
+    return wf.polygon_row(checkpoints.visibility.get().output.summary, wc.pid)
+
+
+def get_polygon_photos(wc):
+    return wf.photo_paths(SCENE, get_polygon_row(wc))
+
+
+def get_polygon_mem_mb(wc):
+    return wf.polygon_mem_mb(SCENE, get_polygon_row(wc), RUN, config["optimize"]["top_k"])
+
+
+def get_polygon_runtime(wc):
+    return wf.polygon_runtime_min(get_polygon_row(wc), config)
+
+
+def get_textured_ids():
+    return wf.textured_ids(checkpoints.visibility.get().output.summary)
+
+
+def get_textures(wc):
+    return expand(f"{R}/textures/{{pid}}/texture.png", pid=get_textured_ids())

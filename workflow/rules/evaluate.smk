@@ -7,10 +7,7 @@ rule evaluate:
         scene=SCENE_MODEL,
         # the textures and their frames, not the assembled model: assembly settings do not matter
         summary=f"{R}/visibility/summary.json",
-        textures=lambda wc: expand(
-            f"{R}/textures/{{pid}}/texture.png",
-            pid=wf.textured_ids(checkpoints.visibility.get().output.summary),
-        ),
+        textures=get_textures,
         config=STAGE_CFG["evaluate"],
     output:
         f"{R}/evaluation/metrics.json",

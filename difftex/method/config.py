@@ -1,0 +1,115 @@
+"""Parameters of the method (the ``optimize:`` config section) and of how it runs (``compute:``).
+
+``OptimizeConfig`` holds what changes the result; ``ComputeConfig`` holds what only changes
+how fast it is computed (device, torch.compile), so that the workflow does not rerun texturing
+when only those change.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+from typing import Literal
+
+LossMode = Literal["texel", "render"]
+EliminationTest = Literal["loo", "paper"]
+HistmatchReference = Literal["median", "best", "pooled"]
+Device = Literal["auto", "cpu", "cuda"]
+CompileMode = Literal["auto", "on", "off"]
+
+
+def _check_choice(name: str, value, choices: tuple) -> None:
+    if value not in choices:
+        raise ValueError(f"{name} must be one of {', '.join(map(str, choices))}, got {value!r}")
+
+
+@dataclass(frozen=True)
+class OptimizeConfig:
+    """Parameters of the ``optimize:`` config section (paper defaults where the paper gives one)."""
+
+    long_side_start: int = 256  # coarse-to-fine: first level's long side (paper: 256)
+    top_k: int = 8  # candidate slots kept per texel
+    loss_mode: LossMode = "texel"  # "texel" (mapped photos in texel space) or "render" (rendered into photo pixels)
+    alpha: float = 1.0  # L_Render
+    beta: float = 2.0  # L_Persp
+    omega: float = 10.0  # L_Para
+    lambda_s: float = 0.5
+    para_eps: float = 0.01  # Charbonnier smoothing of |.| in L_Para (0: exact L1)
+    sparsity: float = 1.0  # weight of the L1 term inside L_Render (paper: 1; see docs/optimizer.md)
+    lr: float = 0.005
+    betas: tuple[float, float] = (0.9, 0.99)
+    tau: float = 0.01  # activation threshold on normalised weights
+    tau_w: float = 0.95  # drop a photo when this share of its texels has zero weight
+    sigma_k: float = 3.0  # pixel elimination: standard deviations
+    sigma_min: float = 0.02  # noise floor of colour standard deviations (Q_c and elimination)
+    elimination_test: EliminationTest = "loo"  # "loo": leave-one-out mean/std; "paper": including the pixel
+    eliminate_every: int = 10  # iterations between pixel-elimination passes
+    max_iters_per_level: tuple[int, ...] = (300, 150, 80, 40)  # caps, last value repeats
+    min_iters_per_level: int = 20
+    conv_rel_tol: float = 1e-3  # converged when the loss fell by less than this share ...
+    conv_window: int = 20  # ... over this many iterations
+    use_render: bool = True
+    use_persp: bool = True
+    use_para: bool = True
+    use_sparsity: bool = True
+    data_elimination: bool = True
+    coarse_to_fine: bool = True
+    histogram_matching: bool = True
+    histmatch_reference: HistmatchReference = "median"  # per-texel median of the candidates, the best photo, or pooled
+    histmatch_channels: str = "sv"  # HSV channels matched; hue is circular and left alone by default
+    exact_decode: bool = False  # decode every photo at full size (default: JPEG DCT scaling where levels allow)
+    seed: int = 0
+
+    def __post_init__(self):
+        _check_choice("loss_mode", self.loss_mode, ("texel", "render"))
+        _check_choice("elimination_test", self.elimination_test, ("loo", "paper"))
+        _check_choice("histmatch_reference", self.histmatch_reference, ("best", "median", "pooled"))
+        if not set(self.histmatch_channels) <= set("hsv") or not self.histmatch_channels:
+            raise ValueError(f"histmatch_channels must be letters of 'hsv', got {self.histmatch_channels!r}")
+        if self.top_k < 1 or self.long_side_start < 1:
+            raise ValueError("top_k and long_side_start must be >= 1")
+        if not 0 <= self.tau < 1 or not 0 < self.tau_w <= 1:
+            raise ValueError("tau must be in [0, 1) and tau_w in (0, 1]")
+        if self.lr <= 0 or len(tuple(self.betas)) != 2:
+            raise ValueError("lr must be > 0 and betas a pair")
+        caps_in = self.max_iters_per_level
+        caps = tuple(int(c) for c in (caps_in if isinstance(caps_in, (list, tuple)) else [caps_in]))
+        if not caps or min(caps) < 0:
+            raise ValueError("max_iters_per_level must be a non-empty list of counts >= 0")
+        object.__setattr__(self, "max_iters_per_level", caps)
+        object.__setattr__(self, "betas", tuple(float(b) for b in self.betas))
+
+    @classmethod
+    def from_dict(cls, data: dict | None, where: str = "optimize") -> "OptimizeConfig":
+        from difftex.config import from_dict
+
+        return from_dict(cls, data, where=where)
+
+    def to_dict(self) -> dict:
+        return dataclasses.asdict(self)
+
+    def cap(self, level: int) -> int:
+        caps = self.max_iters_per_level
+        return caps[min(level, len(caps) - 1)]
+
+
+@dataclass(frozen=True)
+class ComputeConfig:
+    """The ``compute:`` section: where and how the method runs; results do not depend on it
+    beyond float tolerance (tests compare compiled with eager, CUDA with CPU)."""
+
+    device: Device = "auto"  # auto (CUDA when torch sees it) | cpu | cuda
+    compile: CompileMode = "auto"  # torch.compile the objective: auto (large levels only) | on | off
+    compile_min_slots: int = 4_194_304  # auto: compile levels with at least this many K x H x W slot entries
+
+    def __post_init__(self):
+        _check_choice("device", self.device, ("auto", "cpu", "cuda"))
+        _check_choice("compile", self.compile, ("auto", "on", "off"))
+        if self.compile_min_slots < 0:
+            raise ValueError("compile_min_slots must be >= 0")
+
+    @classmethod
+    def from_dict(cls, data: dict | None, where: str = "compute") -> "ComputeConfig":
+        from difftex.config import from_dict
+
+        return from_dict(cls, data, where=where)

@@ -1,0 +1,112 @@
+"""Data quality optimization (Sec. 3.4): the activation masks a_k, pixel elimination and photo drop.
+
+All functions work on one level's slot layout: (K, h, w) tensors, slot j of texel t holding
+photo ``idx[j, t]``.
+"""
+
+from __future__ import annotations
+
+import torch
+
+from difftex import losses
+from difftex.method.config import OptimizeConfig
+from difftex.method.levels import Level
+
+
+def argmax0(x: torch.Tensor) -> torch.Tensor:
+    """Index of the largest entry along dim 0, as (1, ...) (first one on ties).
+
+    torch's argmax over the leading dimension of a (K, H, W) tensor is a strided reduction that
+    ran ~100x slower on CPU than this loop over the few slots.
+    """
+    best = x[0].clone()
+    idx = torch.zeros(x.shape[1:], dtype=torch.long, device=x.device)
+    for j in range(1, x.shape[0]):
+        better = x[j] > best
+        best = torch.where(better, x[j], best)
+        idx = torch.where(better, torch.full_like(idx, j), idx)
+    return idx[None]
+
+
+def base_mask(lv: Level, eliminated: torch.Tensor, dropped_slots: torch.Tensor) -> torch.Tensor:
+    """Slots that may carry weight: visible, not eliminated, not of a dropped photo."""
+    return lv.visible & ~eliminated & ~dropped_slots
+
+
+def update_activation(theta: torch.Tensor, base: torch.Tensor, tau: float) -> torch.Tensor:
+    """a = base & (W > tau), W normalised over the base candidates; the best one always stays.
+
+    Keeping each texel's strongest candidate avoids holes when every weight is below tau.
+    """
+    W = losses.blend_weights(theta, base)
+    act = base & (W > tau)
+    best = argmax0(torch.where(base, W, torch.full_like(W, -1.0)))
+    keep = torch.zeros_like(act).scatter_(0, best, True) & base
+    return act | keep
+
+
+def eliminate_pixels(lv: Level, active: torch.Tensor, W: torch.Tensor, cfg: OptimizeConfig) -> torch.Tensor:
+    """Slots whose colour lies beyond sigma_k standard deviations of the texel's selected colours.
+
+    "paper": mean/std of all selected colours (a pixel can then be at most sqrt(n-1) std away,
+    so this needs n >= 11 to fire); "loo": mean/std of the *other* selected colours, with a noise
+    floor sigma_min, which catches a lone occluded pixel among three or more. At most one slot
+    per texel per pass, never the texel's highest-weight one, and only with >= 3 selected.
+    """
+    a = active.float()
+    n = a.sum(0)
+    c = lv.colours
+    s1 = (c * a[:, None]).sum(0)
+    s2 = ((c * c).sum(1) * a).sum(0)
+    if cfg.elimination_test == "paper":
+        mu = s1 / n.clamp_min(1)
+        var = (s2 / n.clamp_min(1) - (mu * mu).sum(0)).clamp_min(0)
+        d2 = ((c - mu[None]) ** 2).sum(1)
+        z2 = d2 / (var + cfg.sigma_min**2)[None]
+    else:
+        m = (n[None] - a).clamp_min(1)
+        mu = (s1[None] - c * a[:, None]) / m[:, None]
+        var = ((s2[None] - (c * c).sum(1) * a) / m - (mu * mu).sum(1)).clamp_min(0)
+        d2 = ((c - mu) ** 2).sum(1)
+        z2 = d2 / (var + cfg.sigma_min**2)
+    # var is a mean squared distance over 3 channels; a 1-D k-sigma test on it reads k^2
+    out = active & (z2 > cfg.sigma_k**2) & (n >= 3)[None]
+    best = argmax0(torch.where(active, W, torch.full_like(W, -1.0)))
+    out.scatter_(0, best, False)
+    worst = argmax0(torch.where(out, z2, torch.full_like(z2, -1.0)))
+    one = torch.zeros_like(out).scatter_(0, worst, True)
+    return out & one
+
+
+def photo_zero_share(lv: Level, base: torch.Tensor, W: torch.Tensor, tau: float, n_photos: int) -> torch.Tensor:
+    """Per photo: share of the texels it could serve (base) where its weight is zero (<= tau); -1 if none."""
+    idx = lv.idx.clamp_min(0).reshape(-1)
+    b = base.reshape(-1).double()
+    z = (base & (W <= tau)).reshape(-1).double()
+    tot = torch.bincount(idx, weights=b, minlength=n_photos)
+    zero = torch.bincount(idx, weights=z, minlength=n_photos)
+    return torch.where(tot > 0, zero / tot.clamp_min(1), torch.full_like(tot, -1.0))
+
+
+def photos_to_drop(lv: Level, base: torch.Tensor, W: torch.Tensor, tau: float, tau_w: float, n_photos: int) -> list[int]:
+    """Photos whose weight is zero (<= tau) on more than tau_w of the texels they could serve."""
+    share = photo_zero_share(lv, base, W, tau, n_photos)
+    return [int(k) for k in torch.nonzero(share > tau_w).flatten().tolist()]
+
+
+def dropped_slot_mask(lv: Level, eliminated: torch.Tensor, dropped: set[int], W: torch.Tensor | None = None) -> torch.Tensor:
+    """Slots of dropped photos, except the best one of a texel that no other photo serves.
+
+    Removing a texel's last source would leave a hole the optimization cannot fill (paper:
+    "improper photo or pixel removal can cause irreversible color loss").
+    """
+    base = lv.visible & ~eliminated
+    if not dropped:
+        return torch.zeros_like(base)
+    dset = torch.tensor(sorted(dropped), device=lv.idx.device)
+    ds = torch.isin(lv.idx, dset) & base
+    need = base.any(0) & ~(base & ~ds).any(0)
+    score = W if W is not None else lv.theta0
+    best = argmax0(torch.where(base, score, torch.full_like(score, -1.0)))
+    keep = torch.zeros_like(ds).scatter_(0, best, True) & need[None]
+    return ds & ~keep

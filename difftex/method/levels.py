@@ -1,0 +1,249 @@
+"""One resolution level of the method: the candidates mapped into texel space, top-K slots,
+the initial weights Q = Q_a Q_c (Sec. 3.2), and the upsampling of weights between levels.
+
+Memory: every texel keeps only its ``top_k`` best candidate photos (slots), so the level's
+tensors grow with texels x K, not texels x photos. A level maps each photo once when all its
+mapped photos fit in ``MAP_CACHE_BYTES`` (always when the candidates fit in the slots); above
+that the photos are mapped a second time for scoring instead of being held (``Level.maps``
+counts the mappings).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from difftex import losses
+from difftex.mapping import UVFrame
+from difftex.method.config import OptimizeConfig
+from difftex.sampling import MappedPhoto, PhotoSet, resample_nearest
+
+MAP_CACHE_BYTES = 1 << 30  # mapped photos held at once while a level is built
+
+
+@dataclass
+class Level:
+    """The slot layout and fixed data of one resolution level.
+
+    Shapes: K slots over an (h, w) texel grid.
+    """
+
+    frame: UVFrame
+    mask: torch.Tensor  # (h, w) bool texel mask
+    idx: torch.Tensor  # (K, h, w) long photo index per slot, -1 empty
+    visible: torch.Tensor  # (K, h, w) bool slot valid (photo sees the texel)
+    colours: torch.Tensor  # (K, 3, h, w)
+    Q: torch.Tensor  # (K, h, w) Q_a * Q_c
+    cost: torch.Tensor  # (K, h, w) |V^ - v~|^2
+    G: torch.Tensor  # (h, w) mean gradient magnitude of the mapped photos
+    theta0: torch.Tensor  # (K, h, w) initial raw weights
+    v_tilde: np.ndarray
+    n_candidates: int  # photos that see at least one texel at this level
+    pixel_sets: "losses.PixelBatch | None" = None  # render mode
+    fixed_slots: bool = False  # slot j holds the same photo at every texel (all candidates fit in K)
+    maps: int = 0  # photo mappings made to build the level
+
+    @property
+    def n_tex(self) -> float:
+        return float(max(int(self.mask.sum()), 1))
+
+    def nbytes(self) -> int:
+        ts = [self.idx, self.visible, self.colours, self.Q, self.cost, self.G, self.theta0]
+        return int(sum(t.element_size() * t.numel() for t in ts))
+
+
+def gradient_magnitude(col: torch.Tensor, vis: torch.Tensor) -> torch.Tensor:
+    """Mean-over-channels colour gradient magnitude (h, w), zero across visibility borders.
+
+    Args:
+        col: (3, h, w) colours.
+        vis: (h, w) bool, where the colours are defined.
+    """
+    gx = torch.zeros_like(col)
+    gy = torch.zeros_like(col)
+    okx = (vis[:, 1:] & vis[:, :-1])[None]
+    oky = (vis[1:, :] & vis[:-1, :])[None]
+    gx[:, :, 1:] = (col[:, :, 1:] - col[:, :, :-1]) * okx
+    gy[:, 1:, :] = (col[:, 1:, :] - col[:, :-1, :]) * oky
+    return (gx * gx + gy * gy).sqrt().mean(0)
+
+
+def quality(cos: torch.Tensor, colour: torch.Tensor, mu: torch.Tensor, msd: torch.Tensor, visible: torch.Tensor,
+            sigma_min: float) -> torch.Tensor:
+    """The initial weight Q = Q_a Q_c of one photo at every texel (Sec. 3.2).
+
+    Q_a is the frontality (cosine between the texel-to-camera direction and the normal); Q_c a
+    Gaussian of the colour's squared distance to the candidates' mean, with their mean squared
+    distance (plus a noise floor) as its variance.
+
+    Args:
+        cos: (h, w) Q_a.
+        colour: (3, h, w) the photo's mapped colours.
+        mu: (3, h, w) mean colour of the candidates; msd: (h, w) their mean squared distance to it.
+        visible: (h, w) bool.
+        sigma_min: noise floor of the colour standard deviation.
+
+    Returns:
+        (h, w) Q, zero where the photo does not see the texel.
+    """
+    d2 = ((colour - mu) ** 2).sum(0)
+    q = cos * torch.exp(-0.5 * d2 / (msd + sigma_min**2))
+    return torch.where(visible, q, torch.zeros_like(q))
+
+
+def gauge(theta: torch.Tensor, active: torch.Tensor) -> torch.Tensor:
+    """Rescale each texel's raw weights so the largest active one is 1.
+
+    W is invariant to this scale; fixing it stops the L1 term from shrinking all weights of a
+    texel together (which would end in the uniform blend) and makes it act on the ratios.
+    """
+    mx = (theta * active).amax(0, keepdim=True)
+    return torch.where(mx > 0, theta / mx.clamp_min(1e-12), theta).clamp(0.0, 1.0)
+
+
+def _scatter_photo_field(idx: torch.Tensor, values: torch.Tensor, n: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """Photo n's dense (h, w) field from the slot layout, and where photo n has a slot."""
+    sel = idx == n
+    return (values * sel).sum(0), sel.any(0)
+
+
+def upsample_photo_theta(prev_level: Level, prev_theta: torch.Tensor, n: int, frame: UVFrame) -> tuple[torch.Tensor, torch.Tensor]:
+    """Bilinear upsampling of photo n's active raw weight from the previous level (paper: W upsampled).
+
+    Args:
+        prev_level: the coarser level; prev_theta: (K, h', w') its active raw weights.
+        n: photo index; frame: the finer level's frame.
+
+    Returns:
+        (theta (h, w), covered (h, w) bool); only coarse texels where photo n was a candidate
+        contribute (mask-normalised bilinear); elsewhere the caller falls back to Q.
+    """
+    vals, has = _scatter_photo_field(prev_level.idx, prev_theta, n)
+    src = prev_level.frame
+    tx, ty = frame.centres()
+    r = frame.texel_size / src.texel_size
+    gx = (tx * r) / src.width * 2 - 1
+    gy = (ty * r) / src.height * 2 - 1
+    grid = torch.from_numpy(np.stack([gx, gy], -1).astype(np.float32)).to(vals.device)[None]
+    stack = torch.stack([vals * has, has.float()])[None]
+    up = F.grid_sample(stack, grid, mode="bilinear", padding_mode="border", align_corners=False)[0]
+    cov = up[1] > 1e-3
+    return up[0] / up[1].clamp_min(1e-3), cov
+
+
+def build_level(photos: PhotoSet, frame: UVFrame, cfg: OptimizeConfig, transfers: list | None = None,
+                prev: tuple[Level, torch.Tensor] | None = None, dropped: set[int] | None = None,
+                mapped: dict[int, MappedPhoto | None] | None = None) -> Level:
+    """Map the candidates into texel space, compute Q and the persp cost, keep the top-K per texel.
+
+    Args:
+        photos: the polygon's decoded photos.
+        frame: this level's frame.
+        transfers: per photo brightness transfer (or None) applied to the mapped colours.
+        prev: (coarser level, its active raw weights) to upsample the initial weights from.
+        dropped: photos dropped at a coarser level (they only fill otherwise empty slots).
+        mapped: this level's photos already mapped (with ``transfers``), e.g. by the caller
+            that estimated the transfers on them.
+
+    A streaming pass computes the candidates' colour statistics (for Q_c), the mean gradient
+    (G) and the mean viewing direction (v~); a second pass scores and keeps the top K. The
+    mapped photos of the first pass are reused by the second when they fit in MAP_CACHE_BYTES.
+    """
+    inp = photos.inp
+    device = photos.device
+    mask_np = resample_nearest(inp.texel_mask, inp.frame, frame)
+    mask = torch.from_numpy(mask_np).to(device)
+    h, w = frame.shape
+    K = cfg.top_k
+    dropped = dropped or set()
+    order = sorted(photos.samplers)
+    per_photo = h * w * 4 * 9  # colour, view, cos, footprint, visible
+    keep_all = mapped is not None or len(order) <= K or len(order) * per_photo <= MAP_CACHE_BYTES
+    cache: dict[int, MappedPhoto | None] = dict(mapped) if mapped is not None else {}
+    maps = 0
+    s1 = torch.zeros(3, h, w, device=device)
+    s2 = torch.zeros(h, w, device=device)
+    cnt = torch.zeros(h, w, device=device)
+    gsum = torch.zeros(h, w, device=device)
+    vsum = []
+    seen = []
+    for n in order:
+        if n in cache:
+            mp = cache[n]
+        else:
+            mp = photos.map(n, frame, mask_np, transfers[n] if transfers is not None else None)
+            maps += 1
+        if mp is None:
+            cache[n] = None
+            continue
+        seen.append(n)
+        v = mp.visible.float()
+        s1 += mp.colour * v
+        s2 += (mp.colour * mp.colour).sum(0) * v
+        cnt += v
+        gsum += gradient_magnitude(mp.colour, mp.visible) * v
+        vd = (mp.view * v).sum((1, 2))
+        vsum.append(vd / vd.norm().clamp_min(1e-12))
+        cache[n] = mp if keep_all else cache.get(n)
+    c = cnt.clamp_min(1.0)
+    mu = s1 / c
+    msd = (s2 / c - (mu * mu).sum(0)).clamp_min(0.0)  # mean squared distance to the mean
+    G = gsum / c
+    normal = torch.tensor(frame.normal, dtype=torch.float32, device=device)
+    v_tilde = losses.guidance_direction(torch.stack(vsum), normal) if vsum else -normal
+
+    fixed = len(seen) <= K  # every candidate fits: slot j is photo seen[j] at every texel
+    if fixed:
+        K = max(1, len(seen))
+    best_score = torch.full((K, h, w), -10.0, device=device)
+    idx = torch.full((K, h, w), -1, dtype=torch.long, device=device)
+    vis = torch.zeros((K, h, w), dtype=torch.bool, device=device)
+    cols = torch.zeros((K, 3, h, w), device=device)
+    Q = torch.zeros((K, h, w), device=device)
+    cost = torch.zeros((K, h, w), device=device)
+    th0 = torch.zeros((K, h, w), device=device)
+    for j, n in enumerate(seen):
+        mp = cache.get(n)
+        if mp is None:
+            mp = photos.map(n, frame, mask_np, transfers[n] if transfers is not None else None)
+            maps += 1
+        assert mp is not None
+        q = quality(mp.cos, mp.colour, mu, msd, mp.visible, cfg.sigma_min)
+        pc = losses.persp_cost(mp.view[None], v_tilde)[0]
+        theta = q
+        if prev is not None:
+            t_up, cov = upsample_photo_theta(prev[0], prev[1], n, frame)
+            theta = torch.where(cov, t_up, q)
+        if fixed:
+            idx[j] = n
+            vis[j], cols[j], Q[j], cost[j], th0[j] = mp.visible, mp.colour, q, pc, theta
+            continue
+        # Rank: upsampled weight (or Q where the coarse level had no data); the small Q term
+        # breaks ties between photos that were both deactivated at the coarse level.
+        score = theta + 1e-3 * q - (2.0 if n in dropped else 0.0)  # dropped photos only fill empty slots
+        score = torch.where(mp.visible, score, torch.full_like(q, -10.0))
+        all_score = torch.cat([best_score, score[None]])
+        top = torch.topk(all_score, K, dim=0)
+        sel = top.indices
+
+        def pick(old, new):
+            allv = torch.cat([old, new[None]])
+            if allv.dim() == 4:
+                return torch.gather(allv, 0, sel[:, None].expand(-1, allv.shape[1], -1, -1))
+            return torch.gather(allv, 0, sel)
+
+        best_score = top.values
+        idx = pick(idx, torch.full((h, w), n, dtype=torch.long, device=device))
+        vis = pick(vis, mp.visible)
+        cols = pick(cols, mp.colour)
+        Q = pick(Q, q)
+        cost = pick(cost, pc)
+        th0 = pick(th0, theta)
+    idx = torch.where(vis, idx, torch.full_like(idx, -1))
+    th0 = th0.clamp(0.0, 1.0) * vis
+    th0 = gauge(th0, vis)
+    return Level(frame=frame, mask=mask, idx=idx, visible=vis, colours=cols, Q=Q, cost=cost, G=G, theta0=th0,
+                 v_tilde=v_tilde.cpu().numpy(), n_candidates=len(seen), fixed_slots=fixed, maps=maps)

@@ -1,0 +1,204 @@
+"""The coarse-to-fine optimization of one polygon's blend weights W (Sec. 3.2-3.4).
+
+For each level, from ``long_side_start`` doubling up to the target: build the level (top-K
+candidates, Q init or the coarser level's weights upsampled), then Adam steps on L with the
+activation update, pixel elimination and photo drop between them, until the weights stop
+changing or the level's iteration cap.
+"""
+
+from __future__ import annotations
+
+import time
+import warnings
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from difftex import losses
+from difftex.method.config import ComputeConfig, OptimizeConfig
+from difftex.method.elimination import (base_mask, dropped_slot_mask, eliminate_pixels, photo_zero_share,
+                                        photos_to_drop, update_activation)
+from difftex.method.levels import Level, build_level, gauge
+from difftex.method.objective import LevelState, compiled_objective, gradient_step, loss_terms, objective
+from difftex.method.render import build_pixel_sets
+from difftex.sampling import MappedPhoto, PhotoSet, level_frame, level_sides
+
+LOSS_KEYS = ("total", "render", "sparsity", "persp", "para")
+
+
+@dataclass
+class Result:
+    """Optimized weights at the target level, the composed texture and the run's statistics."""
+
+    idx: np.ndarray  # (K, H, W) int, photo index into PolygonInput.photos, -1 empty
+    W: np.ndarray  # (K, H, W) float32 normalised blend weights (0 where inactive)
+    U: np.ndarray  # (H, W, 3) the composed texture at the target level
+    stats: dict
+
+
+def weight_change(W: torch.Tensor, W_old: torch.Tensor, mask: torch.Tensor) -> float:
+    """Mean over the polygon's texels of the total-variation distance between two weight sets.
+
+    sum_k |W_k - W'_k| / 2 is the share of a texel's weight that moved, in [0, 1].
+    """
+    d = 0.5 * (W - W_old).abs().sum(0)
+    return float(d[mask].mean()) if bool(mask.any()) else 0.0
+
+
+def optimize_polygon(photos: PhotoSet, cfg: OptimizeConfig, compute: ComputeConfig = ComputeConfig(),
+                     transfers: list | None = None, first: dict[int, MappedPhoto | None] | None = None,
+                     progress: bool = False) -> Result:
+    """Run DiffTex for one polygon; returns weights and texture at the target resolution.
+
+    Args:
+        photos: the polygon's decoded candidate photos.
+        transfers: per photo brightness transfer (or None), applied to every mapped colour.
+        first: the first level's photos already mapped with ``transfers`` (reused, not re-mapped).
+    """
+    torch.manual_seed(cfg.seed)
+    inp, device = photos.inp, photos.device
+    t_start = time.perf_counter()
+    N = len(inp.photos)
+    stats: dict = {"polygon_id": inp.polygon_id, "device": str(device), "photos": [p.name for p in inp.photos],
+                   "levels": [], "dropped": [], "config": cfg.to_dict()}
+    sides = level_sides(max(inp.frame.shape), cfg.long_side_start, cfg.coarse_to_fine)
+    dropped: set[int] = set()
+    prev: LevelState | None = None
+    bar = None
+    if progress:
+        from tqdm import tqdm
+
+        bar = tqdm(total=sum(cfg.cap(i) for i in range(len(sides))), desc=f"optimize {inp.polygon_id}", leave=False)
+    for li, side in enumerate(sides):
+        tl = time.perf_counter()
+        frame = level_frame(inp.frame, side)
+        lv = build_level(photos, frame, cfg, transfers, dropped=dropped, mapped=first if li == 0 else None,
+                         prev=(prev.level, (prev.theta.detach() * prev.active)) if prev is not None else None)
+        if cfg.use_render and cfg.loss_mode == "render":
+            lv.pixel_sets = build_pixel_sets(photos, lv, transfers)
+        t_setup = time.perf_counter() - tl
+        st, lvl_stats = _run_level(lv, li, cfg, compute, dropped, stats, bar)
+        lvl_stats.update({"long_side": side, "time_setup_s": t_setup, "time_s": time.perf_counter() - tl,
+                          "photo_maps": lv.maps})
+        stats["levels"].append(lvl_stats)
+        prev = st
+    if bar is not None:
+        bar.close()
+    assert prev is not None
+    lv = prev.level
+    with torch.no_grad():
+        W = losses.blend_weights(prev.theta, prev.active)
+        U = losses.compose(W, lv.colours)
+    mask = inp.texel_mask
+    has = (W.sum(0) > 0).cpu().numpy() & mask
+    stats["coverage"] = float(has.sum() / max(mask.sum(), 1))
+    stats["texels"] = int(mask.sum())
+    stats["used_photos"] = sorted({inp.photos[int(n)].name for n in torch.unique(lv.idx[(W > 0)]).tolist() if n >= 0})
+    stats["time_total_s"] = time.perf_counter() - t_start
+    if device.type == "cuda":
+        stats["cuda_peak_bytes"] = int(torch.cuda.max_memory_allocated(device))
+    return Result(idx=lv.idx.cpu().numpy().astype(np.int32), W=W.cpu().numpy().astype(np.float32),
+                  U=U.permute(1, 2, 0).cpu().numpy(), stats=stats)
+
+
+def _run_level(lv: Level, li: int, cfg: OptimizeConfig, compute: ComputeConfig, dropped: set[int], stats: dict,
+               bar) -> tuple[LevelState, dict]:
+    """Adam iterations at one level with activation updates, pixel elimination and photo drop."""
+    N = len(stats["photos"])
+    eliminated = torch.zeros_like(lv.visible)
+    drop_slots = dropped_slot_mask(lv, eliminated, dropped)
+    theta = lv.theta0.clone()
+    base = base_mask(lv, eliminated, drop_slots)
+    st = LevelState(level=lv, theta=theta.requires_grad_(True), active=update_activation(theta, base, cfg.tau),
+                    eliminated=eliminated)
+    if cfg.use_para:
+        st.matches = {a: losses.neighbour_match(lv.idx, lv.mask, a, fixed=lv.fixed_slots) for a in (1, 2)}
+    opt = torch.optim.Adam([st.theta], lr=cfg.lr, betas=cfg.betas)
+    fn = compiled_objective(lv, compute) or objective
+    hist: dict[str, list] = {k: [] for k in LOSS_KEYS}
+    n_elim = 0
+    dropped_here: list[str] = []
+    converged = False
+    cap = cfg.cap(li)
+    it = 0
+    if cfg.data_elimination:
+        with torch.no_grad():
+            e = eliminate_pixels(lv, st.active, losses.blend_weights(st.theta, st.active), cfg)
+            st.eliminated |= e
+            n_elim += int(e.sum())
+            drop_slots = dropped_slot_mask(lv, st.eliminated, dropped)
+            base = base_mask(lv, st.eliminated, drop_slots)
+            st.active = update_activation(st.theta.detach(), base, cfg.tau)
+    anything = cfg.use_render or cfg.use_persp or cfg.use_para
+    iter_times: list[float] = []
+    for it in range(1, cap + 1 if anything else 1):
+        st.it = it
+        t_it = time.perf_counter()
+        try:
+            terms = gradient_step(st, cfg, fn, opt)
+        except Exception as e:  # noqa: BLE001 - compilation needs a C++ toolchain; eager always works
+            if fn is objective:
+                raise
+            reason = f"{type(e).__name__}: {str(e).splitlines()[0][:200]}"
+            warnings.warn(f"torch.compile failed ({reason}); running eagerly")
+            stats["compile_failed"] = reason
+            fn = objective
+            terms = gradient_step(st, cfg, fn, opt)
+        for k in hist:
+            hist[k].append(float(terms[k].detach()) if k in terms else 0.0)
+        with torch.no_grad():
+            st.theta.data = gauge(st.theta.data.clamp(0.0, 1.0), base)
+            W = losses.blend_weights(st.theta, base)
+            if cfg.data_elimination:
+                if it >= cfg.min_iters_per_level // 2:
+                    cand = [n for n in photos_to_drop(lv, base, W, cfg.tau, cfg.tau_w, N) if n not in dropped]
+                    if cand:
+                        # one photo per check (the worst): dropping changes everyone's weights
+                        shares = photo_zero_share(lv, base, W, cfg.tau, N)
+                        n = max(cand, key=lambda k: (float(shares[k]), -k))
+                        dropped.add(n)
+                        dropped_here.append(stats["photos"][n])
+                        stats["dropped"].append({"photo": stats["photos"][n], "level": li, "iteration": it})
+                        drop_slots = dropped_slot_mask(lv, st.eliminated, dropped, W)
+                if it % max(cfg.eliminate_every, 1) == 0:
+                    e = eliminate_pixels(lv, st.active, losses.blend_weights(st.theta, st.active), cfg)
+                    st.eliminated |= e
+                    n_elim += int(e.sum())
+                    if dropped:
+                        drop_slots = dropped_slot_mask(lv, st.eliminated, dropped, W)
+            base = base_mask(lv, st.eliminated, drop_slots)
+            st.active = update_activation(st.theta.detach(), base, cfg.tau)
+        iter_times.append(time.perf_counter() - t_it)
+        if bar is not None:
+            bar.update(1)
+        w_ = cfg.conv_window
+        if it >= max(cfg.min_iters_per_level, w_ + 1):
+            old, new = hist["total"][-1 - w_], hist["total"][-1]
+            if abs(old - new) <= cfg.conv_rel_tol * max(abs(old), 1e-12):
+                converged = True
+                break
+    if bar is not None and it < cap:
+        bar.update(cap - it)
+    with torch.no_grad():
+        final_terms = {k: float(v) for k, v in loss_terms(st, cfg).items()}
+    lvl_stats = {
+        "level": li, "shape": list(lv.frame.shape), "top_k": lv.idx.shape[0],
+        "candidates": lv.n_candidates, "iterations": it if anything else 0, "cap": cap,
+        "converged": converged,
+        # the first iteration carries torch.compile's cost; the median of the rest is the steady rate
+        "time_first_iter_s": iter_times[0] if iter_times else 0.0,
+        "time_per_iter_s": float(np.median(iter_times[1:])) if len(iter_times) > 1 else (iter_times[0] if iter_times else 0.0),
+        "eliminated_pixels": n_elim, "dropped_photos": dropped_here,
+        "active_slots_mean": float(st.active.sum(0).float()[lv.mask].mean()) if bool(lv.mask.any()) else 0.0,
+        "tensor_bytes": lv.nbytes(), "final": final_terms, "loss": hist,
+        "v_tilde": lv.v_tilde.tolist(), "compiled": fn is not objective,
+    }
+    if lv.pixel_sets is not None:
+        lvl_stats["render_pixels"] = lv.pixel_sets.n
+    return st, lvl_stats
+
+
+def photo_weight(idx: np.ndarray, W: np.ndarray, n: int) -> np.ndarray:
+    """Photo n's blend weight per texel (H, W) from the slot layout."""
+    return (W * (idx == n)).sum(0)

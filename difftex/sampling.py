@@ -1,0 +1,535 @@
+"""Photo sampling: a polygon's candidate photos, decoded once, mapped into its texel space.
+
+For one polygon P_i, every candidate photo I_k is
+
+1. decoded once (``decode_photo``), at the coarsest power-of-two scale that still holds the
+   detail the polygon's finest texture level needs (a JPEG is decoded at 1/2, 1/4 or 1/8 in the
+   DCT domain, which is several times faster than a full decode);
+2. cropped to the polygon and kept as a 2x box-filtered pyramid (``PhotoSampler``);
+3. mapped into texel space at any resolution level (``PhotoSet.map``): f_k^i evaluated at the
+   texel centres (``texel_map``), the pyramid level matched to each texel's footprint
+   (trilinear), so a coarse level never touches full-resolution pixels.
+
+Layer: scene input and geometry below, the method (initialisation, losses, the loop),
+composition and the baselines above; they all sample photos through this module.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from difftex.camera import Photo
+from difftex.colour import apply_transfer_torch
+from difftex.errors import DifftexError
+from difftex.mapping import UVFrame
+
+# Texel spacing of the exact projections that the distortion displacement is interpolated from
+# (texel_map): the displacement of every COLMAP model is a smooth function of the position.
+DISTORTION_GRID = 8
+JPEG_SUFFIXES = {".jpg", ".jpeg"}
+
+
+def pick_device(name: str | torch.device) -> torch.device:
+    """The torch device for a config value: "auto" (CUDA when torch sees it), "cpu" or "cuda"."""
+    if isinstance(name, torch.device):
+        return name
+    if name == "cuda" and not torch.cuda.is_available():
+        raise DifftexError("device 'cuda' requested but torch sees no CUDA device")
+    if name == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    return torch.device(name)
+
+
+# --------------------------------------------------------------------------------------------
+# One polygon's input
+
+
+@dataclass(eq=False)
+class PolygonInput:
+    """What texturing one polygon needs (built from a visibility file or by a test)."""
+
+    polygon_id: str
+    frame: UVFrame  # target resolution
+    texel_mask: np.ndarray  # (H, W) bool
+    photos: list[Photo]  # candidate photos
+    texel_visible: np.ndarray  # (N, H, W) bool
+    load_image: Callable[[Photo], np.ndarray] | None = None  # float32 RGB (h, w, 3); None: decode_photo
+    a_bbox: np.ndarray | None = None  # (N, 4) x0, y0, x1, y1 of a_k^i (render mode)
+    a_masks: list[np.ndarray] | None = None  # N crops of a_k^i
+
+    def __post_init__(self):
+        N = len(self.photos)
+        if self.texel_visible.shape != (N, *self.frame.shape):
+            raise DifftexError(
+                f"polygon '{self.polygon_id}': visibility is {self.texel_visible.shape}, expected {(N, *self.frame.shape)}"
+            )
+        if self.texel_mask.shape != self.frame.shape:
+            raise DifftexError(f"polygon '{self.polygon_id}': texel mask shape {self.texel_mask.shape} != frame {self.frame.shape}")
+
+
+def polygon_input_from_visibility(vis, scene_photos: dict[str, Photo], load_image=None) -> PolygonInput:
+    """PolygonInput from a difftex.visibility.PolygonVisibility and the scene's photos by name."""
+    missing = [n for n in vis.photos if n not in scene_photos]
+    if missing:
+        raise DifftexError(f"polygon '{vis.polygon_id}': visibility names photo(s) not in the scene: {', '.join(missing[:3])}")
+    return PolygonInput(
+        polygon_id=vis.polygon_id,
+        frame=vis.frame,
+        texel_mask=vis.texel_mask,
+        photos=[scene_photos[n] for n in vis.photos],
+        texel_visible=vis.texel_visible,
+        load_image=load_image,
+        a_bbox=vis.a_bbox,
+        a_masks=vis.a_masks,
+    )
+
+
+# --------------------------------------------------------------------------------------------
+# Resolution levels of one UV frame
+
+
+def level_sides(target_long: int, start: int, coarse_to_fine: bool) -> list[int]:
+    """Long sides of the levels: start, 2 start, ... then the target (paper: 256 -> 2048)."""
+    if not coarse_to_fine or target_long <= start:
+        return [target_long]
+    sides = []
+    s = start
+    while s < target_long:
+        sides.append(s)
+        s *= 2
+    sides.append(target_long)
+    return sides
+
+
+def level_frame(frame: UVFrame, long_side: int) -> UVFrame:
+    """The same rectangle as ``frame`` with ``long_side`` texels on its longer side."""
+    return frame if long_side == max(frame.shape) else frame.resized(long_side)
+
+
+def resample_nearest(arr: np.ndarray, src: UVFrame, dst: UVFrame) -> np.ndarray:
+    """(..., H, W) array of ``src`` to ``dst`` texel centres (same rectangle), nearest texel."""
+    if src.shape == dst.shape and src.texel_size == dst.texel_size:
+        return arr
+    tx, ty = dst.centres()
+    r = dst.texel_size / src.texel_size
+    ix = np.clip(np.floor(tx[0] * r).astype(int), 0, src.width - 1)
+    iy = np.clip(np.floor(ty[:, 0] * r).astype(int), 0, src.height - 1)
+    return arr[..., iy[:, None], ix[None, :]]
+
+
+# --------------------------------------------------------------------------------------------
+# f_k^i on a texel grid
+
+
+@dataclass
+class TexelMap:
+    """f_k^i and the viewing geometry of one photo at every texel centre of a frame (torch).
+
+    Shapes: ``pix`` (H, W, 2) full-resolution pixel coordinates (COLMAP convention, pixel
+    centres at +0.5); ``footprint`` (H, W) the texel's size in pixels, sqrt|det J| of f_k^i;
+    ``view`` (3, H, W) unit camera-to-texel directions (V^_k); ``cos`` (H, W) the cosine
+    between the texel-to-camera direction and the normal (Q_a); ``valid`` (H, W) in front of
+    the camera, inside the image, front-facing.
+    """
+
+    pix: torch.Tensor
+    footprint: torch.Tensor
+    view: torch.Tensor
+    cos: torch.Tensor
+    valid: torch.Tensor
+
+
+def _homography(frame: UVFrame, photo: Photo) -> np.ndarray:
+    """H = K [R | t] A: texel (tx, ty, 1) to homogeneous undistorted pixels (third entry = depth)."""
+    return photo.K() @ (photo.R @ frame.A + np.outer(photo.t, [0.0, 0.0, 1.0]))
+
+
+def _exact_pixels(frame: UVFrame, photo: Photo, tx: np.ndarray, ty: np.ndarray) -> np.ndarray:
+    """Projection through the camera model with distortion (pycolmap), NaN behind the camera."""
+    from difftex.mapping import texel_to_pixel
+
+    pix, _ = texel_to_pixel(frame, photo, tx, ty)
+    return pix
+
+
+def texel_map(frame: UVFrame, photo: Photo, device: torch.device | str = "cpu") -> TexelMap:
+    """f_k^i at the texel centres of ``frame`` for ``photo``, vectorised in torch.
+
+    Pinhole cameras: the homography H = K [R | t] A, exact, with its Jacobian in closed form.
+    Other COLMAP models: the homography of the undistorted camera plus the distortion
+    displacement, which is computed exactly (pycolmap) every ``DISTORTION_GRID`` texels and
+    interpolated bilinearly (it is smooth; tests bound the error), and the footprint likewise.
+    Projecting millions of texels through pycolmap one level at a time would cost seconds per
+    photo; this costs a few tensor passes.
+    """
+    device = torch.device(device)
+    h, w = frame.shape
+    Hm = torch.from_numpy(_homography(frame, photo)).to(device)
+    ty, tx = torch.meshgrid(torch.arange(h, device=device, dtype=torch.float64) + 0.5,
+                            torch.arange(w, device=device, dtype=torch.float64) + 0.5, indexing="ij")
+    q = Hm[:, 0, None, None] * tx + Hm[:, 1, None, None] * ty + Hm[:, 2, None, None]
+    depth = q[2]
+    front = depth > 1e-9
+    z = torch.where(front, depth, torch.ones_like(depth))
+    px, py = q[0] / z, q[1] / z
+    # Jacobian of the homography: d(pix)/d(tx), d(pix)/d(ty)
+    jxx, jyx = (Hm[0, 0] - px * Hm[2, 0]) / z, (Hm[1, 0] - py * Hm[2, 0]) / z
+    jxy, jyy = (Hm[0, 1] - px * Hm[2, 1]) / z, (Hm[1, 1] - py * Hm[2, 1]) / z
+    footprint = (jxx * jyy - jxy * jyx).abs().sqrt()
+    pix = torch.stack([px, py], -1)
+    if not photo.is_pinhole:
+        pix, footprint = _distorted(frame, photo, pix, footprint, device)
+    # viewing geometry, relative to the frame origin so that float32 keeps precision in large
+    # (e.g. UTM) coordinates
+    s = frame.texel_size
+    c = torch.from_numpy(np.asarray(photo.center - frame.origin, np.float64)).to(device)
+    eu = torch.from_numpy(np.asarray(frame.e_u, np.float64)).to(device)
+    ev = torch.from_numpy(np.asarray(frame.e_v, np.float64)).to(device)
+    v = c[:, None, None] - s * (tx[None] * eu[:, None, None] + ty[None] * ev[:, None, None])
+    v = v / v.norm(dim=0, keepdim=True).clamp_min(1e-30)
+    nrm = torch.from_numpy(np.asarray(frame.normal, np.float64)).to(device)
+    cos = (v * nrm[:, None, None]).sum(0)
+    inside = (pix[..., 0] >= 0) & (pix[..., 0] <= photo.width) & (pix[..., 1] >= 0) & (pix[..., 1] <= photo.height)
+    valid = front & inside & (cos > 0) & torch.isfinite(pix).all(-1)
+    pix = torch.where(front[..., None], pix, torch.full_like(pix, float("nan")))
+    return TexelMap(pix=pix.float(), footprint=torch.nan_to_num(footprint, nan=1.0).float(),
+                    view=(-v).float(), cos=cos.clamp(0.0, 1.0).float(), valid=valid)
+
+
+def _distorted(frame: UVFrame, photo: Photo, pix_u: torch.Tensor, fp_u: torch.Tensor, device) -> tuple[torch.Tensor, torch.Tensor]:
+    """Add the lens distortion to undistorted pixels: exact on a coarse grid, bilinear between."""
+    h, w = frame.shape
+    g = DISTORTION_GRID
+    cx = np.unique(np.minimum(np.arange(0, w + g, g), w - 1)).astype(np.float64) + 0.5
+    cy = np.unique(np.minimum(np.arange(0, h + g, g), h - 1)).astype(np.float64) + 0.5
+    TX, TY = np.meshgrid(cx, cy)
+    exact = _exact_pixels(frame, photo, TX, TY)
+    Hn = _homography(frame, photo)
+    qn = np.stack([TX, TY, np.ones_like(TX)], -1) @ Hn.T
+    with np.errstate(divide="ignore", invalid="ignore"):
+        und = qn[..., :2] / qn[..., 2:3]
+    disp = np.nan_to_num(exact - und, nan=0.0)
+    # exact footprint on the coarse grid (forward differences of the distorted projection)
+    ex_dx = _exact_pixels(frame, photo, TX + 1.0, TY)
+    ex_dy = _exact_pixels(frame, photo, TX, TY + 1.0)
+    a, b = ex_dx - exact, ex_dy - exact
+    with np.errstate(invalid="ignore"):
+        fp = np.sqrt(np.abs(a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0]))
+    und_fp = F.grid_sample(fp_u[None, None].float(), _grid(TX, TY, w, h, device), mode="bilinear",
+                           padding_mode="border", align_corners=False)[0, 0].double().cpu().numpy()
+    ratio = np.nan_to_num(fp / np.maximum(und_fp, 1e-12), nan=1.0)
+    coarse = torch.from_numpy(np.concatenate([disp.transpose(2, 0, 1), ratio[None]])).to(device)
+    # Interpolate the coarse samples (at texel centres cx, cy) at every texel centre.
+    fine = _interp_grid(coarse, cx, cy, w, h, device)
+    return pix_u + fine[:2].permute(1, 2, 0), fp_u * fine[2]
+
+
+def _grid(TX: np.ndarray, TY: np.ndarray, w: int, h: int, device) -> torch.Tensor:
+    """grid_sample coordinates of texel positions (align_corners=False: -1 is the left edge)."""
+    g = np.stack([TX / w * 2 - 1, TY / h * 2 - 1], -1).astype(np.float32)
+    return torch.from_numpy(g).to(device)[None]
+
+
+def _interp_grid(coarse: torch.Tensor, cx: np.ndarray, cy: np.ndarray, w: int, h: int, device) -> torch.Tensor:
+    """Bilinear interpolation of (C, ny, nx) samples at (irregularly spaced) texel centres."""
+    xs = torch.arange(w, device=device, dtype=torch.float64) + 0.5
+    ys = torch.arange(h, device=device, dtype=torch.float64) + 0.5
+    cxt, cyt = torch.from_numpy(cx).to(device), torch.from_numpy(cy).to(device)
+    ix = (torch.searchsorted(cxt, xs, right=True) - 1).clamp(0, max(len(cx) - 2, 0))
+    iy = (torch.searchsorted(cyt, ys, right=True) - 1).clamp(0, max(len(cy) - 2, 0))
+    if len(cx) > 1:
+        fx = ((xs - cxt[ix]) / (cxt[ix + 1] - cxt[ix])).clamp(0, 1)
+    else:
+        fx = torch.zeros_like(xs)
+    if len(cy) > 1:
+        fy = ((ys - cyt[iy]) / (cyt[iy + 1] - cyt[iy])).clamp(0, 1)
+    else:
+        fy = torch.zeros_like(ys)
+    ix1 = (ix + 1).clamp(max=len(cx) - 1)
+    iy1 = (iy + 1).clamp(max=len(cy) - 1)
+    c00 = coarse[:, iy][:, :, ix]
+    c01 = coarse[:, iy][:, :, ix1]
+    c10 = coarse[:, iy1][:, :, ix]
+    c11 = coarse[:, iy1][:, :, ix1]
+    fx, fy = fx[None, None, :], fy[None, :, None]
+    return (c00 * (1 - fx) + c01 * fx) * (1 - fy) + (c10 * (1 - fx) + c11 * fx) * fy
+
+
+# --------------------------------------------------------------------------------------------
+# Decoding and pyramids
+
+
+def decode_photo(photo: Photo, reduce: int = 1) -> np.ndarray:
+    """Photo pixels as float32 RGB (h, w, 3) in [0, 1], at 1/``reduce`` of full size (power of 2).
+
+    A JPEG is decoded at the reduced size directly (libjpeg's DCT scaling through Pillow's
+    ``draft``: 1/2, 1/4, 1/8), which OpenImageIO cannot do; other formats are read in full with
+    OpenImageIO (difftex.io.read_image) and box-averaged. Pixel (j, i) of the result covers
+    full-resolution pixels [j r, (j + 1) r) x [i r, (i + 1) r), as in a box pyramid. The size
+    is ceil(width / r) x ceil(height / r).
+    """
+    from difftex.io import read_image
+
+    if reduce < 1 or reduce & (reduce - 1):
+        raise ValueError(f"reduce must be a power of two, got {reduce}")
+    path = Path(photo.image_path) if photo.image_path is not None else None
+    if path is None:
+        raise DifftexError(f"photo '{photo.name}' has no image file")
+    if reduce > 1 and path.suffix.lower() in JPEG_SUFFIXES:
+        img, got = _decode_jpeg_scaled(path, photo, reduce)
+        return box_reduce(img, reduce // got)
+    return box_reduce(read_image(path, expected_size=(photo.width, photo.height)), reduce)
+
+
+def _decode_jpeg_scaled(path: Path, photo: Photo, reduce: int) -> tuple[np.ndarray, int]:
+    """(image, achieved reduction) of a JPEG decoded with DCT scaling (at most 1/8)."""
+    from PIL import Image
+
+    try:
+        with Image.open(path) as im:
+            if im.size != (photo.width, photo.height):
+                raise DifftexError(f"{path}: image is {im.size[0]}x{im.size[1]} but its camera says "
+                                   f"{photo.width}x{photo.height}")
+            r = min(reduce, 8)
+            im.draft("RGB", (math.ceil(photo.width / r), math.ceil(photo.height / r)))
+            got = max(1, round(photo.width / im.size[0]))
+            arr = np.asarray(im.convert("RGB"), dtype=np.float32) / 255.0
+    except DifftexError:
+        raise
+    except (OSError, ValueError, SyntaxError) as exc:
+        raise DifftexError(f"{path}: corrupt image ({str(exc).splitlines()[0] if str(exc) else type(exc).__name__})") from None
+    if arr.shape[:2] != (math.ceil(photo.height / got), math.ceil(photo.width / got)):
+        # a decoder that did not honour the draft exactly: fall back to the general path
+        from difftex.io import read_image
+
+        return read_image(path, expected_size=(photo.width, photo.height)), 1
+    return arr, got
+
+
+def box_reduce(img: np.ndarray, r: int) -> np.ndarray:
+    """Average r x r blocks (the last partial row/column of blocks averages what it has)."""
+    if r <= 1:
+        return img
+    t = torch.from_numpy(np.ascontiguousarray(img, dtype=np.float32)).permute(2, 0, 1)[None]
+    return F.avg_pool2d(t, r, ceil_mode=True, count_include_pad=False)[0].permute(1, 2, 0).numpy()
+
+
+class PhotoSampler:
+    """A photo cropped to the polygon, as a 2x box-filtered pyramid, sampled at pixel positions.
+
+    Level L pixel (i, j) covers full-resolution pixels [x0 + j 2^L, x0 + (j+1) 2^L); with COLMAP
+    pixel centres at +0.5 a full-resolution coordinate p maps to (p - x0) / 2^L at level L.
+    ``image`` is the photo decoded at 1/2^``base`` (levels below ``base`` do not exist) and
+    ``box`` the crop in full-resolution pixels, a multiple of 2^``base``.
+    """
+
+    def __init__(self, image: np.ndarray, box: tuple[int, int, int, int], device: torch.device,
+                 base: int = 0, min_side: int = 4):
+        x0, y0, x1, y1 = box
+        s = 2**base
+        if x0 % s or y0 % s:
+            raise ValueError("the crop box must start on a multiple of the decode scale")
+        self.x0, self.y0, self.base = int(x0), int(y0), int(base)
+        crop = torch.from_numpy(np.ascontiguousarray(image[y0 // s : -(-y1 // s), x0 // s : -(-x1 // s)],
+                                                     dtype=np.float32)).permute(2, 0, 1)
+        self.device = device
+        levels = [crop.to(device=device, dtype=torch.float16)]
+        cur = crop.to(device)
+        while min(cur.shape[1:]) >= 2 * min_side and len(levels) < 12:
+            h, w = cur.shape[1] // 2 * 2, cur.shape[2] // 2 * 2
+            cur = F.avg_pool2d(cur[None, :, :h, :w], 2)[0]
+            levels.append(cur.to(torch.float16))
+        self.levels = levels  # levels[i] is pyramid level base + i
+
+    @property
+    def top(self) -> int:
+        """The coarsest level's index."""
+        return self.base + len(self.levels) - 1
+
+    def level_image(self, L: int) -> torch.Tensor:
+        return self.levels[L - self.base].float()
+
+    def nbytes(self) -> int:
+        return int(sum(t.numel() * t.element_size() for t in self.levels))
+
+    def sample(self, pix: torch.Tensor, footprint: torch.Tensor) -> torch.Tensor:
+        """Colours (3, h, w) at full-resolution pixels ``pix`` (h, w, 2), trilinear over levels.
+
+        ``footprint`` (h, w) is the texel's size in full-resolution pixels; the pyramid level is
+        log2 of it, so a texel averages about one level pixel (no aliasing, no extra blur).
+        """
+        h, w = pix.shape[:2]
+        lam = torch.log2(footprint.clamp_min(1.0)).clamp(self.base, self.top)
+        out = torch.zeros(3, h, w, device=self.device)
+        p = torch.nan_to_num(pix, nan=-1e6)
+        lo, hi = int(math.floor(float(lam.min()))), int(math.ceil(float(lam.max())))
+        for L in range(lo, min(hi, self.top) + 1):
+            wL = (1.0 - (lam - L).abs()).clamp_min(0.0)
+            if not bool((wL > 0).any()):
+                continue
+            img = self.level_image(L)
+            s = 2.0**L
+            gx = ((p[..., 0] - self.x0) / s) / img.shape[2] * 2 - 1
+            gy = ((p[..., 1] - self.y0) / s) / img.shape[1] * 2 - 1
+            grid = torch.stack([gx, gy], -1)[None]
+            # border padding: pixels of a texel near the crop edge still get the nearest colour
+            smp = F.grid_sample(img[None], grid, mode="bilinear", padding_mode="border", align_corners=False)[0]
+            out += wL[None] * smp
+        return out
+
+
+# --------------------------------------------------------------------------------------------
+# A polygon's photos, decoded once
+
+
+@dataclass
+class MappedPhoto:
+    """Photo n mapped into texel space at one level."""
+
+    colour: torch.Tensor  # (3, h, w), through the photo's brightness transfer when one is given
+    visible: torch.Tensor  # (h, w) bool
+    view: torch.Tensor  # (3, h, w) unit camera-to-texel direction (V^_k)
+    cos: torch.Tensor  # (h, w) frontality (Q_a)
+    footprint: torch.Tensor  # (h, w) texel size in full-resolution pixels
+
+
+PROBE_LONG_SIDE = 64  # texels of the probe level that sizes crops and decode scales
+# Crop origins are multiples of 2^CROP_ALIGN pixels, so the box-filter pyramid's pixels fall on
+# the same image blocks whatever the crop (for levels <= CROP_ALIGN): sampled colours then do
+# not depend on how far the polygon's visible region happens to extend.
+CROP_ALIGN = 7
+
+
+@dataclass
+class PhotoSet:
+    """The candidate photos of one polygon, each decoded once and kept as a cropped pyramid.
+
+    ``samplers`` maps the index of a photo in ``inp.photos`` to its sampler; photos that see no
+    texel of the polygon have none. ``reads`` counts image decodes (one per photo).
+    """
+
+    inp: PolygonInput
+    device: torch.device
+    samplers: dict[int, PhotoSampler]
+    reads: int = 0
+    decode_scale: dict[int, int] = field(default_factory=dict)
+
+    @classmethod
+    def load(cls, inp: PolygonInput, device, finest: UVFrame | None = None, exact_decode: bool = False,
+             progress: Callable[[], None] | None = None) -> "PhotoSet":
+        """Decode, crop and pyramid every candidate photo that sees a texel of ``inp``.
+
+        ``finest``: the finest frame that will be sampled (default ``inp.frame``); each photo is
+        decoded at the largest power-of-two reduction r with r <= the smallest texel footprint
+        (in pixels) over the texels it sees, so no sampled pyramid level is lost. ``exact_decode``
+        decodes every photo at full size (a JPEG's DCT-scaled decode differs from box-averaging
+        the full decode by about one 8-bit step).
+        """
+        device = pick_device(device)
+        finest = finest or inp.frame
+        probe = level_frame(inp.frame, min(PROBE_LONG_SIDE, max(inp.frame.shape)))
+        vis_probe = _any_pool(inp.texel_visible & inp.texel_mask[None], inp.frame, probe)
+        ps = cls(inp=inp, device=device, samplers={})
+        for n, ph in enumerate(inp.photos):
+            if not vis_probe[n].any():
+                continue
+            tm = texel_map(probe, ph, "cpu")
+            ok = vis_probe[n] & tm.valid.numpy()
+            if not ok.any():
+                continue
+            scale = probe.texel_size / finest.texel_size  # probe texel -> finest texels
+            fp_fine = tm.footprint.numpy()[ok] / scale
+            box = _crop_box(ph, tm.pix.numpy()[ok], tm.footprint.numpy()[ok],
+                            inp.a_bbox[n] if inp.a_bbox is not None and len(inp.a_bbox) > n else None)
+            if box is None:
+                continue
+            reduce = 1
+            if not exact_decode and inp.load_image is None:
+                reduce = 2 ** int(np.clip(np.floor(np.log2(max(float(fp_fine.min()), 1.0))), 0, 3))
+            s = reduce
+            box = (box[0] // s * s, box[1] // s * s, box[2], box[3])
+            if inp.load_image is not None:
+                img = inp.load_image(ph)
+                if img.shape[:2] != (ph.height, ph.width):
+                    raise DifftexError(f"{ph.image_path}: image is {img.shape[1]}x{img.shape[0]}, camera says {ph.width}x{ph.height}")
+            else:
+                img = decode_photo(ph, reduce)
+            ps.reads += 1
+            base = int(math.log2(reduce))
+            ps.samplers[n] = PhotoSampler(img, box, device, base=base)
+            ps.decode_scale[n] = reduce
+            del img
+            if progress is not None:
+                progress()
+        return ps
+
+    def nbytes(self) -> int:
+        return int(sum(s.nbytes() for s in self.samplers.values()))
+
+    def map(self, n: int, frame: UVFrame, mask: np.ndarray, transfer: np.ndarray | None = None,
+            visible: np.ndarray | None = None) -> MappedPhoto | None:
+        """Photo n mapped into ``frame`` over the texels of ``mask``; None if it sees none.
+
+        ``visible``: photo n's texel visibility at this frame (default: resampled from the
+        input's); ``transfer``: its brightness transfer (difftex.colour), applied to the colours.
+        """
+        inp, ph = self.inp, self.inp.photos[n]
+        if visible is None:
+            visible = resample_nearest(inp.texel_visible[n], inp.frame, frame)
+        tm = texel_map(frame, ph, self.device)
+        vis = tm.valid & torch.from_numpy(np.ascontiguousarray(visible & mask)).to(self.device)
+        if not bool(vis.any()):
+            return None
+        col = self.samplers[n].sample(tm.pix, tm.footprint) * vis[None]
+        mp = MappedPhoto(colour=col, visible=vis, view=tm.view, cos=tm.cos, footprint=tm.footprint)
+        return with_transfer(mp, transfer)
+
+
+def with_transfer(mp: MappedPhoto, transfer: np.ndarray | None) -> MappedPhoto:
+    """The mapped photo with its colours through a brightness transfer (difftex.colour)."""
+    if transfer is None:
+        return mp
+    col = apply_transfer_torch(mp.colour, transfer) * mp.visible[None]
+    return MappedPhoto(colour=col, visible=mp.visible, view=mp.view, cos=mp.cos, footprint=mp.footprint)
+
+
+def _any_pool(masks: np.ndarray, src: UVFrame, dst: UVFrame) -> np.ndarray:
+    """(N, h, w) bool: a coarse texel is set when any fine texel it covers is set."""
+    if masks.shape[-2:] == dst.shape:
+        return masks
+    t = torch.from_numpy(masks.astype(np.float32))[:, None]
+    out = F.adaptive_max_pool2d(t, dst.shape) if dst.height <= src.height and dst.width <= src.width \
+        else F.interpolate(t, size=dst.shape, mode="nearest")
+    return out[:, 0].numpy() > 0
+
+
+def _crop_box(photo: Photo, pix: np.ndarray, footprint: np.ndarray, a_box=None, pad: int = 16) -> tuple[int, int, int, int] | None:
+    """Pixel box holding the polygon's visible (probe) texels and a_k^i, padded, inside the image.
+
+    A probe texel covers ``footprint`` pixels around its centre: the box grows by that much.
+    """
+    boxes = []
+    if len(pix):
+        r = footprint[:, None]
+        lo, hi = pix - r, pix + r
+        boxes.append((lo[:, 0].min(), lo[:, 1].min(), hi[:, 0].max(), hi[:, 1].max()))
+    if a_box is not None and a_box[2] > a_box[0] and a_box[3] > a_box[1]:
+        boxes.append(tuple(float(v) for v in a_box))
+    if not boxes:
+        return None
+    b = np.array(boxes)
+    a = 2**CROP_ALIGN
+    x0 = max(0, int(math.floor(b[:, 0].min())) - pad) // a * a
+    y0 = max(0, int(math.floor(b[:, 1].min())) - pad) // a * a
+    x1 = min(photo.width, int(math.ceil(b[:, 2].max())) + pad)
+    y1 = min(photo.height, int(math.ceil(b[:, 3].max())) + pad)
+    if x1 <= x0 or y1 <= y0:
+        return None
+    return x0, y0, x1, y1

@@ -1,0 +1,55 @@
+# Per-polygon stages: `texture` (brightness transfers, blend-weight optimization and composition,
+# one pass over the polygon's photos) and `finish` (the PNGs and report from the float texture,
+# in the output format). Polygon ids, sizes and candidate photos come from the visibility
+# checkpoint, so a cluster runs the polygons in parallel. `run.gpu` > 0 requests GPUs; the
+# `compute` section (device, torch.compile) changes no result, so changing it reruns nothing.
+
+
+rule texture:
+    input:
+        scene=SCENE_MODEL,
+        vis=f"{R}/visibility/{{pid}}.npz",
+        photos=get_polygon_photos,
+        config=STAGE_CFG["texture"],
+    output:
+        weights=f"{R}/optimized/{{pid}}/weights.npz",
+        stats=f"{R}/optimized/{{pid}}/stats.json",
+        composite=f"{R}/optimized/{{pid}}/composite.npz",
+    params:
+        stage_config=STAGE_TEXT["texture"],
+        scene=lambda wc, input: Path(input.scene[0]).parent,
+        out_dir=lambda wc, output: Path(output.weights).parent,
+        # a path, not an input: a change of device or compilation reruns nothing
+        compute=STAGE_CFG["compute"],
+    conda:
+        "../envs/difftex.yaml"
+    log:
+        f"{R}/logs/texture/{{pid}}.log",
+    benchmark:
+        f"{R}/benchmarks/texture/{{pid}}.tsv"
+    threads: RUN["polygon_threads"]
+    resources:
+        mem_mb=get_polygon_mem_mb,
+        runtime=get_polygon_runtime,
+        gpu=RUN["gpu"],
+    shell:
+        "OMP_NUM_THREADS={threads} difftex texture --threads {threads} --no-progress --scene {params.scene} "
+        "--visibility {input.vis} --config {input.config} --compute-config {params.compute} "
+        "--out-dir {params.out_dir} > {log} 2>&1"
+
+
+rule finish:
+    input:
+        composite=f"{R}/optimized/{{pid}}/composite.npz",
+        config=STAGE_CFG["output"],
+    output:
+        texture=f"{R}/textures/{{pid}}/texture.png",
+        source=f"{R}/textures/{{pid}}/source.png",
+        report=f"{R}/textures/{{pid}}/report.json",
+    params:
+        stage_config=STAGE_TEXT["output"],
+        out_dir=lambda wc, output: Path(output.texture).parent,
+    log:
+        f"{R}/logs/finish/{{pid}}.log",
+    run:
+        wf.finish_polygon_job(input.composite, input.config, params.out_dir, log[0])
