@@ -23,6 +23,7 @@ averaging baseline, or otherwise the dominant photo per texel decoded from ``sou
 from __future__ import annotations
 
 import json
+import logging
 import math
 import time
 from dataclasses import dataclass
@@ -32,6 +33,8 @@ import numpy as np
 
 from difftex.errors import DifftexError
 from difftex.mapping import UVFrame
+
+log = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True)
@@ -214,8 +217,20 @@ def perspective_quality(pt: PolygonTexture, results: Path, centres: dict[str, np
 # Synthetic: against ground-truth maps
 
 
-def _lpips_variant(cfg: EvaluateConfig) -> str | None:
-    return None if cfg.lpips == "none" else cfg.lpips
+def _lpips_plan(cfg: EvaluateConfig) -> tuple[str | None, str | None]:
+    """(LPIPS variant to compute or None, label of the column when nothing is computed).
+
+    Resolved once per evaluation, so that missing weights give one warning, not one per polygon.
+    """
+    from difftex import metrics
+
+    if cfg.lpips == "none":
+        return None, "none"
+    kind, label = metrics.lpips_source(cfg.lpips)
+    if kind is None:
+        log.warning("LPIPS (%s) %s", cfg.lpips, label)
+        return None, label
+    return cfg.lpips, None
 
 
 def evaluate_maps(scene: Path, textures: dict[str, PolygonTexture], cfg: EvaluateConfig,
@@ -226,7 +241,7 @@ def evaluate_maps(scene: Path, textures: dict[str, PolygonTexture], cfg: Evaluat
 
     gt = scene / "ground_truth"
     rows, errs, sq, n_tex = [], [], 0.0, 0
-    variant_used = None
+    lp_variant, lp_label = _lpips_plan(cfg)
     for pid, pt in textures.items():
         fpath = gt / "frames" / f"{pid}.json"
         if not fpath.is_file():
@@ -247,8 +262,8 @@ def evaluate_maps(scene: Path, textures: dict[str, PolygonTexture], cfg: Evaluat
         pe = metrics.error_percentiles(img, ref, gmask)
         row.update(error90=pe[90.0], error95=pe[95.0], psnr=metrics.psnr(img, ref, gmask))
         row["ssim"] = metrics.ssim(img, ref, gmask) if min(gmask.shape) >= 11 else None
-        if _lpips_variant(cfg) and min(gmask.shape) >= 32:
-            row["lpips"], variant_used = metrics.lpips(img, ref, gmask, variant=cfg.lpips, device=cfg.device)
+        if lp_variant and min(gmask.shape) >= metrics.LPIPS_MIN_SIDE:
+            row["lpips"], lp_label = metrics.lpips(img, ref, gmask, variant=lp_variant, device=cfg.device)
         else:
             row["lpips"] = None
         if error_dir is not None and cfg.error_maps:
@@ -267,8 +282,8 @@ def evaluate_maps(scene: Path, textures: dict[str, PolygonTexture], cfg: Evaluat
 
     mse = sq / max(3 * n_tex, 1)
     overall = {"error90": float(np.percentile(allerr, 90)), "error95": float(np.percentile(allerr, 95)),
-               "ssim": wmean("ssim"), "lpips": wmean("lpips"), "psnr": 10 * math.log10(1 / mse) if mse > 0 else math.inf,
-               "lpips_variant": variant_used or ("none" if cfg.lpips == "none" else "unavailable"),
+               "ssim": wmean("ssim"), "lpips": wmean("lpips"), "psnr": metrics.psnr_from_mse(mse),
+               "lpips_variant": lp_label or "unavailable: no polygon has 32x32 ground-truth texels",
                "texels": int(tot), "polygons": len(rows),
                "aggregation": "Error percentiles over all ground-truth texels of all polygons; SSIM/LPIPS texel-weighted means of the per-polygon values"}
     return {"overall": overall, "polygons": rows}
@@ -339,11 +354,14 @@ def evaluate_views(photos: list, proxy, textures: dict[str, PolygonTexture], cfg
 
     pp = prepare(proxy)
     rows = []
-    variant_used = None
+    lp_variant, lp_label = _lpips_plan(cfg)
     for ph in track(photos, description="held-out views", disable=not progress, transient=True):
         sp, _ = scaled_photo(ph, cfg.render_long_side)
         ren, ids, textured = render_proxy(sp, proxy, textures, pp)
         ref = downscale_image(read_image(ph.image_path, expected_size=(ph.width, ph.height)), (sp.width, sp.height))
+        # Metrics take [0, 1] images; textures are stored in [0, 1], so an HDR photo's values
+        # above 1 are clipped as the texture's were.
+        ref = np.clip(ref, 0.0, 1.0)
         mask = textured
         row = {"photo": ph.name, "size": [sp.width, sp.height], "proxy_pixels": int((ids >= 0).sum()),
                "compared_pixels": int(mask.sum())}
@@ -353,8 +371,8 @@ def evaluate_views(photos: list, proxy, textures: dict[str, PolygonTexture], cfg
             continue
         row["ssim"] = metrics.ssim(ren, ref, mask)
         row["psnr"] = metrics.psnr(ren, ref, mask)
-        if _lpips_variant(cfg):
-            row["lpips"], variant_used = metrics.lpips(ren, ref, mask, variant=cfg.lpips, device=cfg.device)
+        if lp_variant:
+            row["lpips"], lp_label = metrics.lpips(ren, ref, mask, variant=lp_variant, device=cfg.device)
         else:
             row["lpips"] = None
         if out_dir is not None:
@@ -373,7 +391,7 @@ def evaluate_views(photos: list, proxy, textures: dict[str, PolygonTexture], cfg
         return sum(v * n for v, n in vals) / sum(n for _, n in vals) if vals else None
 
     overall = {"ssim": wmean("ssim"), "lpips": wmean("lpips"), "psnr": wmean("psnr"), "views": len(scored),
-               "lpips_variant": variant_used or ("none" if cfg.lpips == "none" else "unavailable"),
+               "lpips_variant": lp_label or "unavailable: no held-out view was scored",
                "render_long_side": cfg.render_long_side,
                "aggregation": "pixel-weighted means over the held-out views of the per-view values"}
     return {"overall": overall, "views": rows}

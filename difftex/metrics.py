@@ -2,12 +2,33 @@
 
 Images are float (H, W, 3) RGB arrays in [0, 1]; masks are (H, W) bool arrays of valid texels
 (``None``: every texel). Each function raises DifftexError on bad input, including an empty mask.
+
+Which library computes what, and why (the comparisons are tests/test_metrics.py):
+
+- PSNR: our own 10 log10(1 / MSE), not ``piq.psnr`` (see :func:`psnr` for why).
+- SSIM: scikit-image, not piq. The evaluation needs SSIM *over a mask* (a polygon's texels in
+  its bounding rectangle; the textured pixels of a held-out view), i.e. the per-pixel SSIM map
+  averaged over the mask. ``piq.ssim`` only returns the mean over the whole image (its map is
+  internal), and running it on the mask's bounding rectangle would average texels outside the
+  polygon too; ``skimage.metrics.structural_similarity(full=True)`` returns the map. Unmasked,
+  the two agree to 1e-12 in float64 with piq's ``downsample=False``; piq's default
+  ``downsample=True`` first average-pools by round(min(H, W) / 256), which scores a 2048-texel
+  map at 256 texels (0.97 instead of 0.87 on a noisy 512x512 pair) and is not used here. SSIM
+  is computed in float64: in float32, E[x^2] - E[x]^2 cancels on flat regions (1e-4 off on a
+  constant image).
+- Error 90/95: the paper's own definition (percentiles of per-texel RGB distances); no library
+  has it.
+- LPIPS / ST-LPIPS: the reference packages ``lpips`` and ``stlpips_pytorch``, weights from
+  local files only (see :func:`lpips`).
 """
 
 from __future__ import annotations
 
+import functools
+import importlib.metadata
 import logging
 import math
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -17,15 +38,29 @@ from difftex.errors import DifftexError
 log = logging.getLogger(__name__)
 
 SSIM_SIGMA = 1.5  # Wang et al. 2004 (and piq): Gaussian window, sigma 1.5, 11x11
+RANGE_TOL = 1e-5  # float rounding of resampled [0, 1] images (bilinear weights in float32)
 
 
-def _check_pair(name: str, a: np.ndarray, b: np.ndarray, mask: np.ndarray | None) -> np.ndarray:
+def _check_pair(name: str, a: np.ndarray, b: np.ndarray,
+                mask: np.ndarray | None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(a, b, mask) checked: same (H, W, 3) shape, finite, in [0, 1] (float64, rounding clipped)."""
     a, b = np.asarray(a), np.asarray(b)
     if a.ndim != 3 or a.shape[2] != 3:
         raise DifftexError(f"{name}: expected an (H, W, 3) image, got shape {a.shape}")
     if a.shape != b.shape:
         raise DifftexError(f"{name}: image shapes differ ({a.shape} vs {b.shape})")
-    return _check_mask(name, mask, a.shape[:2])
+    out = []
+    for img in (a, b):
+        img = img.astype(np.float64)
+        if not np.isfinite(img).all():
+            raise DifftexError(f"{name}: the image holds NaN or infinite values")
+        lo, hi = float(img.min()), float(img.max())
+        if lo < -RANGE_TOL or hi > 1 + RANGE_TOL:
+            # Every metric here assumes data range 1 (SSIM's constants, PSNR's peak, LPIPS's
+            # mapping to [-1, 1]); HDR values must be mapped by the caller first.
+            raise DifftexError(f"{name}: image values must lie in [0, 1], got [{lo:.4g}, {hi:.4g}]")
+        out.append(np.clip(img, 0.0, 1.0))
+    return out[0], out[1], _check_mask(name, mask, a.shape[:2])
 
 
 def _check_mask(name: str, mask: np.ndarray | None, shape: tuple[int, ...]) -> np.ndarray:
@@ -45,8 +80,8 @@ def _check_mask(name: str, mask: np.ndarray | None, shape: tuple[int, ...]) -> n
 
 def texel_error(img: np.ndarray, ref: np.ndarray, normalized: bool = False) -> np.ndarray:
     """Per-texel Euclidean RGB distance (H, W); in [0, sqrt(3)], or [0, 1] if ``normalized``."""
-    _check_pair("texel error", img, ref, None)
-    d = np.linalg.norm(np.asarray(img, np.float64) - np.asarray(ref, np.float64), axis=2)
+    img, ref, _ = _check_pair("texel error", img, ref, None)
+    d = np.linalg.norm(img - ref, axis=2)
     return d / math.sqrt(3.0) if normalized else d
 
 
@@ -56,33 +91,59 @@ def error_percentiles(img: np.ndarray, ref: np.ndarray, mask: np.ndarray | None 
 
     numpy's default (linear interpolation between order statistics).
     """
-    mask = _check_pair("error percentiles", img, ref, mask)
+    img, ref, mask = _check_pair("error percentiles", img, ref, mask)
     d = texel_error(img, ref, normalized)[mask]
     return {float(p): float(v) for p, v in zip(percentiles, np.percentile(d, percentiles))}
 
 
-def psnr(img: np.ndarray, ref: np.ndarray, mask: np.ndarray | None = None) -> float:
-    """PSNR in dB for peak 1 over the masked texels and all three channels; inf if identical."""
-    mask = _check_pair("PSNR", img, ref, mask)
-    mse = float(np.mean((np.asarray(img, np.float64) - np.asarray(ref, np.float64))[mask] ** 2))
+def psnr_from_mse(mse: float) -> float:
+    """PSNR in dB for peak 1: 10 log10(1 / MSE); inf for MSE 0."""
+    if not mse >= 0.0:
+        raise DifftexError(f"PSNR: the mean squared error must be >= 0, got {mse}")
     return math.inf if mse == 0.0 else 10.0 * math.log10(1.0 / mse)
+
+
+def psnr(img: np.ndarray, ref: np.ndarray, mask: np.ndarray | None = None) -> float:
+    """PSNR in dB (peak 1) over the masked texels and all three channels; inf if identical.
+
+    Our own two lines rather than ``piq.psnr``: piq adds 1e-8 to the MSE (identical images give
+    80 dB; a PSNR of P dB reads 10 log10(1 + 1e-8 * 10^(P/10)) dB low, 4e-4 dB at 40 dB), and the
+    evaluation also pools PSNR over all polygons' texels from summed squared errors
+    (:func:`psnr_from_mse`), which piq's per-image value cannot give without holding every
+    texel at once. On the same texels the two agree within that offset (tests/test_metrics.py).
+
+    Args:
+        img, ref: (H, W, 3) images in [0, 1].
+        mask: (H, W) bool texels to use, or None for all.
+    Returns:
+        PSNR in dB.
+    """
+    img, ref, mask = _check_pair("PSNR", img, ref, mask)
+    return psnr_from_mse(float(np.mean((img - ref)[mask] ** 2)))
 
 
 def ssim(img: np.ndarray, ref: np.ndarray, mask: np.ndarray | None = None) -> float:
     """Mean SSIM (scikit-image, RGB, data_range 1, Gaussian 11x11 window, sigma 1.5).
 
-    Without a mask this is skimage's mean SSIM (which leaves out a 5-pixel border, where the
-    window does not fit); with a mask, the SSIM map is averaged over mask minus that border.
+    scikit-image rather than piq because the mean is taken over a mask (see the module
+    docstring). Without a mask this is skimage's mean SSIM (which leaves out a 5-pixel border,
+    where the window does not fit), equal to ``piq.ssim(..., downsample=False)``; with a mask,
+    the SSIM map is averaged over mask minus that border.
+
+    Args:
+        img, ref: (H, W, 3) images in [0, 1], at least 11x11.
+        mask: (H, W) bool texels to average over, or None for all.
+    Returns:
+        Mean SSIM in [-1, 1].
     """
     from skimage.metrics import structural_similarity
 
-    mask = _check_pair("SSIM", img, ref, mask)
+    img, ref, mask = _check_pair("SSIM", img, ref, mask)
     win = 2 * int(3.5 * SSIM_SIGMA + 0.5) + 1  # skimage's window for truncate=3.5
     if min(mask.shape) < win:
         raise DifftexError(f"SSIM: images must be at least {win}x{win} pixels, got {mask.shape[1]}x{mask.shape[0]}")
-    _, smap = structural_similarity(
-        np.asarray(img, np.float64), np.asarray(ref, np.float64), data_range=1.0, channel_axis=2,
-        gaussian_weights=True, sigma=SSIM_SIGMA, use_sample_covariance=False, full=True)
+    _, smap = structural_similarity(img, ref, data_range=1.0, channel_axis=2, gaussian_weights=True,
+                                    sigma=SSIM_SIGMA, use_sample_covariance=False, full=True)
     pad = (win - 1) // 2
     inner = np.zeros_like(mask)
     inner[pad:-pad, pad:-pad] = True
@@ -92,28 +153,173 @@ def ssim(img: np.ndarray, ref: np.ndarray, mask: np.ndarray | None = None) -> fl
     return float(smap[sel].mean())
 
 
+# --- perceptual distance (LPIPS, ST-LPIPS) through the reference packages -----------------------
+
+LPIPS_VARIANTS = ("auto", "lpips", "stlpips")
+LPIPS_MIN_SIDE = 32  # smallest side the classic AlexNet trunk accepts (conv1 stride 4, two pools)
+
+
+def alexnet_checkpoint(explicit: str | Path | None = None) -> Path:
+    """Where torchvision's ImageNet AlexNet weights are looked for: ``explicit``, else the hub cache.
+
+    The hub cache file is the one ``torchvision.models.alexnet(weights=IMAGENET1K_V1)`` would
+    download to (``$TORCH_HOME/hub/checkpoints/alexnet-owt-7be5be79.pth``).
+    """
+    import torch
+    from torchvision.models import AlexNet_Weights
+
+    if explicit is not None:
+        return Path(explicit)
+    return Path(torch.hub.get_dir()) / "checkpoints" / Path(AlexNet_Weights.IMAGENET1K_V1.url).name
+
+
+def _import_error(module: str) -> str | None:
+    """None if ``module`` imports, else why not (one line)."""
+    import importlib
+
+    try:
+        importlib.import_module(module)
+    except Exception as exc:  # noqa: BLE001 - any failure at import means the package is unusable
+        return f"{module} does not import ({exc.__class__.__name__}: {str(exc).splitlines()[0] if str(exc) else ''})"
+    return None
+
+
+def lpips_source(variant: str = "auto", alexnet_path: str | Path | None = None) -> tuple[str | None, str]:
+    """The network ``variant`` resolves to offline and its label: ("lpips" | "stlpips", label).
+
+    ``"auto"`` is classic LPIPS when torchvision's AlexNet weights are on disk, else ST-LPIPS.
+    When nothing fits: (None, "unavailable: <why>"). Nothing is downloaded.
+    """
+    if variant not in LPIPS_VARIANTS:
+        raise DifftexError(f"LPIPS variant {variant!r} unknown ({', '.join(LPIPS_VARIANTS)})")
+    reasons = []
+    if variant in ("auto", "lpips"):
+        ckpt = alexnet_checkpoint(alexnet_path)
+        why = _import_error("lpips")
+        if why is None and not ckpt.is_file():
+            why = f"classic LPIPS needs torchvision's AlexNet weights at {ckpt} (never downloaded)"
+        if why is None:
+            return "lpips", (f"LPIPS v0.1 (lpips {importlib.metadata.version('lpips')}, AlexNet: torchvision "
+                             f"ImageNet weights {ckpt.name} + lpips v0.1 linear layers)")
+        reasons.append(why)
+    if variant in ("auto", "stlpips"):
+        why = _import_error("stlpips_pytorch.stlpips")
+        if why is None:
+            return "stlpips", (f"ST-LPIPS (stlpips-pytorch {importlib.metadata.version('stlpips_pytorch')}, "
+                               "alex shift-tolerant weights vST0.0)")
+        reasons.append(why)
+    return None, "unavailable: " + "; ".join(reasons)
+
+
+def _torch_load(path: Path) -> dict:
+    import torch
+
+    try:
+        sd = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as exc:  # noqa: BLE001 - any unpickling failure is a bad weight file
+        raise DifftexError(f"{path}: unreadable torch weight file ({exc.__class__.__name__})") from None
+    if not isinstance(sd, dict):
+        raise DifftexError(f"{path}: not a state dict")
+    return sd
+
+
+def _check_weights_loaded(net, path: Path, prefixes: tuple[str, ...]) -> None:
+    """Raise unless ``path`` holds exactly the parameters of ``net`` under ``prefixes``.
+
+    The packages load their weight files with ``strict=False``, which would leave a mismatching
+    layer at its random initialisation without a word.
+    """
+    have = set(_torch_load(path))
+    # named_parameters/buffers name each tensor once (the packages also list lin0..4 as lins.0..4).
+    want = {k for k, _ in [*net.named_parameters(), *net.named_buffers()] if k.startswith(prefixes)}
+    if have != want:
+        diff = sorted(want - have)[:2] + sorted(have - want)[:2]
+        raise DifftexError(f"{path}: weights do not fit the network (differing keys: {', '.join(diff)})")
+
+
+def _load_alexnet_trunk(net, path: Path) -> None:
+    """Put torchvision's AlexNet weights from ``path`` into an ``lpips.LPIPS`` trunk (strictly)."""
+    from torchvision.models import alexnet
+
+    tv = alexnet(weights=None)
+    try:
+        tv.load_state_dict(_torch_load(path), strict=True)
+    except RuntimeError as exc:
+        first = next((ln.strip() for ln in str(exc).splitlines()[1:] if ln.strip()), str(exc))
+        raise DifftexError(f"{path}: not torchvision's AlexNet weights ({first[:120]})") from None
+    # lpips.pretrained_networks.alexnet slices torchvision's ``features``, keeping their indices.
+    for k in range(1, net.net.N_slices + 1):
+        for idx, layer in getattr(net.net, f"slice{k}").named_children():
+            layer.load_state_dict(tv.features[int(idx)].state_dict())
+
+
+@functools.lru_cache(maxsize=8)
+def _network(kind: str, alexnet_file: str | None, spatial: bool, device: str):
+    """The reference package's network, built once per process per (weights, mode, device).
+
+    ``spatial``: the per-pixel distance map (the packages' ``spatial=True``: every layer's map
+    upsampled bilinearly to the input size) instead of the mean.
+    """
+    with warnings.catch_warnings():
+        # lpips calls torchvision.models.alexnet(pretrained=False), deprecated since 0.13.
+        warnings.filterwarnings("ignore", category=UserWarning, module="torchvision")
+        if kind == "stlpips":
+            from stlpips_pytorch import stlpips
+
+            net = stlpips.LPIPS(net="alex", variant="shift_tolerant", spatial=spatial, verbose=False)
+            path = Path(stlpips.__file__).parent / "weights" / "vST0.0" / "alex_shift_tolerant.pth"
+            _check_weights_loaded(net, path, ("",))
+        else:
+            import lpips as lpips_pkg
+
+            # pnet_rand: no torchvision download; the trunk is loaded from the local file below.
+            net = lpips_pkg.LPIPS(net="alex", pnet_rand=True, spatial=spatial, verbose=False)
+            _check_weights_loaded(net, Path(lpips_pkg.__file__).parent / "weights" / "v0.1" / "alex.pth", ("lin",))
+            _load_alexnet_trunk(net, Path(alexnet_file))
+    return net.eval().requires_grad_(False).to(device)
+
+
 def lpips(img_a: np.ndarray, img_b: np.ndarray, mask: np.ndarray | None = None, variant: str = "auto",
           required: bool = False, alexnet_path: str | Path | None = None,
-          stlpips_path: str | Path | None = None, device: str = "cpu") -> tuple[float | None, str]:
-    """LPIPS distance and the variant used: "lpips" (v0.1, AlexNet) or "stlpips" (shift-tolerant).
+          device: str = "cpu") -> tuple[float | None, str]:
+    """LPIPS distance by the reference packages, and the label of what computed it.
 
-    ``variant="auto"`` prefers classic LPIPS when torchvision's AlexNet weights are on disk
-    (``alexnet_path`` or the torch hub cache), else ST-LPIPS. Nothing is downloaded. When no
-    weights fit, returns ``(None, "unavailable")`` with a logged reason, or raises if ``required``.
-    Networks are cached per weight files (``perceptual.load_network``).
+    Args:
+        img_a, img_b: (H, W, 3) images in [0, 1], at least 32x32.
+        mask: (H, W) bool pixels to average the distance map over (the packages' spatial mode),
+            or None for the packages' plain (per-layer spatial mean) distance.
+        variant: "lpips" (classic v0.1, ``lpips`` package, AlexNet trunk from torchvision's
+            weights in the torch hub cache or ``alexnet_path``), "stlpips" (``stlpips_pytorch``,
+            shift-tolerant AlexNet, weights shipped in the package), or "auto" (classic if its
+            weights are on disk, else ST-LPIPS).
+        required: raise instead of returning None when no weights are available.
+        device: torch device of the network (cached per device).
+    Returns:
+        (distance, label): the label names the package, version and weights, or is
+        "unavailable: <why>" with distance None. Nothing is ever downloaded.
     """
-    from difftex import perceptual
+    import torch
 
-    mask = _check_pair("LPIPS", img_a, img_b, mask)
-    source, why = perceptual.find_weights(variant, alexnet_path, stlpips_path)
-    if source is None:
+    img_a, img_b, mask = _check_pair("LPIPS", img_a, img_b, mask)
+    if min(mask.shape) < LPIPS_MIN_SIDE:
+        raise DifftexError(f"LPIPS needs images of at least {LPIPS_MIN_SIDE}x{LPIPS_MIN_SIDE} pixels, got "
+                           f"{mask.shape[1]}x{mask.shape[0]}")
+    kind, label = lpips_source(variant, alexnet_path)
+    if kind is None:
         if required:
-            raise DifftexError(f"LPIPS ({variant}) unavailable: {why}")
-        log.warning("LPIPS (%s) unavailable: %s", variant, why)
-        return None, "unavailable"
-    net = perceptual.load_network(source, device)
-    value = perceptual.distance(net, img_a, img_b, None if mask.all() else mask, device)
-    return value, source.variant
+            raise DifftexError(f"LPIPS ({variant}) {label}")
+        log.warning("LPIPS (%s) %s", variant, label)
+        return None, label
+    ckpt = str(alexnet_checkpoint(alexnet_path)) if kind == "lpips" else None
+    spatial = not mask.all()
+    net = _network(kind, ckpt, spatial, device)
+    a, b = (torch.from_numpy(v.astype(np.float32)).permute(2, 0, 1)[None].to(device) for v in (img_a, img_b))
+    with torch.no_grad():
+        d = net(a, b, normalize=True)  # normalize: inputs in [0, 1], mapped to [-1, 1] inside
+    if not spatial:
+        return float(d), label
+    m = torch.from_numpy(mask).to(device)
+    return float(d[0, 0][m].mean()), label
 
 
 # --- perspective quality -----------------------------------------------------------------------

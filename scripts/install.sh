@@ -15,10 +15,9 @@ if [ -n "${TORCH_INDEX:-}" ]; then
   "${PIP[@]}" --index-url "$TORCH_INDEX" torch torchvision
 fi
 "${PIP[@]}" torch torchvision piq
-"${PIP[@]}" -e ".[test]"
-# The reference perceptual metrics: lpips (classic LPIPS v0.1) and stlpips-pytorch (ST-LPIPS).
-# difftex runs their networks through their own code where they import (difftex/perceptual.py).
-"${PIP[@]}" stlpips-pytorch==0.0.2 lpips==0.1.4
+# "perceptual": the reference LPIPS (lpips) and ST-LPIPS (stlpips-pytorch) packages, which
+# difftex.metrics calls directly, with the imports stlpips-pytorch needs but does not declare.
+"${PIP[@]}" -e ".[test,perceptual]"
 # Optional: Mitsuba's fast llvm_ad_rgb variant (synthetic scenes) needs Debian's libllvm19;
 # without it difftex synth falls back to scalar_rgb, about 2x slower.
 if [ "$(id -u)" = 0 ] && command -v apt-get >/dev/null && ! ldconfig -p 2>/dev/null | grep -q libLLVM.so.19; then

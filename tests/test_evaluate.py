@@ -106,6 +106,30 @@ def test_map_metrics_known_answers(tmp_path, offset):
         assert o["psnr"] == pytest.approx(20.0, abs=1e-3)  # MSE 0.01
 
 
+def test_map_metrics_lpips_column_says_what_made_it(tmp_path, monkeypatch, caplog):
+    from difftex import metrics
+
+    frame = uv_frame(poly(), UP, long_side=64)
+    mask = texel_mask(poly(), frame)
+    gt = np.round(linear_texture(frame) * 255) / 255
+    gt_folder(tmp_path, frame, gt, mask)
+    for kind in ("maps", "masks"):  # a second polygon with the same ground truth
+        (tmp_path / "ground_truth" / kind / "back.png").write_bytes((tmp_path / "ground_truth" / kind / "front.png").read_bytes())
+    write_json(tmp_path / "ground_truth" / "frames" / "back.json", frame.to_dict())
+    tex = PolygonTexture("front", np.clip(gt + 0.05 * np.sin(np.arange(gt.shape[1]))[None, :, None], 0, 1),
+                         frame, mask, {}, tmp_path)
+    textures = {"front": tex, "back": tex}
+    monkeypatch.setenv("TORCH_HOME", str(tmp_path / "torch"))  # no torchvision AlexNet weights here
+    o = evaluate_maps(tmp_path, textures, EvaluateConfig(lpips="lpips"))["overall"]
+    assert o["lpips"] is None and o["lpips_variant"].startswith("unavailable: classic LPIPS needs torchvision's AlexNet")
+    assert caplog.text.count("unavailable") == 1  # once per evaluation, not per polygon
+    o = evaluate_maps(tmp_path, textures, EvaluateConfig(lpips="none"))["overall"]
+    assert (o["lpips"], o["lpips_variant"]) == (None, "none")
+    if metrics.lpips_source("stlpips")[0] is not None:  # auto falls back to ST-LPIPS and says so
+        o = evaluate_maps(tmp_path, textures, EvaluateConfig(lpips="auto"))["overall"]
+        assert o["lpips"] > 0 and o["lpips_variant"].startswith("ST-LPIPS (stlpips-pytorch")
+
+
 def test_map_metrics_at_another_resolution_resample_first(tmp_path):
     gframe = uv_frame(poly(), UP, long_side=32)
     mask = texel_mask(poly(), gframe)
