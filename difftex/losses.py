@@ -52,6 +52,38 @@ def render_loss_texel(U, colours, active, Q, n_tex: float) -> torch.Tensor:
     return (r * r).sum() / n_tex
 
 
+def para_edge_cost(active: torch.Tensor, D: torch.Tensor, axis: int, lambda_s: float) -> torch.Tensor:
+    """C(t_o, t_q) = m_k(t_o) D(t_o, t_q) + lambda_s per slot (eq. 9), with m_k the overlap mask."""
+    overlap = (active.sum(0, keepdim=True) >= 2) & active  # m_k: another mapped photo overlaps
+    return crop_pair(overlap, axis, "o").to(D.dtype) * D[None] + lambda_s
+
+
+def render_quality(active: torch.Tensor, Q: torch.Tensor) -> torch.Tensor:
+    """q_k = (a_k Q_k)^2, each photo's weight in the squared norm of L_Render (eq. 5); (K, H, W)."""
+    aq = active.to(Q.dtype) * Q
+    return aq * aq
+
+
+def ghost_loss(W, U, colours, active, Q, n_tex: float) -> torch.Tensor:
+    """The spread of the blend: sum_t A(t) sum_k W_k(t) |I^_k(t) - U(t)|^2, A = sum_k q_k.
+
+    Not in the paper. L_Render alone is minimised by the q-weighted mean of the photos (the mean
+    minimises a sum of squared distances), so it pulls every texel towards a blend, and ghosts
+    where the photos disagree. By the bias-variance decomposition (sum_k W_k = 1)
+
+        L_Render + ghost = sum_t sum_k W_k(t) sum_j q_j(t) |I^_k(t) - I^_j(t)|^2,
+
+    the expected render error of using one photo, drawn with probability W: linear in W, so
+    its minimum selects photos, and blending photos that agree costs nothing while blending
+    photos that disagree (relief parallax, misalignment, an occluder) costs their spread.
+
+    Shapes: W (K, H, W), U (3, H, W), colours (K, 3, H, W), active / Q (K, H, W).
+    """
+    A = render_quality(active, Q).sum(0)
+    spread = (W * ((colours - U[None]) ** 2).sum(1)).sum(0)
+    return (A * spread).sum() / n_tex
+
+
 def sparsity_loss(theta, active, n_tex: float) -> torch.Tensor:
     """The L1 term of eq. 5 on the raw weights (on normalised weights it would be constant)."""
     return (theta.clamp_min(0.0) * active.to(theta.dtype)).sum() / n_tex
@@ -187,13 +219,14 @@ def neighbour_match(idx: torch.Tensor, mask: torch.Tensor, axis: int, fixed: boo
     return NeighbourMatch(match=match, q_alone=q_alone, pair_ok=ok)
 
 
-def _crop(x: torch.Tensor, axis: int, which: str) -> torch.Tensor:
+def crop_pair(x: torch.Tensor, axis: int, which: str) -> torch.Tensor:
+    """The texels o (``which`` "o") or their neighbours q ("q") along ``axis`` (1: up, 2: left)."""
     if axis == 1:
         return x[..., 1:, :] if which == "o" else x[..., :-1, :]
     return x[..., :, 1:] if which == "o" else x[..., :, :-1]
 
 
-def _abs(x: torch.Tensor, eps: float) -> torch.Tensor:
+def smooth_abs(x: torch.Tensor, eps: float) -> torch.Tensor:
     """|x|, smoothed near 0 (Charbonnier) when eps > 0.
 
     The exact |x| has a gradient of constant size whose sign flips with every tiny
@@ -210,7 +243,7 @@ def edge_weights(U: torch.Tensor, G: torch.Tensor, axes=(1, 2)) -> dict[int, tor
     optimizer refreshes it every few iterations.
     """
     U = U.detach()
-    return {a: torch.sigmoid((_crop(U, a, "o") - _crop(U, a, "q")).norm(dim=0)) * (1.0 + _crop(G, a, "o")) for a in axes}
+    return {a: torch.sigmoid((crop_pair(U, a, "o") - crop_pair(U, a, "q")).norm(dim=0)) * (1.0 + crop_pair(G, a, "o")) for a in axes}
 
 
 def para_loss(W, U, active, G, matches: dict[int, NeighbourMatch], lambda_s: float, n_tex: float,
@@ -221,16 +254,14 @@ def para_loss(W, U, active, G, matches: dict[int, NeighbourMatch], lambda_s: flo
     """
     if D is None:
         D = edge_weights(U, G, tuple(matches))
-    overlap = (active.sum(0, keepdim=True) >= 2) & active  # m_k: another mapped photo overlaps
     total = W.new_zeros(())
     for axis, nm in matches.items():
-        Wo, Wq = _crop(W, axis, "o"), _crop(W, axis, "q")
-        m = _crop(overlap, axis, "o").to(W.dtype)
-        C = m * D[axis][None] + lambda_s
+        Wo, Wq = crop_pair(W, axis, "o"), crop_pair(W, axis, "q")
+        C = para_edge_cost(active, D[axis], axis, lambda_s)
         if nm.match is None:
-            term = (C * _abs(Wo - Wq, eps)).sum(0)
+            term = (C * smooth_abs(Wo - Wq, eps)).sum(0)
         else:
             Wq_same = torch.gather(Wq, 0, nm.match.clamp_min(0)) * (nm.match >= 0).to(W.dtype)
-            term = (C * _abs(Wo - Wq_same, eps)).sum(0) + lambda_s * _abs(Wq * nm.q_alone.to(W.dtype), eps).sum(0)
+            term = (C * smooth_abs(Wo - Wq_same, eps)).sum(0) + lambda_s * smooth_abs(Wq * nm.q_alone.to(W.dtype), eps).sum(0)
         total = total + (term * nm.pair_ok.to(W.dtype)).sum()
     return total / n_tex

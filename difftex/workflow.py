@@ -84,7 +84,11 @@ def coerce_types(user: Any, default: Any) -> Any:
             return yaml.safe_load(user) if user.strip() else user
         except yaml.YAMLError:
             return user
-    if isinstance(user, str) and default == "auto":  # "auto" modes that also take a number (texture.density)
+    if isinstance(user, str) and default == "auto":
+        # "auto" modes that also take a number (texture.density) or a boolean (run.evaluate); not
+        # YAML's on/off booleans, which are modes of their own (compute.compile)
+        if user.strip().lower() in ("true", "false"):
+            return user.strip().lower() == "true"
         try:
             return float(user)
         except ValueError:

@@ -36,6 +36,7 @@ class OptimizeConfig:
     lambda_s: float = 0.5
     para_eps: float = 0.01  # Charbonnier smoothing of |.| in L_Para (0: exact L1)
     sparsity: float = 1.0  # weight of the L1 term inside L_Render (paper: 1; see docs/optimizer.md)
+    ghost: float = 1.0  # weight of the blend's spread next to L_Render (0: the paper's L_Render alone; see losses.ghost_loss)
     lr: float = 0.005
     betas: tuple[float, float] = (0.9, 0.99)
     tau: float = 0.01  # activation threshold on normalised weights
@@ -46,8 +47,8 @@ class OptimizeConfig:
     eliminate_every: int = 10  # iterations between pixel-elimination passes
     max_iters_per_level: tuple[int, ...] = (300, 150, 80, 40)  # caps, last value repeats
     min_iters_per_level: int = 20
-    conv_rel_tol: float = 1e-3  # converged when the loss fell by less than this share ...
-    conv_window: int = 20  # ... over this many iterations
+    conv_tol: float = 0.01  # converged when less than this share of the weights moved ...
+    conv_window: int = 10  # ... over this many iterations (checked every conv_window iterations)
     use_render: bool = True
     use_persp: bool = True
     use_para: bool = True
@@ -70,6 +71,10 @@ class OptimizeConfig:
             raise ValueError("top_k and long_side_start must be >= 1")
         if not 0 <= self.tau < 1 or not 0 < self.tau_w <= 1:
             raise ValueError("tau must be in [0, 1) and tau_w in (0, 1]")
+        if self.ghost < 0:
+            raise ValueError(f"ghost must be >= 0, got {self.ghost}")
+        if self.conv_window < 1 or self.conv_tol < 0:
+            raise ValueError("conv_window must be >= 1 and conv_tol >= 0")
         if self.lr <= 0 or len(tuple(self.betas)) != 2:
             raise ValueError("lr must be > 0 and betas a pair")
         caps_in = self.max_iters_per_level

@@ -20,11 +20,12 @@ from difftex.method.config import ComputeConfig, OptimizeConfig
 from difftex.method.elimination import (base_mask, dropped_slot_mask, eliminate_pixels, photo_zero_share,
                                         photos_to_drop, update_activation)
 from difftex.method.levels import Level, build_level, gauge
-from difftex.method.objective import LevelState, compiled_objective, gradient_step, loss_terms, objective
+from difftex.method.gradient import Adam
+from difftex.method.objective import LevelState, compiled_objective, objective, value_and_grad
 from difftex.method.render import build_pixel_sets
 from difftex.sampling import MappedPhoto, PhotoSet, level_frame, level_sides
 
-LOSS_KEYS = ("total", "render", "sparsity", "persp", "para")
+LOSS_KEYS = ("total", "render", "ghost", "sparsity", "persp", "para")
 
 
 @dataclass
@@ -110,12 +111,11 @@ def _run_level(lv: Level, li: int, cfg: OptimizeConfig, compute: ComputeConfig, 
     drop_slots = dropped_slot_mask(lv, eliminated, dropped)
     theta = lv.theta0.clone()
     base = base_mask(lv, eliminated, drop_slots)
-    st = LevelState(level=lv, theta=theta.requires_grad_(True), active=update_activation(theta, base, cfg.tau),
-                    eliminated=eliminated)
+    st = LevelState(level=lv, theta=theta, active=update_activation(theta, base, cfg.tau), eliminated=eliminated)
     if cfg.use_para:
         st.matches = {a: losses.neighbour_match(lv.idx, lv.mask, a, fixed=lv.fixed_slots) for a in (1, 2)}
-    opt = torch.optim.Adam([st.theta], lr=cfg.lr, betas=cfg.betas)
-    fn = compiled_objective(lv, compute) or objective
+    adam = Adam(lr=cfg.lr, betas=cfg.betas)
+    fn = (compiled_objective(lv, compute) or objective) if cfg.loss_mode == "render" else None
     hist: dict[str, list] = {k: [] for k in LOSS_KEYS}
     n_elim = 0
     dropped_here: list[str] = []
@@ -129,26 +129,29 @@ def _run_level(lv: Level, li: int, cfg: OptimizeConfig, compute: ComputeConfig, 
             n_elim += int(e.sum())
             drop_slots = dropped_slot_mask(lv, st.eliminated, dropped)
             base = base_mask(lv, st.eliminated, drop_slots)
-            st.active = update_activation(st.theta.detach(), base, cfg.tau)
+            st.active = update_activation(st.theta, base, cfg.tau)
     anything = cfg.use_render or cfg.use_persp or cfg.use_para
     iter_times: list[float] = []
+    W_check = losses.blend_weights(st.theta, st.active)
+    changes: list[float] = []
     for it in range(1, cap + 1 if anything else 1):
         st.it = it
         t_it = time.perf_counter()
         try:
-            terms = gradient_step(st, cfg, fn, opt)
+            terms, grad = value_and_grad(st, cfg, fn)
         except Exception as e:  # noqa: BLE001 - compilation needs a C++ toolchain; eager always works
-            if fn is objective:
+            if fn is None or fn is objective:
                 raise
             reason = f"{type(e).__name__}: {str(e).splitlines()[0][:200]}"
             warnings.warn(f"torch.compile failed ({reason}); running eagerly")
             stats["compile_failed"] = reason
             fn = objective
-            terms = gradient_step(st, cfg, fn, opt)
+            terms, grad = value_and_grad(st, cfg, fn)
         for k in hist:
-            hist[k].append(float(terms[k].detach()) if k in terms else 0.0)
+            hist[k].append(float(terms[k]) if k in terms else 0.0)
         with torch.no_grad():
-            st.theta.data = gauge(st.theta.data.clamp(0.0, 1.0), base)
+            adam.step(st.theta, grad)
+            st.theta = gauge(st.theta.clamp(0.0, 1.0), base)
             W = losses.blend_weights(st.theta, base)
             if cfg.data_elimination:
                 if it >= cfg.min_iters_per_level // 2:
@@ -168,20 +171,22 @@ def _run_level(lv: Level, li: int, cfg: OptimizeConfig, compute: ComputeConfig, 
                     if dropped:
                         drop_slots = dropped_slot_mask(lv, st.eliminated, dropped, W)
             base = base_mask(lv, st.eliminated, drop_slots)
-            st.active = update_activation(st.theta.detach(), base, cfg.tau)
+            st.active = update_activation(st.theta, base, cfg.tau)
         iter_times.append(time.perf_counter() - t_it)
         if bar is not None:
             bar.update(1)
-        w_ = cfg.conv_window
-        if it >= max(cfg.min_iters_per_level, w_ + 1):
-            old, new = hist["total"][-1 - w_], hist["total"][-1]
-            if abs(old - new) <= cfg.conv_rel_tol * max(abs(old), 1e-12):
+        if it % cfg.conv_window == 0:
+            # converged: the weights moved less than conv_tol over the last conv_window iterations
+            with torch.no_grad():
+                W_now = losses.blend_weights(st.theta, st.active)
+                changes.append(weight_change(W_now, W_check, lv.mask))
+                W_check = W_now
+            if it >= cfg.min_iters_per_level and changes[-1] < cfg.conv_tol:
                 converged = True
                 break
     if bar is not None and it < cap:
         bar.update(cap - it)
-    with torch.no_grad():
-        final_terms = {k: float(v) for k, v in loss_terms(st, cfg).items()}
+    final_terms = {k: float(v) for k, v in value_and_grad(st, cfg)[0].items()}
     lvl_stats = {
         "level": li, "shape": list(lv.frame.shape), "top_k": lv.idx.shape[0],
         "candidates": lv.n_candidates, "iterations": it if anything else 0, "cap": cap,
@@ -192,7 +197,8 @@ def _run_level(lv: Level, li: int, cfg: OptimizeConfig, compute: ComputeConfig, 
         "eliminated_pixels": n_elim, "dropped_photos": dropped_here,
         "active_slots_mean": float(st.active.sum(0).float()[lv.mask].mean()) if bool(lv.mask.any()) else 0.0,
         "tensor_bytes": lv.nbytes(), "final": final_terms, "loss": hist,
-        "v_tilde": lv.v_tilde.tolist(), "compiled": fn is not objective,
+        "v_tilde": lv.v_tilde.tolist(), "compiled": fn is not None and fn is not objective,
+        "weight_change": changes,
     }
     if lv.pixel_sets is not None:
         lvl_stats["render_pixels"] = lv.pixel_sets.n

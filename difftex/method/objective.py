@@ -1,5 +1,5 @@
-"""The objective L = alpha L_Render + beta L_Persp + omega L_Para of one level (eq. 4) and one
-Adam step on it. The terms themselves are in difftex.losses, one function per equation.
+"""The objective L = alpha L_Render + beta L_Persp + omega L_Para of one level (eq. 4) and its
+gradient. The terms themselves are in difftex.losses, one function per equation.
 """
 
 from __future__ import annotations
@@ -10,6 +10,7 @@ import torch
 
 from difftex import losses
 from difftex.method.config import ComputeConfig, OptimizeConfig
+from difftex.method.gradient import TexelData, texel_data, texel_value_and_grad
 from difftex.method.levels import Level
 from difftex.method.render import render_support
 
@@ -19,12 +20,13 @@ class LevelState:
     """The optimization variables of one level and what changes with them."""
 
     level: Level
-    theta: torch.Tensor  # (K, h, w) raw weights in [0, 1], requires grad
+    theta: torch.Tensor  # (K, h, w) raw weights in [0, 1]
     active: torch.Tensor  # (K, h, w) bool a^_k
     eliminated: torch.Tensor  # (K, h, w) bool
     it: int = 0
     D: dict | None = None  # L_Para edge weights, refreshed every eliminate_every iterations
     matches: dict = field(default_factory=dict)  # L_Para slot correspondences per neighbour axis
+    texel: TexelData | None = None  # texel-space data of the written-out gradient
 
 
 def objective(theta, active, colours, Q, cost, D, matches, pixel_sets, support, n_tex: float,
@@ -41,6 +43,7 @@ def objective(theta, active, colours, Q, cost, D, matches, pixel_sets, support, 
         else:
             terms["render"] = losses.render_loss_texel(U, colours, active, Q, n_tex)
         terms["sparsity"] = losses.sparsity_loss(theta, active, n_tex) if cfg.use_sparsity else zero
+        terms["ghost"] = losses.ghost_loss(W, U, colours, active, Q, n_tex) if cfg.ghost > 0 else zero
     terms["persp"] = losses.persp_loss(W, cost, n_tex) if cfg.use_persp else zero
     if cfg.use_para:
         terms["para"] = losses.para_loss(W, U, active, None, matches, cfg.lambda_s, n_tex, cfg.para_eps, D)
@@ -48,30 +51,45 @@ def objective(theta, active, colours, Q, cost, D, matches, pixel_sets, support, 
         terms["para"] = zero
     total = zero
     if cfg.use_render:
-        total = total + cfg.alpha * (terms["render"] + cfg.sparsity * terms["sparsity"])
+        total = total + cfg.alpha * (terms["render"] + cfg.ghost * terms["ghost"] + cfg.sparsity * terms["sparsity"])
     total = total + cfg.beta * terms["persp"] + cfg.omega * terms["para"]
     terms["total"] = total
     return terms
 
 
-def loss_terms(st: LevelState, cfg: OptimizeConfig, fn=objective) -> dict[str, torch.Tensor]:
-    """The terms at the current weights; refreshes L_Para's edge weights D when they are due."""
+def refresh_edge_weights(st: LevelState, cfg: OptimizeConfig) -> None:
+    """Recompute L_Para's edge weights D from the current texture when they are due (every
+    ``eliminate_every`` iterations): D is a constant of the term between refreshes."""
     lv = st.level
     if cfg.use_para and (st.D is None or st.it % max(cfg.eliminate_every, 1) == 0):
         with torch.no_grad():
             U = losses.compose(losses.blend_weights(st.theta, st.active), lv.colours)
             st.D = losses.edge_weights(U, lv.G, tuple(st.matches))
-    support = render_support(lv) if cfg.use_render and cfg.loss_mode == "render" else None
-    return fn(st.theta, st.active, lv.colours, lv.Q, lv.cost, st.D, st.matches, lv.pixel_sets, support, lv.n_tex, cfg)
 
 
-def gradient_step(st: LevelState, cfg: OptimizeConfig, fn, opt: torch.optim.Optimizer) -> dict[str, torch.Tensor]:
-    """Evaluate the terms with ``fn``, backpropagate and take one Adam step; returns the terms."""
-    terms = loss_terms(st, cfg, fn)
-    opt.zero_grad(set_to_none=True)
+def value_and_grad(st: LevelState, cfg: OptimizeConfig, fn=None) -> tuple[dict[str, torch.Tensor], torch.Tensor | None]:
+    """The terms of L at the current weights and dL/dtheta (None when ``fn`` is None and the
+    terms are only evaluated).
+
+    Texel space: the gradient written out (difftex.method.gradient). Render space: autograd
+    through ``fn`` (``objective`` or its torch.compile'd version).
+    """
+    lv = st.level
+    refresh_edge_weights(st, cfg)
+    if cfg.loss_mode == "texel":
+        if st.texel is None:
+            st.texel = texel_data(lv.colours, lv.Q, lv.cost, lv.n_tex)
+        with torch.no_grad():
+            return texel_value_and_grad(st.theta, st.active, st.texel, st.D, st.matches, cfg)
+    support = render_support(lv) if cfg.use_render else None
+    if fn is None:
+        with torch.no_grad():
+            return objective(st.theta, st.active, lv.colours, lv.Q, lv.cost, st.D, st.matches, lv.pixel_sets, support,
+                             lv.n_tex, cfg), None
+    theta = st.theta.detach().requires_grad_(True)
+    terms = fn(theta, st.active, lv.colours, lv.Q, lv.cost, st.D, st.matches, lv.pixel_sets, support, lv.n_tex, cfg)
     terms["total"].backward()
-    opt.step()
-    return terms
+    return {k: v.detach() for k, v in terms.items()}, theta.grad
 
 
 def compiled_objective(lv: Level, compute: ComputeConfig):

@@ -1,0 +1,155 @@
+"""The gradient of L with respect to the raw weights theta in texel space, written out, and Adam.
+
+Autograd records some 40 intermediate (K, H, W) tensors per iteration of L and replays them
+backwards; every term of the texel-space objective has a short closed-form derivative, so this
+computes L and dL/dtheta in one forward sweep over the slots (about a fifth of the memory
+traffic; tests check it against autograd to float tolerance). The render-space L_Render
+(loss_mode "render") keeps autograd, through difftex.method.objective.
+
+Notation (per texel, K slots): w_j = a_j (theta_j + eps), S = sum_j w_j, W_j = w_j / S,
+U = sum_j W_j I_j, q_j = (a_j Q_j)^2, A = sum_j q_j, M = sum_j q_j I_j.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+
+from difftex import losses
+from difftex.losses import THETA_FLOOR, NeighbourMatch, crop_pair, para_edge_cost, smooth_abs
+
+
+@dataclass
+class TexelData:
+    """What the texel-space terms read of one level (fixed during a level)."""
+
+    colours: torch.Tensor  # (K, 3, H, W)
+    sq: torch.Tensor  # (K, H, W) |I_j|^2
+    Q: torch.Tensor  # (K, H, W)
+    cost: torch.Tensor  # (K, H, W) |V^ - v~|^2 (L_Persp)
+    n_tex: float
+
+
+def texel_data(colours: torch.Tensor, Q: torch.Tensor, cost: torch.Tensor, n_tex: float) -> TexelData:
+    return TexelData(colours=colours, sq=(colours * colours).sum(1), Q=Q, cost=cost, n_tex=n_tex)
+
+
+def _smooth_abs_grad(x: torch.Tensor, eps: float) -> torch.Tensor:
+    """d smooth_abs(x) / dx."""
+    return x / (x * x + eps * eps).sqrt() if eps > 0 else torch.sign(x)
+
+
+def para_value_and_grad(W: torch.Tensor, active: torch.Tensor, D: dict[int, torch.Tensor],
+                        matches: dict[int, NeighbourMatch], lambda_s: float, eps: float) -> tuple[torch.Tensor, torch.Tensor]:
+    """L_Para (eq. 8-10, times n_tex) and its gradient with respect to W, (K, H, W).
+
+    Mirrors losses.para_loss: the slot j of texel o meets the slot of its neighbour q that holds
+    the same photo (``match``; all slots correspond when the layout is fixed), and photos of q
+    that o does not have pay lambda_s |W|.
+    """
+    g = torch.zeros_like(W)
+    total = W.new_zeros(())
+    for axis, nm in matches.items():
+        Wo, Wq = crop_pair(W, axis, "o"), crop_pair(W, axis, "q")
+        go, gq = crop_pair(g, axis, "o"), crop_pair(g, axis, "q")  # views into g
+        C = para_edge_cost(active, D[axis], axis, lambda_s) * nm.pair_ok.to(W.dtype)
+        if nm.match is None:
+            d = Wo - Wq
+            total = total + (C * smooth_abs(d, eps)).sum()
+            gd = C * _smooth_abs_grad(d, eps)
+            go += gd
+            gq -= gd
+        else:
+            has = (nm.match >= 0).to(W.dtype)
+            idx = nm.match.clamp_min(0)
+            d = Wo - torch.gather(Wq, 0, idx) * has
+            total = total + (C * smooth_abs(d, eps)).sum()
+            gd = C * _smooth_abs_grad(d, eps)
+            go += gd
+            gq.scatter_add_(0, idx, -gd * has)
+            alone = nm.q_alone.to(W.dtype) * nm.pair_ok.to(W.dtype)
+            x = Wq * alone
+            total = total + lambda_s * smooth_abs(x, eps).sum()
+            gq += lambda_s * _smooth_abs_grad(x, eps) * alone
+    return total, g
+
+
+def texel_value_and_grad(theta: torch.Tensor, active: torch.Tensor, data: TexelData, D: dict | None,
+                         matches: dict, cfg) -> tuple[dict[str, torch.Tensor], torch.Tensor]:
+    """Every term of L in texel space (as difftex.method.objective.objective computes them) and
+    dL/dtheta, (K, H, W). ``cfg``: an OptimizeConfig."""
+    a = active.to(theta.dtype)
+    w = (losses.clamp_unit(theta) + THETA_FLOOR) * a
+    S = w.sum(0, keepdim=True).clamp_min(THETA_FLOOR)
+    W = w / S
+    n = data.n_tex
+    zero = theta.new_zeros(())
+    terms: dict[str, torch.Tensor] = {"render": zero, "sparsity": zero, "persp": zero, "para": zero, "ghost": zero}
+    gW = torch.zeros_like(W)
+    if cfg.use_render:
+        U = (W[:, None] * data.colours).sum(0)
+    if cfg.use_render:
+        q = losses.render_quality(active, data.Q)
+        A = q.sum(0)
+        M = (q[:, None] * data.colours).sum(0)
+        UC = (U[None] * data.colours).sum(1)  # (K, H, W) U . I_j
+        UU = (U * U).sum(0)
+        qsq = (q * data.sq).sum(0)
+        # sum_k q_k |U - I_k|^2 = A |U|^2 - 2 U.M + sum_k q_k |I_k|^2
+        terms["render"] = (A * UU - 2 * (U * M).sum(0) + qsq).sum() / n
+        MC = (M[None] * data.colours).sum(1)  # (K, H, W) M . I_j
+        gW += cfg.alpha * 2 * (A[None] * UC - MC) / n
+        if cfg.ghost > 0:
+            spread = (W * data.sq).sum(0) - UU  # sum_k W_k |I_k - U|^2
+            terms["ghost"] = (A * spread).sum() / n
+            gW += cfg.alpha * cfg.ghost * A[None] * (data.sq - 2 * UC) / n
+        if cfg.use_sparsity:
+            terms["sparsity"] = (theta.clamp_min(0.0) * a).sum() / n
+    if cfg.use_persp:
+        terms["persp"] = (W * data.cost).sum() / n
+        gW += cfg.beta * data.cost / n
+    if cfg.use_para:
+        assert D is not None, "L_Para needs its edge weights D (losses.edge_weights)"
+        val, g = para_value_and_grad(W, active, D, matches, cfg.lambda_s, cfg.para_eps)
+        terms["para"] = val / n
+        gW += cfg.omega * g / n
+    total = zero
+    if cfg.use_render:
+        total = total + cfg.alpha * (terms["render"] + cfg.ghost * terms["ghost"] + cfg.sparsity * terms["sparsity"])
+    total = total + cfg.beta * terms["persp"] + cfg.omega * terms["para"]
+    terms["total"] = total
+    # dW_j/dtheta_i = a_i / S (delta_ij - W_j)
+    g_theta = a / S * (gW - (W * gW).sum(0, keepdim=True))
+    if cfg.use_render and cfg.use_sparsity:
+        g_theta += cfg.alpha * cfg.sparsity * a * (theta > 0).to(theta.dtype) / n
+    return terms, g_theta
+
+
+@dataclass
+class Adam:
+    """torch.optim.Adam's update (amsgrad off, no weight decay), in place on one tensor.
+
+    torch.optim imports torch._dynamo on first use (2.4 s per process here); this is the same
+    arithmetic on the one parameter tensor the method has.
+    """
+
+    lr: float
+    betas: tuple[float, float]
+    eps: float = 1e-8
+    step_count: int = 0
+    m: torch.Tensor | None = None
+    v: torch.Tensor | None = None
+
+    def step(self, param: torch.Tensor, grad: torch.Tensor) -> None:
+        if self.m is None:
+            self.m = torch.zeros_like(param)
+            self.v = torch.zeros_like(param)
+        b1, b2 = self.betas
+        self.step_count += 1
+        self.m.lerp_(grad, 1 - b1)
+        self.v.mul_(b2).addcmul_(grad, grad, value=1 - b2)
+        bc1 = 1 - b1**self.step_count
+        bc2 = 1 - b2**self.step_count
+        denom = (self.v.sqrt() / bc2**0.5).add_(self.eps)
+        param.addcdiv_(self.m, denom, value=-self.lr / bc1)
