@@ -138,7 +138,7 @@ def run_measured(cmd: list[str], log: Path, timeout_s: float, env: dict | None =
     exe = cmd[0] if os.sep in cmd[0] else shutil.which(cmd[0], path=(env or os.environ).get("PATH"))
     if exe is None:
         raise DifftexError(f"{cmd[0]}: {what} program not found on PATH")
-    usage = log.with_name(log.name + ".rusage.json")
+    usage = log.absolute().with_name(log.name + ".rusage.json")
     t0 = time.perf_counter()
     with open(log, "wb") as fh:
         # A new session: on a time-out the whole group (launcher, xvfb-run, Xvfb, MeshLab) is killed.
@@ -331,7 +331,7 @@ def run_peer(method: str, scene_dir: str | Path, out: str | Path, cfg: PeerConfi
         raise DifftexError(f"unknown peer '{method}' (known: {', '.join(PEERS)})")
     runner = texrecon if method == "texrecon" else meshlab
     runner.check_available()
-    out = Path(out)
+    out = Path(out).absolute()  # the programs run in their own working folders
     out.parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.", suffix=".partial", dir=out.parent))
     try:

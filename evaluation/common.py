@@ -25,9 +25,10 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-METHODS = ("difftex", "average", "frontal", "mrf", "texrecon")
+METHODS = ("difftex", "average", "frontal", "mrf", "texrecon", "meshlab-face", "meshlab-blend")
 LABELS = {"difftex": "DiffTex (ours)", "average": "Averaging (view blending)", "frontal": "Most frontal photo",
-          "mrf": "MRF view selection + leveling (LTBC-style)", "texrecon": "texrecon (mvs-texturing)"}
+          "mrf": "MRF view selection + leveling (LTBC-style)", "texrecon": "texrecon (mvs-texturing)",
+          "meshlab-face": "MeshLab per-face raster parameterization", "meshlab-blend": "MeshLab per-texel raster blend"}
 
 
 def machine() -> dict:
@@ -90,10 +91,6 @@ def difftex(*argv: str) -> float:
     return time.perf_counter() - t0
 
 
-def texrecon_available() -> bool:
-    return shutil.which("texrecon") is not None
-
-
 def run_common(scene: Path, out: Path, cfg: dict, only: list[str] | None = None) -> dict:
     """Filter and visibility once per scene and config (``only``: texture just these polygons)."""
     from difftex.io import read_json
@@ -154,18 +151,6 @@ def run_method(method: str, scene: Path, r: Path, common: dict, cfg: dict | None
         times[pid] = time.perf_counter() - ts
     total = time.perf_counter() - t0
     return {"method": method, "results": str(r), "polygon_s": times, "total_s": total}
-
-
-def run_texrecon(scene: Path, out: Path, common: dict) -> dict | None:
-    """texrecon on the same scene, if installed; None otherwise (the tables say it was skipped)."""
-    from difftex import texrecon
-
-    if not texrecon.available():
-        return None
-    r = out / "texrecon"
-    t0 = time.perf_counter()
-    texrecon.run_scene(scene, r, common["visibility"], [row["id"] for row in common["polygons"]])
-    return {"method": "texrecon", "results": str(r), "total_s": time.perf_counter() - t0}
 
 
 def evaluate(scene: Path, results: Path, lpips: str = "auto", config: Path | None = None) -> dict:
