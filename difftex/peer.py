@@ -371,6 +371,8 @@ def run_peer(method: str, scene_dir: str | Path, out: str | Path, cfg: PeerConfi
                             "that only waits for it: CPU of the program and its waited-for descendants, peak RSS "
                             "of the largest; wall time includes the launcher's start, about 20 ms)",
         }
+        # the command line named the temporary folder, which is about to become ``out``
+        record = json.loads(json.dumps(record, default=str).replace(str(tmp), str(out)))
         write_json(tmp / "peer.json", record)
         if out.exists():
             shutil.rmtree(out)
@@ -378,5 +380,4 @@ def run_peer(method: str, scene_dir: str | Path, out: str | Path, cfg: PeerConfi
     finally:
         if tmp.exists():
             shutil.rmtree(tmp, ignore_errors=True)
-    # paths inside the record pointed into the temporary folder; nothing else refers to it
     return record
