@@ -1,182 +1,147 @@
-"""mvs-texturing's ``texrecon`` as an extra baseline, run on the same scene and scored the same way.
+"""mvs-texturing's ``texrecon`` (Waechter et al. 2014, "Let There Be Color!") as a peer.
 
-``texrecon`` is a C++ program (Waechter et al. 2014); it is used only when an executable of that
-name is on PATH (the evaluation commands skip it cleanly otherwise). The scene is exported in
-its "scene folder" format (one ``.cam`` file per image: world-to-camera ``t``, ``R`` on the
-first line, ``f d0 d1 paspect ppx ppy`` with ``f`` divided by the larger image side and the
-principal point by width / height), the proxy as a triangulated PLY. Its textured OBJ is then
-read back into difftex's per-polygon UV frames by :func:`import_obj`: every polygon texel is
-located in the OBJ triangle lying on the polygon's plane that contains it, and the material's
-image is sampled at the interpolated UV. ``import_obj`` works for any textured OBJ of the proxy
-(difftex's own assembled model is used to test it).
+The executable is ``$DIFFTEX_TEXRECON`` when set, else ``texrecon`` on PATH; build it with
+``../shared/peers/build_texrecon.sh PREFIX`` (it lands in ``PREFIX/build/apps/texrecon/``).
+:func:`difftex.peer.run_peer` drives it through :func:`prepare`, :func:`run` and :func:`collect`.
 
-Distortion: COLMAP's radial coefficients are not passed (texrecon expects undistorted images);
-for the distorted real scene (lund-door, k = -0.03) this costs texrecon a little accuracy at
-the image borders.
+Input is texrecon's "scene folder": one image and one ``.cam`` file per photo. A ``.cam`` file
+holds the world-to-camera pose (``tx ty tz R00 .. R22``) on its first line and
+``f d0 d1 paspect ppx ppy`` on its second, with ``f`` divided by the larger image side and the
+principal point divided by width / height. texrecon's own projection (MVE ``fill_calibration``
+then ``TextureView::get_pixel_coords``, which subtracts 0.5) puts pixel centres at +0.5 like
+COLMAP, so the ideal pinhole cameras of :mod:`difftex.pinhole` are written as they are
+(``paspect`` 1, principal point 0.5 0.5, no distortion). The mesh is the ear-clipped, subdivided
+proxy as a PLY: texrecon textures a triangle from a view only if all its corners are visible.
+
+Its view selection (one photo per triangle, ``<prefix>_labeling.vec``: label 0 none, label l the
+l-th view in name order) becomes the per-texel source map, so Q_front / Q_vc are scored for it
+like for the other view-selection methods.
 """
 
 from __future__ import annotations
 
+import os
 import shutil
-import subprocess
 from pathlib import Path
 
 import numpy as np
 
 from difftex.errors import DifftexError
+from difftex.objimport import import_obj  # noqa: F401  (re-exported: texrecon's OBJ is read with it)
+
+BUILD_HINT = "build it with ../shared/peers/build_texrecon.sh and put it on PATH or set DIFFTEX_TEXRECON"
+
+
+def _find() -> tuple[str | None, str]:
+    """(executable or None, why not)."""
+    env = os.environ.get("DIFFTEX_TEXRECON")
+    if env:
+        if Path(env).is_file() and os.access(env, os.X_OK):
+            return env, ""
+        return None, f"{env}: DIFFTEX_TEXRECON is not an executable file"
+    exe = shutil.which("texrecon")
+    return (exe, "") if exe else (None, f"texrecon: no 'texrecon' executable on PATH and DIFFTEX_TEXRECON unset ({BUILD_HINT})")
+
+
+def executable() -> str | None:
+    return _find()[0]
 
 
 def available() -> bool:
-    return shutil.which("texrecon") is not None
+    return executable() is not None
 
 
-def cam_file_text(photo) -> str:
-    K = photo.K()
-    w, h = photo.width, photo.height
+def unavailable_reason() -> str:
+    return _find()[1]
+
+
+def check_available() -> None:
+    exe, why = _find()
+    if exe is None:
+        raise DifftexError(why)
+
+
+def cam_file_text(cam) -> str:
+    """The ``.cam`` file of a pinhole camera (anything with ``R``, ``t``, ``K()``, ``width``, ``height``)."""
+    K = cam.K()
+    w, h = cam.width, cam.height
+    t = " ".join(f"{x:.12g}" for x in cam.t)
+    R = " ".join(f"{x:.12g}" for x in np.asarray(cam.R).reshape(-1))
     f = K[0, 0] / max(w, h)
-    t = " ".join(f"{x:.12g}" for x in photo.t)
-    R = " ".join(f"{x:.12g}" for x in photo.R.reshape(-1))
     return f"{t} {R}\n{f:.12g} 0 0 {K[1, 1] / K[0, 0]:.12g} {K[0, 2] / w:.12g} {K[1, 2] / h:.12g}\n"
 
 
-def export_scene(scene, out: Path) -> tuple[Path, Path]:
-    """(scene folder, mesh.ply) for texrecon from a loaded difftex Scene."""
-    import trimesh
-
-    from difftex.assemble import triangulate
+def prepare(method: str, work: Path, cams: list, mesh, frames, cfg) -> dict:
+    """Write the .cam files beside the resampled photos (``work/photos/v00000.png``) and the mesh PLY."""
     from difftex.io import write_text
+    from difftex.meshing import write_ply
 
-    sdir = out / "texrecon_scene"
-    sdir.mkdir(parents=True, exist_ok=True)
-    for ph in scene.photos:
-        stem = Path(ph.name).stem
-        link = sdir / (stem + Path(ph.name).suffix)
-        if not link.exists():
-            link.symlink_to(Path(ph.image_path).resolve())
-        write_text(sdir / f"{stem}.cam", cam_file_text(ph))
-    V, F = [], []
-    for poly in scene.proxy.polygons:
-        v, t = triangulate(poly)
-        F.append(t + sum(len(x) for x in V))
-        V.append(v)
-    mesh = trimesh.Trimesh(np.concatenate(V), np.concatenate(F), process=False)
-    ply = out / "proxy_mesh.ply"
-    mesh.export(ply)
-    return sdir, ply
+    for i, cam in enumerate(cams):
+        write_text(work / "photos" / f"v{i:05d}.cam", cam_file_text(cam))
+    write_ply(work / "mesh.ply", mesh)
+    (work / "out").mkdir(parents=True, exist_ok=True)
+    prefix = work / "out" / "model"
+    cmd = [executable(), str(work / "photos"), str(work / "mesh.ply"), str(prefix), "--write_timings"]
+    if cfg.threads:
+        cmd.append(f"--num_threads={cfg.threads}")
+    return {"cmd": cmd, "prefix": str(prefix), "views": len(cams), "faces": int(len(mesh.faces))}
 
 
-def read_obj(path: Path) -> tuple[np.ndarray, np.ndarray, list[tuple[list[int], list[int], str]], dict[str, Path]]:
-    """(positions, uvs, faces as (vertex ids, uv ids, material), material -> image) of an OBJ."""
-    path = Path(path)
-    V, T, faces, mtl_files = [], [], [], []
-    mat = ""
-    for ln in path.read_text().splitlines():
-        p = ln.split()
-        if not p:
-            continue
-        if p[0] == "v":
-            V.append([float(x) for x in p[1:4]])
-        elif p[0] == "vt":
-            T.append([float(x) for x in p[1:3]])
-        elif p[0] == "usemtl":
-            mat = p[1]
-        elif p[0] == "mtllib":
-            mtl_files.append(path.parent / " ".join(p[1:]))
-        elif p[0] == "f":
-            vi, ti = [], []
-            for c in p[1:]:
-                s = c.split("/")
-                vi.append(int(s[0]) - 1 if int(s[0]) > 0 else len(V) + int(s[0]))
-                ti.append((int(s[1]) - 1 if int(s[1]) > 0 else len(T) + int(s[1])) if len(s) > 1 and s[1] else -1)
-            faces.append((vi, ti, mat))
-    images = {}
-    for mf in mtl_files:
-        cur = None
-        for ln in mf.read_text().splitlines():
-            p = ln.split()
-            if p and p[0] == "newmtl":
-                cur = p[1]
-            elif p and p[0] == "map_Kd" and cur is not None:
-                images[cur] = mf.parent / p[-1]
-    return np.asarray(V, float).reshape(-1, 3), np.asarray(T, float).reshape(-1, 2), faces, images
+def run(job: dict, work: Path, cfg, log: Path):
+    from difftex.peer import run_measured
+
+    phase = run_measured(job["cmd"], log, cfg.timeout_s, what="texrecon")
+    timings = Path(job["prefix"] + "_timings.csv")
+    if timings.is_file():  # texrecon's own per-step wall times, for the benchmark
+        phase.notes["texrecon_steps_ms"] = read_timings(timings)
+    return phase
 
 
-def import_obj(obj: Path, frames: dict, masks: dict, plane_tol: float = 1e-3) -> dict[str, tuple[np.ndarray, np.ndarray]]:
-    """Per polygon id: (texture (H, W, 3) in its UV frame, covered (H, W) bool) from a textured OBJ."""
-    from skimage.draw import polygon as fill
+def read_timings(path: Path) -> dict[str, float]:
+    """{step: milliseconds} from texrecon's ``--write_timings`` CSV ('Relative milliseconds' column)."""
+    import csv
 
-    from difftex.io import read_image
-    from difftex.mapping import sample_photo
-
-    V, T, faces, images = read_obj(obj)
-    pix = {m: read_image(p) for m, p in images.items()}
+    rows = list(csv.reader(path.read_text().splitlines()))
+    if not rows:
+        return {}
+    head = [h.strip() for h in rows[0]]
+    col = head.index("Relative milliseconds") if "Relative milliseconds" in head else len(head) - 1
     out = {}
-    for pid, fr in frames.items():
-        H, W = fr.shape
-        tex = np.zeros((H, W, 3), np.float32)
-        cov = np.zeros((H, W), bool)
-        scale = max(fr.width, fr.height) * fr.texel_size
-        for vi, ti, mat in faces:
-            P = V[vi]
-            if np.abs((P - fr.origin) @ fr.normal).max() > plane_tol * scale or mat not in pix or min(ti) < 0:
-                continue
-            uv = T[ti]
-            for k in range(1, len(vi) - 1):  # fan triangulation of n-gons
-                tri = [0, k, k + 1]
-                t = fr.world_to_texel(P[tri])
-                rr, cc = fill(t[:, 1] - 0.5, t[:, 0] - 0.5, shape=(H, W))
-                if len(rr) == 0:
-                    continue
-                # barycentric coordinates of the texel centres in the triangle
-                a, b, c = t
-                M = np.array([[b[0] - a[0], c[0] - a[0]], [b[1] - a[1], c[1] - a[1]]])
-                if abs(np.linalg.det(M)) < 1e-12:
-                    continue
-                q = np.stack([cc + 0.5 - a[0], rr + 0.5 - a[1]])
-                l12 = np.linalg.solve(M, q)
-                lam = np.stack([1 - l12[0] - l12[1], l12[0], l12[1]], -1)
-                u = lam @ uv[tri]
-                img = pix[mat]
-                ih, iw = img.shape[:2]
-                p_img = np.stack([u[:, 0] * iw, (1 - u[:, 1]) * ih], -1)
-                tex[rr, cc] = sample_photo(img, p_img)
-                cov[rr, cc] = True
-        out[pid] = (tex, cov & masks[pid])
+    for r in rows[1:]:
+        try:
+            out[r[0].strip()] = float(r[col])
+        except (IndexError, ValueError):
+            continue
     return out
 
 
-def run_scene(scene_dir: Path, out: Path, visibility_dir: Path, polygon_ids: list[str], timeout_s: int = 3600) -> dict:
-    """Run texrecon on a scene and write difftex-style per-polygon outputs under ``out/textures``."""
-    import time
+def read_labels(path: Path, n_faces: int) -> np.ndarray | None:
+    """texrecon's per-face view labels (0: none, l: view l-1), or None if absent or for another mesh."""
+    if not path.is_file():
+        return None
+    lab = np.fromfile(path, dtype=np.uint64)
+    return lab.astype(np.int64) if len(lab) == n_faces else None
 
-    from difftex.scene import load_scene
-    from difftex.outputs import write_texture_outputs
-    from difftex.texture import finish_texture
-    from difftex.visibility import load_visibility
 
-    if not available():
-        raise DifftexError("texrecon: no 'texrecon' executable on PATH (install mvs-texturing)")
-    t0 = time.perf_counter()
-    out = Path(out)
-    if out.exists():
-        shutil.rmtree(out)
-    out.mkdir(parents=True)
-    (out / "visibility.txt").write_text(str(Path(visibility_dir).resolve()))
-    sc = load_scene(scene_dir)
-    sdir, ply = export_scene(sc, out)
-    prefix = out / "texrecon" / "model"
-    prefix.parent.mkdir(parents=True)
-    log = out / "texrecon.log"
-    with open(log, "w") as fh:
-        rc = subprocess.run(["texrecon", str(sdir), str(ply), str(prefix)], stdout=fh, stderr=subprocess.STDOUT,
-                            timeout=timeout_s).returncode
-    if rc != 0 or not prefix.with_suffix(".obj").is_file():
-        raise DifftexError(f"texrecon failed (exit {rc}); see {log}")
-    t_run = time.perf_counter() - t0
-    vis = {pid: load_visibility(Path(visibility_dir) / f"{pid}.npz") for pid in polygon_ids}
-    got = import_obj(prefix.with_suffix(".obj"), {p: v.frame for p, v in vis.items()}, {p: v.texel_mask for p, v in vis.items()})
-    for pid, (tex, cov) in got.items():
-        U, fill = finish_texture(tex, cov.astype(np.float32), vis[pid].texel_mask)
-        write_texture_outputs(out / "textures" / pid, U, vis[pid].texel_mask, cov, np.full(cov.shape, -1), [],
-                              {"polygon_id": pid, "method": "texrecon", **fill, "time_s": t_run / max(len(got), 1)})
-    return {"texrecon_s": t_run, "total_s": time.perf_counter() - t0}
+def collect(job: dict, work: Path, frames, mesh) -> tuple[dict, dict | None, dict]:
+    """(imported textures, per-polygon source photo index maps or None, report extras)."""
+    from difftex.objimport import polygon_face_map
+
+    obj = Path(job["prefix"] + ".obj")
+    if not obj.is_file():
+        raise DifftexError(f"{obj}: texrecon wrote no textured model")
+    imported = import_obj(obj, frames.frames, frames.masks)
+    labels = read_labels(Path(job["prefix"] + "_labeling.vec"), len(mesh.faces))
+    sources = None
+    if labels is not None:
+        sources = {}
+        for pid, fr in frames.frames.items():
+            sel = mesh.faces_of(pid)
+            face = polygon_face_map(fr, mesh.vertices[mesh.faces[sel]])
+            lab = np.where(face >= 0, labels[sel][np.maximum(face, 0)], 0)
+            sources[pid] = lab - 1  # view l -> photo index l - 1; 0 (unseen) -> -1
+    return imported, sources, {"source_map": "texrecon view selection" if sources is not None else None}
+
+
+def describe(job: dict) -> dict:
+    return {"program": "texrecon", "command": " ".join(job["cmd"])}

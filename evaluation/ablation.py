@@ -17,6 +17,7 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from evaluation import common as C  # noqa: E402
+from evaluation import peers as P  # noqa: E402
 
 VARIANTS = {
     "full": ({}, "all terms and steps on"),
@@ -39,6 +40,7 @@ def main(argv=None) -> int:
     ap.add_argument("--long-side", type=int, default=128)
     ap.add_argument("--preset", default="fast")
     ap.add_argument("--variants", default=",".join(VARIANTS))
+    ap.add_argument("--peers", default=",".join(P.PEERS), help="peer programs as reference rows ('' for none)")
     C.add_table_args(ap, "ablation")
     args = ap.parse_args(argv)
 
@@ -61,6 +63,10 @@ def main(argv=None) -> int:
         ev = C.evaluate(scene, work / v, args.lpips, config=common["config"])
         rows.append({"variant": v, "what": what, "optimize": over, "run": r, "metrics": ev})
         print(f"ablation: {v} done in {r['total_s']:.0f} s", flush=True)
+    for m in [m for m in args.peers.split(",") if m]:
+        r = P.run_peer(m, scene, work / m, common)
+        ev = None if r.get("missing") else C.evaluate(scene, work / m, args.lpips, config=common["config"])
+        rows.append({"variant": m, "what": f"peer: {C.LABELS[m]}", "run": r, "metrics": ev, "missing": r.get("missing")})
     mach = C.machine()
     notes = [f"Scene `{scene}`, polygons: {', '.join(r['id'] for r in common['polygons'])}.",
              f"**Reduced sizes**: texture long side {args.long_side}, difftex preset `{args.preset}` "
@@ -68,13 +74,18 @@ def main(argv=None) -> int:
              "One switch of the `optimize:` section off per row (OptimizeConfig: use_render, use_sparsity, use_persp, "
              "use_para, data_elimination, histogram_matching, coarse_to_fine), or another histogram-matching reference "
              "(histmatch_reference; default median); everything else as in `full`.",
-             "Maps scored against ground truth as in Table 1; time is texturing (init + optimize + histmatch) summed over the polygons."]
+             "Maps scored against ground truth as in Table 1; time is texturing (init + optimize + histmatch) summed over the polygons.",
+             "Peer rows: the peer programs on the same polygons and photos, for reference (not difftex variants)."]
+    notes += [n for n in [P.timing_note(rows)] if n]
     lines = [C.header("Ablation: each loss term and data-quality step off in turn",
                       "python evaluation/ablation.py " + " ".join(sys.argv[1:] if argv is None else argv), mach, notes)]
-    lv = next((r["metrics"]["maps"]["overall"]["lpips_variant"] for r in rows), "n/a")
+    lv = next((r["metrics"]["maps"]["overall"]["lpips_variant"] for r in rows if r.get("metrics")), "n/a")
     lines.append(f"| Variant | Error (90%) | Error (95%) | SSIM | LPIPS ({lv}) | PSNR | Q_front | Q_vc | Time (s) |")
     lines.append("|---|---|---|---|---|---|---|---|---|")
     for r in rows:
+        if r.get("missing"):
+            lines.append(P.missing_line(r["what"], r["missing"], 9))
+            continue
         o = r["metrics"]["maps"]["overall"]
         q = r["metrics"].get("perspective", {})
         lines.append(f"| {r['what']} | {C.fmt(o['error90'])} | {C.fmt(o['error95'])} | {C.fmt(o['ssim'])} | {C.fmt(o['lpips'])} | "

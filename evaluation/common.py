@@ -25,9 +25,10 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-METHODS = ("difftex", "average", "frontal", "mrf", "texrecon")
+METHODS = ("difftex", "average", "frontal", "mrf", "texrecon", "meshlab-face", "meshlab-blend")
 LABELS = {"difftex": "DiffTex (ours)", "average": "Averaging (view blending)", "frontal": "Most frontal photo",
-          "mrf": "MRF view selection + leveling (LTBC-style)", "texrecon": "texrecon (mvs-texturing)"}
+          "mrf": "MRF view selection + leveling (LTBC-style)", "texrecon": "texrecon (mvs-texturing)",
+          "meshlab-face": "MeshLab per-face raster parameterization", "meshlab-blend": "MeshLab per-texel raster blend"}
 
 
 def machine() -> dict:
@@ -90,10 +91,6 @@ def difftex(*argv: str) -> float:
     return time.perf_counter() - t0
 
 
-def texrecon_available() -> bool:
-    return shutil.which("texrecon") is not None
-
-
 def run_common(scene: Path, out: Path, cfg: dict, only: list[str] | None = None) -> dict:
     """Filter and visibility once per scene and config (``only``: texture just these polygons)."""
     from difftex.io import read_json
@@ -140,11 +137,8 @@ def run_method(method: str, scene: Path, r: Path, common: dict, cfg: dict | None
         tex = r / "textures" / pid
         ts = time.perf_counter()
         if method == "difftex":
-            difftex("init", "--scene", scene, "--visibility", vis, "--config", cfg_path, "--out", r / "init" / f"{pid}.npz")
-            difftex("optimize", "--scene", scene, "--visibility", vis, "--init", r / "init" / f"{pid}.npz",
-                    "--config", cfg_path, "--out-dir", r / "optimized" / pid, "--no-progress")
-            difftex("histmatch", "--scene", scene, "--visibility", vis, "--optimized", r / "optimized" / pid,
-                    "--config", cfg_path, "--out-dir", tex)
+            difftex("texture", "--scene", scene, "--visibility", vis, "--config", cfg_path, "--out-dir", r / "optimized" / pid,
+                    "--png-dir", tex, "--no-progress")
         elif method in ("average", "frontal"):
             difftex("baseline", "--scene", scene, "--visibility", vis, "--config", cfg_path, "--method", method, "--out-dir", tex)
         elif method == "mrf":
@@ -154,18 +148,6 @@ def run_method(method: str, scene: Path, r: Path, common: dict, cfg: dict | None
         times[pid] = time.perf_counter() - ts
     total = time.perf_counter() - t0
     return {"method": method, "results": str(r), "polygon_s": times, "total_s": total}
-
-
-def run_texrecon(scene: Path, out: Path, common: dict) -> dict | None:
-    """texrecon on the same scene, if installed; None otherwise (the tables say it was skipped)."""
-    from difftex import texrecon
-
-    if not texrecon.available():
-        return None
-    r = out / "texrecon"
-    t0 = time.perf_counter()
-    texrecon.run_scene(scene, r, common["visibility"], [row["id"] for row in common["polygons"]])
-    return {"method": "texrecon", "results": str(r), "total_s": time.perf_counter() - t0}
 
 
 def evaluate(scene: Path, results: Path, lpips: str = "auto", config: Path | None = None) -> dict:

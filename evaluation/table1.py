@@ -20,6 +20,7 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from evaluation import common as C  # noqa: E402
+from evaluation import peers as P  # noqa: E402
 
 
 def ensure_synth(scene: Path, preset: str = "tiny") -> float | None:
@@ -33,7 +34,7 @@ def main(argv=None) -> int:
     ap.add_argument("--scene", default="evaluation/out/scenes/tiny", help="synthetic scene (generated if missing)")
     ap.add_argument("--long-side", type=int, default=256, help="texture long side of every method")
     ap.add_argument("--preset", default="fast", help="difftex preset (config/presets/<name>.yaml)")
-    ap.add_argument("--methods", default="difftex,average,frontal,mrf,texrecon")
+    ap.add_argument("--methods", default="difftex,average,frontal,mrf,texrecon,meshlab-face,meshlab-blend")
     C.add_table_args(ap, "table1")
     args = ap.parse_args(argv)
 
@@ -48,10 +49,11 @@ def main(argv=None) -> int:
     rows = []
     skipped = []
     for m in args.methods.split(","):
-        if m == "texrecon":
-            r = C.run_texrecon(scene, work, common)
-            if r is None:
-                skipped.append("texrecon: no `texrecon` executable on PATH (mvs-texturing not installed); row skipped")
+        if P.is_peer(m):
+            r = P.run_peer(m, scene, work / m, common)
+            if r.get("missing"):
+                skipped.append(f"{C.LABELS[m]}: not run ({r['missing']})")
+                rows.append({"method": m, "run": r, "missing": r["missing"]})
                 continue
         else:
             r = C.run_method(m, scene, work / m, common)
@@ -79,13 +81,16 @@ def main(argv=None) -> int:
         "Time: texturing only (sum over polygons of the method's per-polygon commands: init + optimize + histmatch "
         f"for difftex); shared filter {common['filter_s']:.0f} s + visibility {common['visibility_s']:.0f} s not included.",
         "Lower is better for Error and LPIPS, higher for SSIM, PSNR, Q_front, Q_vc.",
-    ] + skipped
+    ] + [n for n in [P.timing_note(rows)] if n] + skipped
     lines = [C.header("Table 1: synthetic scene, texture maps against ground truth",
                       "python evaluation/table1.py " + " ".join(sys.argv[1:] if argv is None else argv), mach, notes)]
-    lv = next((r["metrics"]["maps"]["overall"]["lpips_variant"] for r in rows if "maps" in r["metrics"]), "n/a")
+    lv = next((r["metrics"]["maps"]["overall"]["lpips_variant"] for r in rows if "maps" in r.get("metrics", {})), "n/a")
     lines.append(f"| Method | Error (90%) | Error (95%) | SSIM | LPIPS ({lv}) | PSNR | views SSIM | views LPIPS | Q_front | Q_vc | Time (s) |")
     lines.append("|---|---|---|---|---|---|---|---|---|---|---|")
     for r in rows:
+        if r.get("missing"):
+            lines.append(P.missing_line(C.LABELS[r["method"]], r["missing"], 11))
+            continue
         mm = r["metrics"]
         o = mm["maps"]["overall"]
         v = mm.get("views", {}).get("overall", {})
@@ -99,9 +104,10 @@ def main(argv=None) -> int:
     try:
         from difftex.report import comparison_page, write_report
 
-        for r in rows:
+        done = [r for r in rows if not r.get("missing")]
+        for r in done:
             write_report(r["run"]["results"], scene=scene)
-        comparison_page(work / "index.html", "Table 1", "\n".join(lines), {r["method"]: r["run"]["results"] for r in rows})
+        comparison_page(work / "index.html", "Table 1", "\n".join(lines), {r["method"]: r["run"]["results"] for r in done})
         lines.append(f"HTML reports: `{work}/index.html` (one page per method with textures, source/error maps, loss curves).")
     except ImportError:
         pass

@@ -21,6 +21,7 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from evaluation import common as C  # noqa: E402
+from evaluation import peers as P  # noqa: E402
 
 SHARED = Path(__file__).resolve().parents[1] / ".." / "shared" / "data"
 
@@ -34,7 +35,7 @@ def main(argv=None) -> int:
     ap.add_argument("--long-side", type=int, default=128)
     ap.add_argument("--preset", default="fast")
     ap.add_argument("--render-long-side", type=int, default=768, help="held-out views are compared at this size")
-    ap.add_argument("--methods", default="difftex,average,frontal,mrf,texrecon")
+    ap.add_argument("--methods", default="difftex,average,frontal,mrf,texrecon,meshlab-face,meshlab-blend")
     C.add_table_args(ap, "table2")
     args = ap.parse_args(argv)
 
@@ -59,11 +60,12 @@ def main(argv=None) -> int:
                               "polygons": len(common["polygons"])}
         runs = {}
         for m in args.methods.split(","):
-            if m == "texrecon":
-                r = C.run_texrecon(copy, work, common)
-                if r is None:
-                    if not any("texrecon" in s for s in skipped):
-                        skipped.append("texrecon: no `texrecon` executable on PATH (mvs-texturing not installed); rows skipped")
+            if P.is_peer(m):
+                r = P.run_peer(m, copy, work / m, common)
+                if r.get("missing"):
+                    if not any(C.LABELS[m] in s for s in skipped):
+                        skipped.append(f"{C.LABELS[m]}: not run ({r['missing']})")
+                    results.append({"scene": sc.name, "method": m, "run": r, "missing": r["missing"]})
                     continue
             else:
                 r = C.run_method(m, copy, work / m, common)
@@ -90,13 +92,16 @@ def main(argv=None) -> int:
         "Time: texturing only (sum over polygons); filter + visibility are shared: "
         + ", ".join(f"{n} {d['filter_s'] + d['visibility_s']:.0f} s" for n, d in per_scene.items()) + ".",
         "Lower is better for LPIPS, higher for the rest.",
-    ] + skipped
+    ] + [n for n in [P.timing_note(results)] if n] + skipped
     lines = [C.header("Table 2: real scenes, held-out photos and perspective quality",
                       "python evaluation/table2.py " + " ".join(sys.argv[1:] if argv is None else argv), mach, notes)]
-    lv = next((r["metrics"]["views"]["overall"]["lpips_variant"] for r in results if "views" in r["metrics"]), "n/a")
+    lv = next((r["metrics"]["views"]["overall"]["lpips_variant"] for r in results if "views" in r.get("metrics", {})), "n/a")
     lines.append(f"| Scene | Method | Q_front | Q_vc | SSIM | LPIPS ({lv}) | PSNR | Time (s) |")
     lines.append("|---|---|---|---|---|---|---|---|")
     for r in results:
+        if r.get("missing"):
+            lines.append(P.missing_line(C.LABELS[r["method"]], r["missing"], 8, [r["scene"]]))
+            continue
         mm = r["metrics"]
         v = mm.get("views", {}).get("overall", {})
         q = mm.get("perspective", {})
@@ -107,7 +112,9 @@ def main(argv=None) -> int:
     methods = list(dict.fromkeys(r["method"] for r in results))
     if len(scenes) > 1:
         for m in methods:
-            rs = [r for r in results if r["method"] == m]
+            rs = [r for r in results if r["method"] == m and not r.get("missing")]
+            if not rs:
+                continue
 
             def mean(get):
                 vals = [get(r) for r in rs if get(r) is not None]

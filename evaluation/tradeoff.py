@@ -18,6 +18,7 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from evaluation import common as C  # noqa: E402
+from evaluation import peers as P  # noqa: E402
 
 
 def plot(rows: list[dict], out: Path) -> None:
@@ -52,7 +53,8 @@ def main(argv=None) -> int:
     ap.add_argument("--scene", default="evaluation/out/scenes/tiny")
     ap.add_argument("--runs", default="fast@128,fast@256,balanced@128,balanced@256",
                     help="comma-separated preset@long_side")
-    ap.add_argument("--baselines", default="average,mrf", help="run at each resolution as reference points ('' for none)")
+    ap.add_argument("--baselines", default="average,mrf,texrecon,meshlab-face,meshlab-blend",
+                    help="run at each resolution as reference points ('' for none)")
     ap.add_argument("--polygons", default="wall00", help="comma-separated ids, or 'all'")
     C.add_table_args(ap, "tradeoff")
     args = ap.parse_args(argv)
@@ -73,7 +75,13 @@ def main(argv=None) -> int:
             cfg = C.base_config(side, "fast", {"evaluate": {"views": False}})
             commons[side] = C.run_common(scene, work / f"common{side}", cfg, only)
             for b in [b for b in args.baselines.split(",") if b]:
-                r = C.run_method(b, scene, work / f"{b}@{side}", commons[side])
+                if P.is_peer(b):
+                    r = P.run_peer(b, scene, work / f"{b}@{side}", commons[side])
+                    if r.get("missing"):
+                        rows.append({"label": f"{b}@{side}", "method": b, "long_side": side, "run": r, "missing": r["missing"]})
+                        continue
+                else:
+                    r = C.run_method(b, scene, work / f"{b}@{side}", commons[side])
                 ev = C.evaluate(scene, work / f"{b}@{side}", args.lpips, config=commons[side]["config"])
                 rows.append({"label": f"{b}@{side}", "method": b, "preset": None, "long_side": side, "run": r, "metrics": ev})
         cfg = C.base_config(side, preset, {"evaluate": {"views": False}})
@@ -84,18 +92,21 @@ def main(argv=None) -> int:
         print(f"tradeoff: {preset}@{side} done in {r['total_s']:.0f} s", flush=True)
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
-    plot(rows, out.with_suffix(".png"))
+    plot([r for r in rows if not r.get("missing")], out.with_suffix(".png"))
     mach = C.machine()
     notes = [f"Scene `{scene}`, polygons {args.polygons}.",
              "Presets from config/presets/<name>.yaml with the texture long side overridden; minutes = texturing time "
              "(init + optimize + histmatch for difftex) summed over the polygons, on this shared 2-core machine.",
-             f"Plot: `{out.with_suffix('.png').name}`."]
+             f"Plot: `{out.with_suffix('.png').name}`."] + [n for n in [P.timing_note(rows)] if n]
     lines = [C.header("Speed/accuracy trade: presets and resolutions",
                       "python evaluation/tradeoff.py " + " ".join(sys.argv[1:] if argv is None else argv), mach, notes)]
-    lv = next((r["metrics"]["maps"]["overall"]["lpips_variant"] for r in rows), "n/a")
+    lv = next((r["metrics"]["maps"]["overall"]["lpips_variant"] for r in rows if r.get("metrics")), "n/a")
     lines.append(f"| Run | loss | iteration caps | Error (95%) | Error (90%) | SSIM | LPIPS ({lv}) | Minutes |")
     lines.append("|---|---|---|---|---|---|---|---|")
     for r in rows:
+        if r.get("missing"):
+            lines.append(P.missing_line(r["label"], r["missing"], 8))
+            continue
         o = r["metrics"]["maps"]["overall"]
         opt = r.get("optimize") or {}
         lines.append(f"| {r['label']} | {opt.get('loss_mode', '-')} | {opt.get('max_iters_per_level', '-')} | {C.fmt(o['error95'])} | "

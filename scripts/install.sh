@@ -24,4 +24,11 @@ if [ "$(id -u)" = 0 ] && command -v apt-get >/dev/null && ! ldconfig -p 2>/dev/n
   (apt-get install -y -qq libllvm19 >/dev/null 2>&1 || { apt-get update -qq >/dev/null 2>&1 && apt-get install -y -qq libllvm19 >/dev/null 2>&1; }) \
     || echo "note: libllvm19 not installed; Mitsuba will use scalar_rgb"
 fi
+# The MeshLab peer (pymeshlab, installed above with the package) needs an OpenGL context and Qt's
+# platform plugins: Debian's xvfb + xauth (xvfb-run) and libqt5gui5. texrecon, the other peer, is
+# built separately: ../shared/peers/build_texrecon.sh (README, "Peers").
+if [ "$(id -u)" = 0 ] && command -v apt-get >/dev/null && ! { command -v xvfb-run >/dev/null && command -v xauth >/dev/null && dpkg -s libqt5gui5 >/dev/null 2>&1; }; then
+  (apt-get install -y -qq xvfb xauth libqt5gui5 >/dev/null 2>&1 || { apt-get update -qq >/dev/null 2>&1 && apt-get install -y -qq xvfb xauth libqt5gui5 >/dev/null 2>&1; }) \
+    || echo "note: xvfb/xauth/libqt5gui5 not installed; the MeshLab peer will be reported as unavailable"
+fi
 .venv/bin/python -c "import torch, torchvision, piq; print(f'difftex installed in $(pwd)/.venv: torch {torch.__version__}, torchvision {torchvision.__version__}, piq {piq.__version__}, CUDA ' + ('available' if torch.cuda.is_available() else 'not available (CPU)'))"
