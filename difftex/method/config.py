@@ -16,6 +16,7 @@ EliminationTest = Literal["loo", "paper"]
 HistmatchReference = Literal["median", "best", "pooled"]
 Device = Literal["auto", "cpu", "cuda"]
 CompileMode = Literal["auto", "on", "off"]
+RenderUnits = Literal["noise", "raw"]
 
 
 def _check_choice(name: str, value, choices: tuple) -> None:
@@ -36,6 +37,7 @@ class OptimizeConfig:
     lambda_s: float = 0.5
     para_eps: float = 0.01  # Charbonnier smoothing of |.| in L_Para (0: exact L1)
     sparsity: float = 1.0  # weight of the L1 term inside L_Render (paper: 1; see docs/optimizer.md)
+    render_units: RenderUnits = "noise"  # L_Render in units of the photometric noise ("noise") or raw ("raw": the paper)
     ghost: float = 1.0  # weight of the blend's spread next to L_Render (0: the paper's L_Render alone; see losses.ghost_loss)
     lr: float = 0.005
     betas: tuple[float, float] = (0.9, 0.99)
@@ -47,8 +49,8 @@ class OptimizeConfig:
     eliminate_every: int = 10  # iterations between pixel-elimination passes
     max_iters_per_level: tuple[int, ...] = (300, 150, 80, 40)  # caps, last value repeats
     min_iters_per_level: int = 20
-    conv_tol: float = 0.01  # converged when less than this share of the weights moved ...
-    conv_window: int = 10  # ... over this many iterations (checked every conv_window iterations)
+    conv_tol: float = 0.25  # converged when 99 % of the texels' weights moved less than this share of lr ...
+    conv_window: int = 10  # ... per iteration over the last conv_window iterations
     use_render: bool = True
     use_persp: bool = True
     use_para: bool = True
@@ -64,6 +66,7 @@ class OptimizeConfig:
     def __post_init__(self):
         _check_choice("loss_mode", self.loss_mode, ("texel", "render"))
         _check_choice("elimination_test", self.elimination_test, ("loo", "paper"))
+        _check_choice("render_units", self.render_units, ("noise", "raw"))
         _check_choice("histmatch_reference", self.histmatch_reference, ("best", "median", "pooled"))
         if not set(self.histmatch_channels) <= set("hsv") or not self.histmatch_channels:
             raise ValueError(f"histmatch_channels must be letters of 'hsv', got {self.histmatch_channels!r}")

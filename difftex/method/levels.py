@@ -45,6 +45,7 @@ class Level:
     pixel_sets: "losses.PixelBatch | None" = None  # render mode
     fixed_slots: bool = False  # slot j holds the same photo at every texel (all candidates fit in K)
     maps: int = 0  # photo mappings made to build the level
+    noise: float = 1.0  # typical colour disagreement of the candidates (sigma_c): L_Render's unit
 
     @property
     def n_tex(self) -> float:
@@ -92,6 +93,21 @@ def quality(cos: torch.Tensor, colour: torch.Tensor, mu: torch.Tensor, msd: torc
     d2 = ((colour - mu) ** 2).sum(0)
     q = cos * torch.exp(-0.5 * d2 / (msd + sigma_min**2))
     return torch.where(visible, q, torch.zeros_like(q))
+
+
+def level_noise(msd: torch.Tensor, count: torch.Tensor, floor: float) -> float:
+    """sigma_c: the median over texels seen by two photos or more of the RMS distance of their
+    colours to their mean, at least ``floor``.
+
+    Most texels of a polygon are photographed consistently (occluders, parallax and
+    misregistration touch a minority), so this is the level's photometric noise; L_Render is
+    measured in its units (OptimizeConfig.render_units), which puts colour disagreement on the
+    scale of the weight-valued L_Persp and L_Para at any exposure or contrast.
+    """
+    sel = count >= 2
+    if not bool(sel.any()):
+        return float(floor)
+    return max(float(floor), float(msd[sel].median().sqrt()))
 
 
 def gauge(theta: torch.Tensor, active: torch.Tensor) -> torch.Tensor:
@@ -192,6 +208,7 @@ def build_level(photos: PhotoSet, frame: UVFrame, cfg: OptimizeConfig, transfers
     mu = s1 / c
     msd = (s2 / c - (mu * mu).sum(0)).clamp_min(0.0)  # mean squared distance to the mean
     G = gsum / c
+    noise = level_noise(msd, cnt, cfg.sigma_min)
     normal = torch.tensor(frame.normal, dtype=torch.float32, device=device)
     v_tilde = losses.guidance_direction(torch.stack(vsum), normal) if vsum else -normal
 
@@ -246,4 +263,4 @@ def build_level(photos: PhotoSet, frame: UVFrame, cfg: OptimizeConfig, transfers
     th0 = th0.clamp(0.0, 1.0) * vis
     th0 = gauge(th0, vis)
     return Level(frame=frame, mask=mask, idx=idx, visible=vis, colours=cols, Q=Q, cost=cost, G=G, theta0=th0,
-                 v_tilde=v_tilde.cpu().numpy(), n_candidates=len(seen), fixed_slots=fixed, maps=maps)
+                 v_tilde=v_tilde.cpu().numpy(), n_candidates=len(seen), fixed_slots=fixed, maps=maps, noise=noise)

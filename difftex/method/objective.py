@@ -57,6 +57,13 @@ def objective(theta, active, colours, Q, cost, D, matches, pixel_sets, support, 
     return terms
 
 
+def render_weights(lv: Level, cfg: OptimizeConfig) -> torch.Tensor:
+    """Q as L_Render weighs the photos: Q / sigma_c with render_units "noise" (so that L_Render
+    and the ghost term count squared colour differences in units of the level's photometric
+    noise, levels.level_noise), Q itself with "raw" (the paper)."""
+    return lv.Q / lv.noise if cfg.render_units == "noise" else lv.Q
+
+
 def refresh_edge_weights(st: LevelState, cfg: OptimizeConfig) -> None:
     """Recompute L_Para's edge weights D from the current texture when they are due (every
     ``eliminate_every`` iterations): D is a constant of the term between refreshes."""
@@ -76,18 +83,19 @@ def value_and_grad(st: LevelState, cfg: OptimizeConfig, fn=None) -> tuple[dict[s
     """
     lv = st.level
     refresh_edge_weights(st, cfg)
+    Q = render_weights(lv, cfg)
     if cfg.loss_mode == "texel":
         if st.texel is None:
-            st.texel = texel_data(lv.colours, lv.Q, lv.cost, lv.n_tex)
+            st.texel = texel_data(lv.colours, Q, lv.cost, lv.n_tex)
         with torch.no_grad():
             return texel_value_and_grad(st.theta, st.active, st.texel, st.D, st.matches, cfg)
     support = render_support(lv) if cfg.use_render else None
     if fn is None:
         with torch.no_grad():
-            return objective(st.theta, st.active, lv.colours, lv.Q, lv.cost, st.D, st.matches, lv.pixel_sets, support,
+            return objective(st.theta, st.active, lv.colours, Q, lv.cost, st.D, st.matches, lv.pixel_sets, support,
                              lv.n_tex, cfg), None
     theta = st.theta.detach().requires_grad_(True)
-    terms = fn(theta, st.active, lv.colours, lv.Q, lv.cost, st.D, st.matches, lv.pixel_sets, support, lv.n_tex, cfg)
+    terms = fn(theta, st.active, lv.colours, Q, lv.cost, st.D, st.matches, lv.pixel_sets, support, lv.n_tex, cfg)
     terms["total"].backward()
     return {k: v.detach() for k, v in terms.items()}, theta.grad
 
