@@ -24,7 +24,7 @@ import numpy as np
 
 from difftex.errors import DifftexError
 from difftex.mapping import UVFrame
-from difftex.proxy import Polygon
+from difftex.proxy import Polygon, triangulate
 
 log = logging.getLogger(__name__)
 
@@ -213,23 +213,6 @@ def build_atlas(items: list[PolygonTexture], cfg: AssembleConfig) -> Atlas:
 
 # ---------------------------------------------------------------------------------------------
 # Geometry
-
-
-def triangulate(polygon: Polygon) -> tuple[np.ndarray, np.ndarray]:
-    """(vertices (n, 3), triangles (m, 3)) of a planar polygon with holes, counter-clockwise seen
-    from outside (earcut in the polygon's plane)."""
-    import mapbox_earcut
-
-    loops = [polygon.outer, *polygon.holes]
-    verts = np.concatenate(loops).astype(np.float64)
-    rings = np.cumsum([len(lp) for lp in loops]).astype(np.uint32)
-    tris = np.asarray(mapbox_earcut.triangulate_float64(polygon.to_plane(verts), rings), dtype=np.int64).reshape(-1, 3)
-    if len(tris) == 0:
-        raise DifftexError(f"polygon '{polygon.id}' could not be triangulated (degenerate outline)")
-    a, b, c = verts[tris[:, 0]], verts[tris[:, 1]], verts[tris[:, 2]]
-    flip = np.cross(b - a, c - a) @ polygon.normal < 0
-    tris[flip] = tris[flip][:, ::-1]
-    return verts, tris
 
 
 def is_convex(polygon: Polygon) -> bool:

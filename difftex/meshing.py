@@ -4,7 +4,7 @@ difftex works on whole polygons; the peers work on triangles. Two things matter 
 
 - **Ear clipping**, not fans: a fan over a non-convex polygon (an arched facade) or a polygon with
   holes covers its openings with flipped triangles, which then occlude the faces behind them.
-  :func:`difftex.assemble.triangulate` (mapbox earcut, holes included) is used.
+  :func:`difftex.proxy.triangulate` (mapbox earcut, holes included) is used.
 - **Small triangles**: texrecon textures a triangle from a view only if all three corners are
   visible in it, and MeshLab's per-face parameterization picks one photo per triangle, so a
   facade as a handful of large triangles would stay mostly untextured or come from one photo.
@@ -54,7 +54,7 @@ def ear_clip(polygon: Polygon) -> tuple[np.ndarray, np.ndarray]:
     Triangles are counter-clockwise seen from outside and exactly cover the outer boundary minus
     the holes.
     """
-    from difftex.assemble import triangulate
+    from difftex.proxy import triangulate
 
     return triangulate(polygon)
 

@@ -413,3 +413,20 @@ def write_proxy_obj(path: str | Path, polygons: list[Polygon], header: str = "")
         lines.append(f"g {pid}")
         lines.append("f " + " ".join(map(str, idx)))
     write_text(path, "\n".join(lines) + "\n")
+
+
+def triangulate(polygon: Polygon) -> tuple[np.ndarray, np.ndarray]:
+    """(vertices (n, 3), triangles (m, 3)) of a planar polygon with holes, counter-clockwise seen
+    from outside (earcut in the polygon's plane)."""
+    import mapbox_earcut
+
+    loops = [polygon.outer, *polygon.holes]
+    verts = np.concatenate(loops).astype(np.float64)
+    rings = np.cumsum([len(lp) for lp in loops]).astype(np.uint32)
+    tris = np.asarray(mapbox_earcut.triangulate_float64(polygon.to_plane(verts), rings), dtype=np.int64).reshape(-1, 3)
+    if len(tris) == 0:
+        raise DifftexError(f"polygon '{polygon.id}' could not be triangulated (degenerate outline)")
+    a, b, c = verts[tris[:, 0]], verts[tris[:, 1]], verts[tris[:, 2]]
+    flip = np.cross(b - a, c - a) @ polygon.normal < 0
+    tris[flip] = tris[flip][:, ::-1]
+    return verts, tris

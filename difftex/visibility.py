@@ -1,9 +1,8 @@
 """Visibility of proxy polygons in photos: a per-photo polygon-id buffer, texel masks, a_k^i.
 
-The id buffer is made by casting each pixel's ray against every proxy polygon (exact ray-plane
-intersection plus an exact point-in-polygon test with shapely) and keeping the nearest hit.
-Rasterising with a GPU library would be faster, but the rays must follow COLMAP's distortion
-models, which a rasteriser's straight edges cannot, and CI has no GPU.
+The id buffer is made by casting each pixel's ray, through the camera's distortion model,
+against the proxy and keeping the nearest hit (difftex.raycast). A rasteriser's straight edges
+could not follow COLMAP's distortion models.
 
 From the id buffer, for polygon i and photo k:
 - a_k^i (photo space): pixels whose nearest proxy surface is polygon i, seen from its front;
@@ -22,122 +21,8 @@ from difftex.camera import Photo
 from difftex.errors import DifftexError
 from difftex.mapping import UVFrame, texel_mask, texel_to_pixel, uv_frame
 from difftex.proxy import Proxy
+from difftex.raycast import NO_POLYGON, ProxyCaster, id_buffer, prepare  # noqa: F401  (id_buffer, prepare: re-exported)
 
-NO_POLYGON = -1
-
-
-@dataclass(frozen=True, eq=False)
-class _PlanarPolygons:
-    """Polygons prepared for ray casting: planes, in-plane bases and shapely outlines."""
-
-    normals: np.ndarray  # (P, 3)
-    offsets: np.ndarray  # (P,)
-    origins: np.ndarray  # (P, 3)
-    b1: np.ndarray  # (P, 3)
-    b2: np.ndarray  # (P, 3)
-    shapes: list  # shapely Polygons in (b1, b2) coordinates
-    vertices: list  # (n, 3) arrays, outer + holes, for projected bounding boxes
-
-
-def prepare(proxy: Proxy) -> _PlanarPolygons:
-    import shapely
-
-    normals, offsets, origins, b1s, b2s, shapes, verts = [], [], [], [], [], [], []
-    for p in proxy.polygons:
-        o, b1, b2 = p.plane_basis()
-        outer = p.to_plane(p.outer)
-        holes = [p.to_plane(h) for h in p.holes]
-        shp = shapely.Polygon(outer, holes)
-        if not shp.is_valid:
-            shp = shapely.make_valid(shp)
-        shapely.prepare(shp)
-        normals.append(p.normal)
-        offsets.append(p.offset)
-        origins.append(o)
-        b1s.append(b1)
-        b2s.append(b2)
-        shapes.append(shp)
-        verts.append(np.concatenate([p.outer, *p.holes]) if p.holes else p.outer)
-    return _PlanarPolygons(
-        np.array(normals), np.array(offsets), np.array(origins), np.array(b1s), np.array(b2s), shapes, verts
-    )
-
-
-def _candidate_box(photo: Photo, verts: np.ndarray, pad: float) -> tuple[int, int, int, int] | None:
-    """Image-space box that can contain the polygon, or None if it cannot be in the photo.
-
-    A polygon crossing the camera plane can cover any pixel, so it gets the whole image.
-    """
-    pix, depth = photo.project(verts)
-    if (depth <= 0).all():
-        return None
-    if (depth <= 0).any():
-        return 0, 0, photo.width, photo.height
-    x0, y0 = np.floor(pix.min(axis=0) - pad).astype(int)
-    x1, y1 = np.ceil(pix.max(axis=0) + pad).astype(int)
-    x0, y0 = max(x0, 0), max(y0, 0)
-    x1, y1 = min(x1, photo.width), min(y1, photo.height)
-    if x0 >= x1 or y0 >= y1:
-        return None
-    return int(x0), int(y0), int(x1), int(y1)
-
-
-def id_buffer(
-    proxy: Proxy | _PlanarPolygons,
-    photo: Photo,
-    stride: int = 1,
-    chunk: int = 1 << 18,
-) -> tuple[np.ndarray, np.ndarray]:
-    """Nearest proxy polygon per pixel (index into proxy.polygons, or -1) and its ray distance.
-
-    ``stride`` > 1 samples every stride-th pixel centre (for cheap photo filtering); the result
-    then has shape (ceil(H/stride), ceil(W/stride)).
-    """
-    import shapely
-
-    pp = proxy if isinstance(proxy, _PlanarPolygons) else prepare(proxy)
-    ys = np.arange(0, photo.height, stride) + 0.5 * stride if stride > 1 else np.arange(photo.height) + 0.5
-    xs = np.arange(0, photo.width, stride) + 0.5 * stride if stride > 1 else np.arange(photo.width) + 0.5
-    ys = np.minimum(ys, photo.height - 0.5)
-    xs = np.minimum(xs, photo.width - 0.5)
-    H, W = len(ys), len(xs)
-    ids = np.full((H, W), NO_POLYGON, dtype=np.int32)
-    dist = np.full((H, W), np.inf, dtype=np.float32)
-    C = photo.center
-    # One ray per pixel, shared by all polygons (unprojecting is the costly part with distortion).
-    gx, gy = np.meshgrid(xs, ys)
-    all_rays = photo.unproject(np.stack([gx, gy], axis=-1)).astype(np.float32)
-    del gx, gy
-    # Distortion can bend a straight polygon edge outwards by a few pixels; pad the boxes.
-    pad = 0.02 * max(photo.width, photo.height) if not photo.is_pinhole else 2.0
-    for j in range(len(pp.shapes)):
-        box = _candidate_box(photo, pp.vertices[j], pad)
-        if box is None:
-            continue
-        x0, y0, x1, y1 = box
-        c0, c1 = np.searchsorted(xs, x0), np.searchsorted(xs, x1, side="right")
-        r0, r1 = np.searchsorted(ys, y0), np.searchsorted(ys, y1, side="right")
-        if c0 >= c1 or r0 >= r1:
-            continue
-        n, d = pp.normals[j].astype(np.float32), pp.offsets[j]
-        h_cam = np.float32(d - pp.normals[j] @ C)  # signed distance of the plane from the camera centre
-        step = max(1, chunk // (c1 - c0))
-        for ra in range(r0, r1, step):
-            rb = min(r1, ra + step)
-            rays = all_rays[ra:rb, c0:c1]
-            with np.errstate(divide="ignore", invalid="ignore"):
-                lam = h_cam / (rays @ n)
-            hit = (lam > 0) & np.isfinite(lam) & (lam < dist[ra:rb, c0:c1])
-            if not hit.any():
-                continue
-            hr, hc = np.nonzero(hit)
-            lh = lam[hr, hc].astype(np.float64)
-            X = C + lh[:, None] * rays[hr, hc].astype(np.float64) - pp.origins[j]
-            inside = shapely.contains_xy(pp.shapes[j], X @ pp.b1[j], X @ pp.b2[j])
-            hr, hc = hr[inside] + ra, hc[inside] + c0
-            ids[hr, hc] = j
-            dist[hr, hc] = lh[inside]
-    return ids, dist
 
 
 @dataclass(frozen=True, eq=False)
@@ -286,7 +171,7 @@ def scene_visibility(
     from difftex.density import PROBE_LONG_SIDE, choose_texel_size, photo_texel_size, probe_gsd
 
     cfg = texture if isinstance(texture, TextureConfig) else TextureConfig(density=None, long_side=int(texture))
-    pp = prepare(proxy)
+    caster = ProxyCaster.build(proxy)
     index = {p.id: i for i, p in enumerate(proxy.polygons)}
     probes = [uv_frame(p, up, long_side=PROBE_LONG_SIDE) for p in proxy.polygons] if cfg.mode == "auto" else None
     probe_masks = [texel_mask(p, f) for p, f in zip(proxy.polygons, probes)] if probes else None
@@ -294,7 +179,7 @@ def scene_visibility(
     parts: list[list[_Sighting]] = [[] for _ in proxy.polygons]
     used = [ph for ph in photos if any(ph.name in s for s in wanted.values())]
     for ph in track(used, description="visibility", disable=not progress, transient=True):
-        ids, _ = id_buffer(pp, ph)
+        ids, _ = id_buffer(caster, ph)
         for i, poly in enumerate(proxy.polygons):
             if ph.name not in wanted.get(poly.id, ()):
                 continue
