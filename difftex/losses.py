@@ -1,9 +1,9 @@
 """The DiffTex objective for one polygon (paper eq. 5-10), on a slot layout of the weights.
 
 Layout: each texel keeps ``K`` candidate *slots*; slot ``j`` of texel ``t`` refers to photo
-``idx[j, t]`` (or -1). Parameters ``theta`` (K, H, W) are raw weights in [0, 1]; the blend
-weights are ``W = a * theta / sum_j(a * theta)`` with ``a`` the activation mask a_k^i mapped to
-texel space. Every sum over texels is divided by the polygon's texel count ``n_tex`` so that the
+``idx[j, t]`` (or -1). The parameters ``z`` (K, H, W) are logits: the blend weights, the paper's
+normalised w_k in [0, 1], are their softmax over the active slots, ``W = a e^z / sum_j(a e^z)``
+with ``a`` the activation mask a_k^i mapped to texel space. Every sum over texels is divided by the polygon's texel count ``n_tex`` so that the
 paper's balance (alpha, beta, omega) does not change with the resolution level.
 
 Render loss comes in two forms: the texel-space form compares U with every photo mapped into
@@ -18,27 +18,20 @@ from dataclasses import dataclass
 import torch
 import torch.nn.functional as F
 
-# Floor added to theta before normalising: a texel whose raw weights all reach 0 falls back to
-# the uniform blend of its active candidates instead of 0/0.
-THETA_FLOOR = 1e-6
+def blend_weights(z: torch.Tensor, active: torch.Tensor) -> torch.Tensor:
+    """W (K, H, W): the softmax of the logits z over each texel's active slots (zero where none).
 
-
-def clamp_unit(theta: torch.Tensor) -> torch.Tensor:
-    """theta clamped to [0, 1] in value, with the identity as its gradient (straight-through).
-
-    The optimizer projects theta into [0, 1] after every step, so the clamp only guards the
-    value. torch.clamp's own gradient is zero at the bounds since torch 2.14 (it was one
-    before): a texel's largest weight, which the gauge sets to exactly 1, could then never
-    decrease, and results would depend on the torch version.
+    Logits, not weights clamped to [0, 1] and renormalised: with normalised weights the
+    gradient of a photo is proportional to how far its cost is from the texel's weighted mean,
+    which vanishes for the runners-up as a texel narrows down to a few photos, so they linger
+    for hundreds of iterations; Adam on logits lowers every losing photo's log-weight at its
+    step size until the activation threshold tau removes it.
     """
-    return theta + (theta.clamp(0.0, 1.0) - theta).detach()
-
-
-def blend_weights(theta: torch.Tensor, active: torch.Tensor) -> torch.Tensor:
-    """W (K, H, W): active raw weights normalised per texel (all zero where nothing is active)."""
-    a = active.to(theta.dtype)
-    w = (clamp_unit(theta) + THETA_FLOOR) * a
-    return w / w.sum(0, keepdim=True).clamp_min(THETA_FLOOR)
+    x = torch.where(active, z, torch.full_like(z, float("-inf")))
+    zm = x.amax(0, keepdim=True).detach()
+    zm = torch.where(torch.isfinite(zm), zm, torch.zeros_like(zm))  # texels with nothing active
+    e = torch.exp(x - zm)
+    return e / e.sum(0, keepdim=True).clamp_min(1e-30)
 
 
 def compose(W: torch.Tensor, colours: torch.Tensor) -> torch.Tensor:
@@ -82,11 +75,6 @@ def ghost_loss(W, U, colours, active, Q, n_tex: float) -> torch.Tensor:
     A = render_quality(active, Q).sum(0)
     spread = (W * ((colours - U[None]) ** 2).sum(1)).sum(0)
     return (A * spread).sum() / n_tex
-
-
-def sparsity_loss(theta, active, n_tex: float) -> torch.Tensor:
-    """The L1 term of eq. 5 on the raw weights (on normalised weights it would be constant)."""
-    return (theta.clamp_min(0.0) * active.to(theta.dtype)).sum() / n_tex
 
 
 @dataclass

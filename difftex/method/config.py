@@ -36,10 +36,9 @@ class OptimizeConfig:
     omega: float = 10.0  # L_Para
     lambda_s: float = 0.5
     para_eps: float = 0.01  # Charbonnier smoothing of |.| in L_Para (0: exact L1)
-    sparsity: float = 1.0  # weight of the L1 term inside L_Render (paper: 1; see docs/optimizer.md)
     render_units: RenderUnits = "noise"  # L_Render in units of the photometric noise ("noise") or raw ("raw": the paper)
     ghost: float = 1.0  # weight of the blend's spread next to L_Render (0: the paper's L_Render alone; see losses.ghost_loss)
-    lr: float = 0.005
+    lr: float = 0.1  # Adam step on the logits of the weights (paper: 0.005 on the weights)
     betas: tuple[float, float] = (0.9, 0.99)
     tau: float = 0.01  # activation threshold on normalised weights
     tau_w: float = 0.95  # drop a photo when this share of its texels has zero weight
@@ -49,12 +48,11 @@ class OptimizeConfig:
     eliminate_every: int = 10  # iterations between pixel-elimination passes
     max_iters_per_level: tuple[int, ...] = (300, 150, 80, 40)  # caps, last value repeats
     min_iters_per_level: int = 20
-    conv_tol: float = 0.25  # converged when 99 % of the texels' weights moved less than this share of lr ...
-    conv_window: int = 10  # ... per iteration over the last conv_window iterations
+    conv_tol: float = 0.02  # converged when 99 % of the texels moved less than this share of their weight ...
+    conv_window: int = 10  # ... over the last conv_window iterations
     use_render: bool = True
     use_persp: bool = True
     use_para: bool = True
-    use_sparsity: bool = True
     data_elimination: bool = True
     coarse_to_fine: bool = True
     histogram_matching: bool = True

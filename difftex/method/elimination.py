@@ -33,12 +33,12 @@ def base_mask(lv: Level, eliminated: torch.Tensor, dropped_slots: torch.Tensor) 
     return lv.visible & ~eliminated & ~dropped_slots
 
 
-def update_activation(theta: torch.Tensor, base: torch.Tensor, tau: float) -> torch.Tensor:
+def update_activation(z: torch.Tensor, base: torch.Tensor, tau: float) -> torch.Tensor:
     """a = base & (W > tau), W normalised over the base candidates; the best one always stays.
 
     Keeping each texel's strongest candidate avoids holes when every weight is below tau.
     """
-    W = losses.blend_weights(theta, base)
+    W = losses.blend_weights(z, base)
     act = base & (W > tau)
     best = argmax0(torch.where(base, W, torch.full_like(W, -1.0)))
     keep = torch.zeros_like(act).scatter_(0, best, True) & base
@@ -106,7 +106,7 @@ def dropped_slot_mask(lv: Level, eliminated: torch.Tensor, dropped: set[int], W:
     dset = torch.tensor(sorted(dropped), device=lv.idx.device)
     ds = torch.isin(lv.idx, dset) & base
     need = base.any(0) & ~(base & ~ds).any(0)
-    score = W if W is not None else lv.theta0
+    score = W if W is not None else lv.z0
     best = argmax0(torch.where(base, score, torch.full_like(score, -1.0)))
     keep = torch.zeros_like(ds).scatter_(0, best, True) & need[None]
     return ds & ~keep

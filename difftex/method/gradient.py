@@ -1,13 +1,13 @@
-"""The gradient of L with respect to the raw weights theta in texel space, written out, and Adam.
+"""The gradient of L with respect to the logits z of the weights in texel space, written out, and Adam.
 
 Autograd records some 40 intermediate (K, H, W) tensors per iteration of L and replays them
 backwards; every term of the texel-space objective has a short closed-form derivative, so this
-computes L and dL/dtheta in one forward sweep over the slots (about a fifth of the memory
+computes L and dL/dz in one forward sweep over the slots (about a fifth of the memory
 traffic; tests check it against autograd to float tolerance). The render-space L_Render
 (loss_mode "render") keeps autograd, through difftex.method.objective.
 
-Notation (per texel, K slots): w_j = a_j (theta_j + eps), S = sum_j w_j, W_j = w_j / S,
-U = sum_j W_j I_j, q_j = (a_j Q_j)^2, A = sum_j q_j, M = sum_j q_j I_j.
+Notation (per texel, K slots): W = softmax of the logits z over the active slots (losses.
+blend_weights), U = sum_j W_j I_j, q_j = (a_j Q_j)^2, A = sum_j q_j.
 """
 
 from __future__ import annotations
@@ -17,7 +17,7 @@ from dataclasses import dataclass
 import torch
 
 from difftex import losses
-from difftex.losses import THETA_FLOOR, NeighbourMatch, crop_pair, para_edge_cost, smooth_abs
+from difftex.losses import NeighbourMatch, crop_pair, para_edge_cost, smooth_abs
 
 
 @dataclass
@@ -75,17 +75,14 @@ def para_value_and_grad(W: torch.Tensor, active: torch.Tensor, D: dict[int, torc
     return total, g
 
 
-def texel_value_and_grad(theta: torch.Tensor, active: torch.Tensor, data: TexelData, D: dict | None,
+def texel_value_and_grad(z: torch.Tensor, active: torch.Tensor, data: TexelData, D: dict | None,
                          matches: dict, cfg) -> tuple[dict[str, torch.Tensor], torch.Tensor]:
     """Every term of L in texel space (as difftex.method.objective.objective computes them) and
-    dL/dtheta, (K, H, W). ``cfg``: an OptimizeConfig."""
-    a = active.to(theta.dtype)
-    w = (losses.clamp_unit(theta) + THETA_FLOOR) * a
-    S = w.sum(0, keepdim=True).clamp_min(THETA_FLOOR)
-    W = w / S
+    dL/dz, (K, H, W). ``cfg``: an OptimizeConfig."""
+    W = losses.blend_weights(z, active)
     n = data.n_tex
-    zero = theta.new_zeros(())
-    terms: dict[str, torch.Tensor] = {"render": zero, "sparsity": zero, "persp": zero, "para": zero, "ghost": zero}
+    zero = z.new_zeros(())
+    terms: dict[str, torch.Tensor] = {"render": zero, "persp": zero, "para": zero, "ghost": zero}
     gW = torch.zeros_like(W)
     if cfg.use_render:
         U = (W[:, None] * data.colours).sum(0)
@@ -104,8 +101,6 @@ def texel_value_and_grad(theta: torch.Tensor, active: torch.Tensor, data: TexelD
             spread = (W * data.sq).sum(0) - UU  # sum_k W_k |I_k - U|^2
             terms["ghost"] = (A * spread).sum() / n
             gW += cfg.alpha * cfg.ghost * A[None] * (data.sq - 2 * UC) / n
-        if cfg.use_sparsity:
-            terms["sparsity"] = (theta.clamp_min(0.0) * a).sum() / n
     if cfg.use_persp:
         terms["persp"] = (W * data.cost).sum() / n
         gW += cfg.beta * data.cost / n
@@ -116,14 +111,11 @@ def texel_value_and_grad(theta: torch.Tensor, active: torch.Tensor, data: TexelD
         gW += cfg.omega * g / n
     total = zero
     if cfg.use_render:
-        total = total + cfg.alpha * (terms["render"] + cfg.ghost * terms["ghost"] + cfg.sparsity * terms["sparsity"])
+        total = total + cfg.alpha * (terms["render"] + cfg.ghost * terms["ghost"])
     total = total + cfg.beta * terms["persp"] + cfg.omega * terms["para"]
     terms["total"] = total
-    # dW_j/dtheta_i = a_i / S (delta_ij - W_j)
-    g_theta = a / S * (gW - (W * gW).sum(0, keepdim=True))
-    if cfg.use_render and cfg.use_sparsity:
-        g_theta += cfg.alpha * cfg.sparsity * a * (theta > 0).to(theta.dtype) / n
-    return terms, g_theta
+    # softmax: dW_j/dz_i = W_i (delta_ij - W_j) on the active slots (W is zero on the others)
+    return terms, W * (gW - (W * gW).sum(0, keepdim=True))
 
 
 @dataclass

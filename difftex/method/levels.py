@@ -39,7 +39,7 @@ class Level:
     Q: torch.Tensor  # (K, h, w) Q_a * Q_c
     cost: torch.Tensor  # (K, h, w) |V^ - v~|^2
     G: torch.Tensor  # (h, w) mean gradient magnitude of the mapped photos
-    theta0: torch.Tensor  # (K, h, w) initial raw weights
+    z0: torch.Tensor  # (K, h, w) initial logits of the weights
     v_tilde: np.ndarray
     n_candidates: int  # photos that see at least one texel at this level
     pixel_sets: "losses.PixelBatch | None" = None  # render mode
@@ -52,7 +52,7 @@ class Level:
         return float(max(int(self.mask.sum()), 1))
 
     def nbytes(self) -> int:
-        ts = [self.idx, self.visible, self.colours, self.Q, self.cost, self.G, self.theta0]
+        ts = [self.idx, self.visible, self.colours, self.Q, self.cost, self.G, self.z0]
         return int(sum(t.element_size() * t.numel() for t in ts))
 
 
@@ -110,14 +110,12 @@ def level_noise(msd: torch.Tensor, count: torch.Tensor, floor: float) -> float:
     return max(float(floor), float(msd[sel].median().sqrt()))
 
 
-def gauge(theta: torch.Tensor, active: torch.Tensor) -> torch.Tensor:
-    """Rescale each texel's raw weights so the largest active one is 1.
+LOG_ZERO = float(np.log(1e-6))  # the logit of a weight that starts at (practically) zero
 
-    W is invariant to this scale; fixing it stops the L1 term from shrinking all weights of a
-    texel together (which would end in the uniform blend) and makes it act on the ratios.
-    """
-    mx = (theta * active).amax(0, keepdim=True)
-    return torch.where(mx > 0, theta / mx.clamp_min(1e-12), theta).clamp(0.0, 1.0)
+
+def init_logits(weights: torch.Tensor) -> torch.Tensor:
+    """Logits whose softmax is proportional to ``weights`` (>= 0); zero weights get LOG_ZERO."""
+    return torch.log(weights.clamp_min(1e-6))
 
 
 def _scatter_photo_field(idx: torch.Tensor, values: torch.Tensor, n: int) -> tuple[torch.Tensor, torch.Tensor]:
@@ -126,18 +124,18 @@ def _scatter_photo_field(idx: torch.Tensor, values: torch.Tensor, n: int) -> tup
     return (values * sel).sum(0), sel.any(0)
 
 
-def upsample_photo_theta(prev_level: Level, prev_theta: torch.Tensor, n: int, frame: UVFrame) -> tuple[torch.Tensor, torch.Tensor]:
-    """Bilinear upsampling of photo n's active raw weight from the previous level (paper: W upsampled).
+def upsample_photo_weight(prev_level: Level, prev_W: torch.Tensor, n: int, frame: UVFrame) -> tuple[torch.Tensor, torch.Tensor]:
+    """Bilinear upsampling of photo n's blend weight from the previous level (paper: W upsampled).
 
     Args:
-        prev_level: the coarser level; prev_theta: (K, h', w') its active raw weights.
+        prev_level: the coarser level; prev_W: (K, h', w') its blend weights.
         n: photo index; frame: the finer level's frame.
 
     Returns:
-        (theta (h, w), covered (h, w) bool); only coarse texels where photo n was a candidate
-        contribute (mask-normalised bilinear); elsewhere the caller falls back to Q.
+        (W (h, w), covered (h, w) bool); only coarse texels where photo n was a candidate
+        contribute (mask-normalised bilinear); elsewhere the caller decides.
     """
-    vals, has = _scatter_photo_field(prev_level.idx, prev_theta, n)
+    vals, has = _scatter_photo_field(prev_level.idx, prev_W, n)
     src = prev_level.frame
     tx, ty = frame.centres()
     r = frame.texel_size / src.texel_size
@@ -150,6 +148,17 @@ def upsample_photo_theta(prev_level: Level, prev_theta: torch.Tensor, n: int, fr
     return up[0] / up[1].clamp_min(1e-3), cov
 
 
+def upsample_known(prev_level: Level, frame: UVFrame) -> torch.Tensor:
+    """(h, w) bool: texels of ``frame`` whose nearest texel at the coarser level had a candidate."""
+    known = (prev_level.visible.any(0) & prev_level.mask).float()
+    src = prev_level.frame
+    tx, ty = frame.centres()
+    r = frame.texel_size / src.texel_size
+    grid = torch.from_numpy(np.stack([(tx * r) / src.width * 2 - 1, (ty * r) / src.height * 2 - 1], -1).astype(np.float32))
+    up = F.grid_sample(known[None, None], grid.to(known.device)[None], mode="nearest", padding_mode="border", align_corners=False)
+    return up[0, 0] > 0.5
+
+
 def build_level(photos: PhotoSet, frame: UVFrame, cfg: OptimizeConfig, transfers: list | None = None,
                 prev: tuple[Level, torch.Tensor] | None = None, dropped: set[int] | None = None,
                 mapped: dict[int, MappedPhoto | None] | None = None) -> Level:
@@ -159,7 +168,7 @@ def build_level(photos: PhotoSet, frame: UVFrame, cfg: OptimizeConfig, transfers
         photos: the polygon's decoded photos.
         frame: this level's frame.
         transfers: per photo brightness transfer (or None) applied to the mapped colours.
-        prev: (coarser level, its active raw weights) to upsample the initial weights from.
+        prev: (coarser level, its blend weights) to upsample the initial weights from.
         dropped: photos dropped at a coarser level (they only fill otherwise empty slots).
         mapped: this level's photos already mapped (with ``transfers``), e.g. by the caller
             that estimated the transfers on them.
@@ -212,6 +221,9 @@ def build_level(photos: PhotoSet, frame: UVFrame, cfg: OptimizeConfig, transfers
     normal = torch.tensor(frame.normal, dtype=torch.float32, device=device)
     v_tilde = losses.guidance_direction(torch.stack(vsum), normal) if vsum else -normal
 
+    prev_known = None
+    if prev is not None:
+        prev_known = upsample_known(prev[0], frame)
     fixed = len(seen) <= K  # every candidate fits: slot j is photo seen[j] at every texel
     if fixed:
         K = max(1, len(seen))
@@ -221,7 +233,7 @@ def build_level(photos: PhotoSet, frame: UVFrame, cfg: OptimizeConfig, transfers
     cols = torch.zeros((K, 3, h, w), device=device)
     Q = torch.zeros((K, h, w), device=device)
     cost = torch.zeros((K, h, w), device=device)
-    th0 = torch.zeros((K, h, w), device=device)
+    w0 = torch.zeros((K, h, w), device=device)
     for j, n in enumerate(seen):
         mp = cache.get(n)
         if mp is None:
@@ -230,17 +242,21 @@ def build_level(photos: PhotoSet, frame: UVFrame, cfg: OptimizeConfig, transfers
         assert mp is not None
         q = quality(mp.cos, mp.colour, mu, msd, mp.visible, cfg.sigma_min)
         pc = losses.persp_cost(mp.view[None], v_tilde)[0]
-        theta = q
+        weight = q  # the paper's initialisation: W proportional to Q
         if prev is not None:
-            t_up, cov = upsample_photo_theta(prev[0], prev[1], n, frame)
-            theta = torch.where(cov, t_up, q)
+            w_up, cov = upsample_photo_weight(prev[0], prev[1], n, frame)
+            # Where the coarser level had candidates but not this photo among its slots, the
+            # photo was outranked there: it starts at zero, not at Q (which would bring back
+            # the photos the coarser levels left out). Only texels the coarser level did not
+            # see at all start from Q.
+            weight = torch.where(cov, w_up, torch.where(prev_known, torch.zeros_like(q), q))
         if fixed:
             idx[j] = n
-            vis[j], cols[j], Q[j], cost[j], th0[j] = mp.visible, mp.colour, q, pc, theta
+            vis[j], cols[j], Q[j], cost[j], w0[j] = mp.visible, mp.colour, q, pc, weight
             continue
         # Rank: upsampled weight (or Q where the coarse level had no data); the small Q term
         # breaks ties between photos that were both deactivated at the coarse level.
-        score = theta + 1e-3 * q - (2.0 if n in dropped else 0.0)  # dropped photos only fill empty slots
+        score = weight + 1e-3 * q - (2.0 if n in dropped else 0.0)  # dropped photos only fill empty slots
         score = torch.where(mp.visible, score, torch.full_like(q, -10.0))
         all_score = torch.cat([best_score, score[None]])
         top = torch.topk(all_score, K, dim=0)
@@ -258,9 +274,7 @@ def build_level(photos: PhotoSet, frame: UVFrame, cfg: OptimizeConfig, transfers
         cols = pick(cols, mp.colour)
         Q = pick(Q, q)
         cost = pick(cost, pc)
-        th0 = pick(th0, theta)
+        w0 = pick(w0, weight)
     idx = torch.where(vis, idx, torch.full_like(idx, -1))
-    th0 = th0.clamp(0.0, 1.0) * vis
-    th0 = gauge(th0, vis)
-    return Level(frame=frame, mask=mask, idx=idx, visible=vis, colours=cols, Q=Q, cost=cost, G=G, theta0=th0,
+    return Level(frame=frame, mask=mask, idx=idx, visible=vis, colours=cols, Q=Q, cost=cost, G=G, z0=init_logits(w0 * vis),
                  v_tilde=v_tilde.cpu().numpy(), n_candidates=len(seen), fixed_slots=fixed, maps=maps, noise=noise)

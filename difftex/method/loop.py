@@ -19,13 +19,13 @@ from difftex import losses
 from difftex.method.config import ComputeConfig, OptimizeConfig
 from difftex.method.elimination import (base_mask, dropped_slot_mask, eliminate_pixels, photo_zero_share,
                                         photos_to_drop, update_activation)
-from difftex.method.levels import Level, build_level, gauge
+from difftex.method.levels import Level, build_level
 from difftex.method.gradient import Adam
 from difftex.method.objective import LevelState, compiled_objective, objective, value_and_grad
 from difftex.method.render import build_pixel_sets
 from difftex.sampling import MappedPhoto, PhotoSet, level_frame, level_sides
 
-LOSS_KEYS = ("total", "render", "ghost", "sparsity", "persp", "para")
+LOSS_KEYS = ("total", "render", "ghost", "persp", "para")
 
 
 @dataclass
@@ -38,10 +38,10 @@ class Result:
     stats: dict
 
 
-def weight_change(theta: torch.Tensor, theta_old: torch.Tensor, mask: torch.Tensor, q: float = 0.99) -> float:
-    """The ``q`` quantile over the polygon's texels of the largest change of a raw weight,
-    max_k |theta_k - theta'_k| (raw weights: Adam moves each by at most about lr per step)."""
-    d = (theta - theta_old).abs().amax(0)[mask]
+def weight_change(W: torch.Tensor, W_old: torch.Tensor, mask: torch.Tensor, q: float = 0.99) -> float:
+    """The ``q`` quantile over the polygon's texels of the total-variation distance between two
+    sets of blend weights: sum_k |W_k - W'_k| / 2 is the share of a texel's weight that moved."""
+    d = 0.5 * (W - W_old).abs().sum(0)[mask]
     if d.numel() == 0:
         return 0.0
     if d.numel() > 1 << 20:  # torch.quantile's input limit: a strided sample is as good
@@ -77,7 +77,7 @@ def optimize_polygon(photos: PhotoSet, cfg: OptimizeConfig, compute: ComputeConf
         tl = time.perf_counter()
         frame = level_frame(inp.frame, side)
         lv = build_level(photos, frame, cfg, transfers, dropped=dropped, mapped=first if li == 0 else None,
-                         prev=(prev.level, (prev.theta.detach() * prev.active)) if prev is not None else None)
+                         prev=(prev.level, losses.blend_weights(prev.z, prev.active)) if prev is not None else None)
         if cfg.use_render and cfg.loss_mode == "render":
             lv.pixel_sets = build_pixel_sets(photos, lv, transfers)
         t_setup = time.perf_counter() - tl
@@ -91,7 +91,7 @@ def optimize_polygon(photos: PhotoSet, cfg: OptimizeConfig, compute: ComputeConf
     assert prev is not None
     lv = prev.level
     with torch.no_grad():
-        W = losses.blend_weights(prev.theta, prev.active)
+        W = losses.blend_weights(prev.z, prev.active)
         U = losses.compose(W, lv.colours)
     mask = inp.texel_mask
     has = (W.sum(0) > 0).cpu().numpy() & mask
@@ -111,9 +111,9 @@ def _run_level(lv: Level, li: int, cfg: OptimizeConfig, compute: ComputeConfig, 
     N = len(stats["photos"])
     eliminated = torch.zeros_like(lv.visible)
     drop_slots = dropped_slot_mask(lv, eliminated, dropped)
-    theta = lv.theta0.clone()
+    z = lv.z0.clone()
     base = base_mask(lv, eliminated, drop_slots)
-    st = LevelState(level=lv, theta=theta, active=update_activation(theta, base, cfg.tau), eliminated=eliminated)
+    st = LevelState(level=lv, z=z, active=update_activation(z, base, cfg.tau), eliminated=eliminated)
     if cfg.use_para:
         st.matches = {a: losses.neighbour_match(lv.idx, lv.mask, a, fixed=lv.fixed_slots) for a in (1, 2)}
     adam = Adam(lr=cfg.lr, betas=cfg.betas)
@@ -126,15 +126,15 @@ def _run_level(lv: Level, li: int, cfg: OptimizeConfig, compute: ComputeConfig, 
     it = 0
     if cfg.data_elimination:
         with torch.no_grad():
-            e = eliminate_pixels(lv, st.active, losses.blend_weights(st.theta, st.active), cfg)
+            e = eliminate_pixels(lv, st.active, losses.blend_weights(st.z, st.active), cfg)
             st.eliminated |= e
             n_elim += int(e.sum())
             drop_slots = dropped_slot_mask(lv, st.eliminated, dropped)
             base = base_mask(lv, st.eliminated, drop_slots)
-            st.active = update_activation(st.theta, base, cfg.tau)
+            st.active = update_activation(st.z, base, cfg.tau)
     anything = cfg.use_render or cfg.use_persp or cfg.use_para
     iter_times: list[float] = []
-    theta_check = st.theta.clone()
+    W_check = losses.blend_weights(st.z, st.active)
     changes: list[float] = []
     for it in range(1, cap + 1 if anything else 1):
         st.it = it
@@ -152,9 +152,8 @@ def _run_level(lv: Level, li: int, cfg: OptimizeConfig, compute: ComputeConfig, 
         for k in hist:
             hist[k].append(float(terms[k]) if k in terms else 0.0)
         with torch.no_grad():
-            adam.step(st.theta, grad)
-            st.theta = gauge(st.theta.clamp(0.0, 1.0), base)
-            W = losses.blend_weights(st.theta, base)
+            adam.step(st.z, grad)
+            W = losses.blend_weights(st.z, base)
             if cfg.data_elimination:
                 if it >= cfg.min_iters_per_level // 2:
                     cand = [n for n in photos_to_drop(lv, base, W, cfg.tau, cfg.tau_w, N) if n not in dropped]
@@ -167,23 +166,23 @@ def _run_level(lv: Level, li: int, cfg: OptimizeConfig, compute: ComputeConfig, 
                         stats["dropped"].append({"photo": stats["photos"][n], "level": li, "iteration": it})
                         drop_slots = dropped_slot_mask(lv, st.eliminated, dropped, W)
                 if it % max(cfg.eliminate_every, 1) == 0:
-                    e = eliminate_pixels(lv, st.active, losses.blend_weights(st.theta, st.active), cfg)
+                    e = eliminate_pixels(lv, st.active, losses.blend_weights(st.z, st.active), cfg)
                     st.eliminated |= e
                     n_elim += int(e.sum())
                     if dropped:
                         drop_slots = dropped_slot_mask(lv, st.eliminated, dropped, W)
             base = base_mask(lv, st.eliminated, drop_slots)
-            st.active = update_activation(st.theta, base, cfg.tau)
+            st.active = update_activation(st.z, base, cfg.tau)
         iter_times.append(time.perf_counter() - t_it)
         if bar is not None:
             bar.update(1)
         if it % cfg.conv_window == 0:
-            # Converged: over the last conv_window iterations almost every texel's weights (99 %)
-            # moved by less than conv_tol of what Adam's steps could move them (lr per
-            # iteration): Adam's steps shrink as its momentum averages out at a minimum.
-            changes.append(weight_change(st.theta, theta_check, lv.mask))
-            theta_check = st.theta.clone()
-            if it >= cfg.min_iters_per_level and changes[-1] < cfg.conv_tol * cfg.lr * cfg.conv_window:
+            # Converged: over the last conv_window iterations almost every texel (99 %) moved
+            # less than conv_tol of its weight.
+            W_now = losses.blend_weights(st.z, st.active)
+            changes.append(weight_change(W_now, W_check, lv.mask))
+            W_check = W_now
+            if it >= cfg.min_iters_per_level and changes[-1] < cfg.conv_tol:
                 converged = True
                 break
     if bar is not None and it < cap:

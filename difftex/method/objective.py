@@ -20,7 +20,7 @@ class LevelState:
     """The optimization variables of one level and what changes with them."""
 
     level: Level
-    theta: torch.Tensor  # (K, h, w) raw weights in [0, 1]
+    z: torch.Tensor  # (K, h, w) logits of the blend weights (losses.blend_weights)
     active: torch.Tensor  # (K, h, w) bool a^_k
     eliminated: torch.Tensor  # (K, h, w) bool
     it: int = 0
@@ -29,20 +29,19 @@ class LevelState:
     texel: TexelData | None = None  # texel-space data of the written-out gradient
 
 
-def objective(theta, active, colours, Q, cost, D, matches, pixel_sets, support, n_tex: float,
+def objective(z, active, colours, Q, cost, D, matches, pixel_sets, support, n_tex: float,
               cfg: OptimizeConfig) -> dict[str, torch.Tensor]:
     """Every term of L for one level and its weighted total: a pure function of tensors, so
     torch.compile can fuse it (``ComputeConfig.compile``)."""
-    W = losses.blend_weights(theta, active)
+    W = losses.blend_weights(z, active)
     U = losses.compose(W, colours)
     terms = {}
-    zero = theta.new_zeros(())
+    zero = z.new_zeros(())
     if cfg.use_render:
         if cfg.loss_mode == "render":
             terms["render"] = losses.render_loss_pixels(U, support, pixel_sets, active, Q, n_tex)
         else:
             terms["render"] = losses.render_loss_texel(U, colours, active, Q, n_tex)
-        terms["sparsity"] = losses.sparsity_loss(theta, active, n_tex) if cfg.use_sparsity else zero
         terms["ghost"] = losses.ghost_loss(W, U, colours, active, Q, n_tex) if cfg.ghost > 0 else zero
     terms["persp"] = losses.persp_loss(W, cost, n_tex) if cfg.use_persp else zero
     if cfg.use_para:
@@ -51,7 +50,7 @@ def objective(theta, active, colours, Q, cost, D, matches, pixel_sets, support, 
         terms["para"] = zero
     total = zero
     if cfg.use_render:
-        total = total + cfg.alpha * (terms["render"] + cfg.ghost * terms["ghost"] + cfg.sparsity * terms["sparsity"])
+        total = total + cfg.alpha * (terms["render"] + cfg.ghost * terms["ghost"])
     total = total + cfg.beta * terms["persp"] + cfg.omega * terms["para"]
     terms["total"] = total
     return terms
@@ -70,12 +69,12 @@ def refresh_edge_weights(st: LevelState, cfg: OptimizeConfig) -> None:
     lv = st.level
     if cfg.use_para and (st.D is None or st.it % max(cfg.eliminate_every, 1) == 0):
         with torch.no_grad():
-            U = losses.compose(losses.blend_weights(st.theta, st.active), lv.colours)
+            U = losses.compose(losses.blend_weights(st.z, st.active), lv.colours)
             st.D = losses.edge_weights(U, lv.G, tuple(st.matches))
 
 
 def value_and_grad(st: LevelState, cfg: OptimizeConfig, fn=None) -> tuple[dict[str, torch.Tensor], torch.Tensor | None]:
-    """The terms of L at the current weights and dL/dtheta (None when ``fn`` is None and the
+    """The terms of L at the current weights and dL/dz (None when ``fn`` is None and the
     terms are only evaluated).
 
     Texel space: the gradient written out (difftex.method.gradient). Render space: autograd
@@ -88,16 +87,16 @@ def value_and_grad(st: LevelState, cfg: OptimizeConfig, fn=None) -> tuple[dict[s
         if st.texel is None:
             st.texel = texel_data(lv.colours, Q, lv.cost, lv.n_tex)
         with torch.no_grad():
-            return texel_value_and_grad(st.theta, st.active, st.texel, st.D, st.matches, cfg)
+            return texel_value_and_grad(st.z, st.active, st.texel, st.D, st.matches, cfg)
     support = render_support(lv) if cfg.use_render else None
     if fn is None:
         with torch.no_grad():
-            return objective(st.theta, st.active, lv.colours, Q, lv.cost, st.D, st.matches, lv.pixel_sets, support,
+            return objective(st.z, st.active, lv.colours, Q, lv.cost, st.D, st.matches, lv.pixel_sets, support,
                              lv.n_tex, cfg), None
-    theta = st.theta.detach().requires_grad_(True)
-    terms = fn(theta, st.active, lv.colours, Q, lv.cost, st.D, st.matches, lv.pixel_sets, support, lv.n_tex, cfg)
+    z = st.z.detach().requires_grad_(True)
+    terms = fn(z, st.active, lv.colours, Q, lv.cost, st.D, st.matches, lv.pixel_sets, support, lv.n_tex, cfg)
     terms["total"].backward()
-    return {k: v.detach() for k, v in terms.items()}, theta.grad
+    return {k: v.detach() for k, v in terms.items()}, z.grad
 
 
 def compiled_objective(lv: Level, compute: ComputeConfig):
