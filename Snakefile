@@ -2,9 +2,11 @@
 #
 #   snakemake --cores all                                   # the bundled synthetic example
 #   snakemake --cores all --config scene=path/to/scene      # any scene (images/, sparse/0/, proxy.obj)
-#   snakemake --cores all --config scene=... preset=fast optimize.lr=0.01
+#   snakemake --cores all --config scene=... preset=fast 'optimize={lr: 0.01}'
 #
 # Results: <results>/<scene name>/ in the working directory (see docs/workflow.md).
+# A failed run ends with the failed jobs' one-line errors and their logs; the same command
+# resumes after a crash or a kill (docs/failures.md).
 
 from snakemake.utils import min_version
 
@@ -27,6 +29,8 @@ localrules:
 
 rule all:
     input:
+        # the run guard first: it takes the run lock in real runs (and adds no input)
+        lambda wc: RUN_GUARD(workflow),
         f"{R}/model/summary.json",
         f"{R}/report.md",
         f"{R}/report/index.html",
@@ -34,4 +38,9 @@ rule all:
 
 
 onsuccess:
+    runlog.print_warnings(R)
     wf.print_summary(R)
+
+
+onerror:
+    runlog.report_failure(workflow, R, STARTED)
