@@ -38,9 +38,11 @@ rule all:
 
 
 onsuccess:
+    RUN_GUARD.finished = True
     runlog.print_warnings(R)
     wf.print_summary(R)
 
 
 onerror:
-    runlog.report_failure(workflow, R, STARTED)
+    RUN_GUARD.finished = True
+    runlog.report_failure(workflow, R, RUN_GUARD.started)

@@ -33,10 +33,11 @@ AGREE_RTOL = 1e-6
 
 def model_files(sparse_dir: Path) -> dict[str, dict[str, Path]]:
     """{"bin": {...}, "txt": {...}}: the complete models (cameras + images) in ``sparse_dir``,
-    each as {"cameras": path, "images": path, "points3D": path (if present)}."""
+    each as {"cameras": path, "images": path} plus "points3D", "frames" and "rigs" where present
+    (COLMAP >= 3.12 keeps the poses in frames.*; older models in images.*)."""
     out = {}
     for ext in ("bin", "txt"):
-        files = {n: sparse_dir / f"{n}.{ext}" for n in ("cameras", "images", "points3D")}
+        files = {n: sparse_dir / f"{n}.{ext}" for n in ("cameras", "images", "points3D", "frames", "rigs")}
         if files["cameras"].is_file() and files["images"].is_file():
             out[ext] = {n: p for n, p in files.items() if p.is_file()}
     return out
@@ -266,6 +267,7 @@ def check_reconstruction(rec, files: dict[str, Path]) -> None:
         if problem:
             raise DifftexError(f"{files['cameras']}: camera {cam.camera_id} ({cam.model_name}): {problem}")
     seen: dict[str, int] = {}
+    pose_file = files.get("frames", files["images"])
     for iid, image in rec.images.items():
         if hasattr(image, "has_pose") and not image.has_pose:
             continue
@@ -273,7 +275,7 @@ def check_reconstruction(rec, files: dict[str, Path]) -> None:
             raise DifftexError(f"{files['images']}: image '{image.name}' uses camera {image.camera_id}, which is not defined")
         problem = pose_problem(*_quat_t(image))
         if problem:
-            raise DifftexError(f"{files['images']}: image '{image.name}': {problem}")
+            raise DifftexError(f"{pose_file}: image '{image.name}': {problem}")
         if image.name in seen:
             raise DifftexError(f"{files['images']}: image '{image.name}' is listed twice (image ids {seen[image.name]} and {iid})")
         seen[image.name] = iid

@@ -451,12 +451,13 @@ def load_proxy(
             raw.append((outer, holes, name, fids[first]))
     raw.sort(key=lambda r: r[3])
 
-    kept = []
+    kept, thin = [], 0
     for i, (outer, holes, name, _) in enumerate(raw):
         label = name or f"face {i}"
         why = degenerate_reason(outer, holes)
         if why:
             log.warning("%s: polygon '%s' is degenerate (%s); skipped", path, label, why)
+            thin += why.startswith("too thin")
             continue
         diam = float(np.linalg.norm(np.ptp(outer, axis=0)))
         dev = planarity_deviation(np.concatenate([outer, *holes]) if holes else outer)
@@ -467,7 +468,12 @@ def load_proxy(
             )
         kept.append((outer, holes, name))
     if not kept:
-        raise DifftexError(f"{path}: proxy has no usable polygons")
+        hint = ""
+        if raw and thin == len(raw):  # every polygon tiny next to its distance from the origin
+            v = np.concatenate([r[0] for r in raw])
+            hint = (f" (it is {np.linalg.norm(np.ptp(v, axis=0)):.3g} across, "
+                    f"{np.linalg.norm(v.mean(axis=0)):.3g} from the origin: wrong units?)")
+        raise DifftexError(f"{path}: proxy has no usable polygons{hint}")
 
     ids = assign_ids([n for _, _, n in kept], path)
     polys = [Polygon(id=pid, outer=o, holes=h) for pid, (o, h, _) in zip(ids, kept)]

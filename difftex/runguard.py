@@ -17,9 +17,11 @@ Snakemake takes its own locks right after building the graph, so stale ones are 
 
 from __future__ import annotations
 
+import atexit
 import errno
 import fcntl
 import json
+import logging
 import os
 import socket
 import sys
@@ -30,6 +32,7 @@ from difftex.errors import ERROR_PREFIX, one_line, os_error_message
 
 LOCK_NAME = Path(".snakemake") / "difftex" / "run.lock"
 SNAKEMAKE_LOCKS = Path(".snakemake") / "locks"
+SNAKEMAKE_INCOMPLETE = Path(".snakemake") / "incomplete"
 TEMP_GLOB = ".*.part*"  # difftex.io.atomic_path's temporary files
 
 
@@ -58,8 +61,9 @@ def is_real_run(workflow) -> bool:
 
 
 def _file_backend(workflow) -> bool:
+    """Snakemake keeps its locks as files (the default backend), which this module can clear."""
     backend = getattr(getattr(workflow, "workflow_settings", None), "persistence_backend", None)
-    return backend is None or str(getattr(backend, "value", backend)).lower() == "file"
+    return backend is None or getattr(backend, "name", str(backend)).lower() == "file"
 
 
 class RunGuard:
@@ -76,6 +80,11 @@ class RunGuard:
         self.workdir = Path(workdir) if workdir is not None else Path.cwd()
         self.fd: int | None = None
         self.checked = False
+        self.started = time.time()
+        # set by the Snakefile's onsuccess/onerror handlers; a real run that ends without either
+        # stopped on an error of Snakemake itself (e.g. its metadata on a full disk)
+        self.finished = False
+        self.snakemake_error = _LastError()
 
     def __call__(self, workflow) -> list:
         """Snakemake input-function hook: take the lock on the first call of a real run.
@@ -106,11 +115,42 @@ class RunGuard:
         os.write(fd, json.dumps(holder_info()).encode() + b"\n")
         if clear_snakemake_locks:
             stale = remove_stale_locks(self.workdir)
-            if stale:
-                print(f"difftex: resuming: removed {stale} stale lock file(s) of a run that did not end "
-                      "cleanly (killed or crashed); incomplete outputs are redone", file=sys.stderr, flush=True)
+            redo = remove_incomplete_outputs(self.workdir)
+            if stale or redo:
+                print(f"difftex: resuming after a run that did not end cleanly (killed or crashed): removed its "
+                      f"locks and {redo} incomplete output(s), which are made again", file=sys.stderr, flush=True)
         check_writable(self.results)
         remove_temporary_files(self.results)
+        logging.getLogger("snakemake.logging").addHandler(self.snakemake_error)
+        atexit.register(self.at_exit)
+
+    def at_exit(self) -> None:
+        """When Snakemake stopped on its own error (no onsuccess/onerror), end the console with
+        the jobs' error lines or Snakemake's message as one ``difftex: error:`` line."""
+        if self.finished or self.snakemake_error.text is None:
+            return
+        from difftex.runlog import abnormal_end_report
+
+        try:
+            os.chdir(self.workdir)  # Snakemake has gone back to where it was started
+        except OSError:
+            pass
+        lines = abnormal_end_report(self.results, self.started, self.snakemake_error.text, self.workdir)
+        print("\n".join(lines), file=sys.stderr, flush=True)
+
+
+class _LastError(logging.Handler):
+    """Keeps the text of the last error Snakemake logged."""
+
+    def __init__(self) -> None:
+        super().__init__(logging.ERROR)
+        self.text: str | None = None
+
+    def emit(self, record: logging.LogRecord) -> None:
+        try:
+            self.text = record.getMessage()
+        except Exception:  # noqa: BLE001 -- a log handler must never raise
+            pass
 
 
 def holder_info() -> dict:
@@ -146,6 +186,45 @@ def remove_stale_locks(workdir: Path) -> int:
             pass
         except OSError as exc:
             stop(os_error_message(exc, f))
+    return n
+
+
+def remove_incomplete_outputs(workdir: Path) -> int:
+    """Delete the outputs Snakemake marked incomplete (jobs that were running when the run died)
+    and their markers; only call this while holding the run lock. Returns how many outputs.
+
+    ``--rerun-incomplete`` does this only for the jobs it sees when it first builds the job
+    graph, and jobs that depend on a checkpoint (every per-polygon job) are added after that:
+    a killed per-polygon job's first output then passes for done while its other outputs are
+    missing. Deleting every marked output lets Snakemake see them missing and rerun the jobs.
+    Marker names are Snakemake's file backend's: the output path, urlsafe base64, cut into
+    '@'-prefixed folder names when longer than a file name may be.
+    """
+    from base64 import urlsafe_b64decode
+
+    root = workdir / SNAKEMAKE_INCOMPLETE
+    if not root.is_dir():
+        return 0
+    n = 0
+    for marker in sorted(p for p in root.rglob("*") if p.is_file()):
+        parts = marker.relative_to(root).parts
+        try:
+            key = urlsafe_b64decode("".join(p.lstrip("@") for p in parts).encode()).decode()
+        except (ValueError, UnicodeDecodeError):
+            continue  # not a marker (e.g. Snakemake's "migration_underway")
+        out = Path(key) if Path(key).is_absolute() else workdir / key
+        try:
+            if out.is_file() or out.is_symlink():
+                out.unlink()
+                n += 1
+            elif out.is_dir():
+                import shutil
+
+                shutil.rmtree(out)
+                n += 1
+            marker.unlink()
+        except OSError as exc:
+            stop(os_error_message(exc, out))
     return n
 
 

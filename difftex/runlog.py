@@ -126,10 +126,38 @@ def failure_report(jobs: list[tuple[str, str, list[str]]], results: str | Path) 
 def report_failure(workflow, results: str | Path, since: float) -> None:
     """The Snakefile's onerror handler: print the report on stderr and exit with status 1, so
     that the error line is the last line on the console (Snakemake would otherwise add its
-    own lines after the handler's)."""
+    own lines after the handler's). After Ctrl-C: one line saying how to resume, status 130."""
+    scheduler = getattr(workflow, "scheduler", None)
+    if getattr(scheduler, "_user_kill", None):
+        print("difftex: interrupted; run the same command again to resume", file=sys.stderr, flush=True)
+        raise SystemExit(130)
     jobs = failed_jobs(workflow) or recent_error_logs(Path(results), since)
     print("\n".join(failure_report(jobs, results)), file=sys.stderr, flush=True)
     raise SystemExit(1)
+
+
+def abnormal_end_report(results: str | Path, since: float, snakemake_error: str, workdir: Path) -> list[str]:
+    """The lines printed when Snakemake stopped on an error of its own (no onerror): its message
+    on one line, then the error lines of the jobs that failed in this run, the last one being
+    an error line either way.
+
+    Args:
+        results: the results folder (its logs are read).
+        since: the run's start (epoch seconds): older logs are not this run's.
+        snakemake_error: the last error Snakemake logged (often several lines).
+        workdir: the working directory, named when no job reported an error.
+    """
+    text = one_line(snakemake_error)
+    for prefix in ("WorkflowError: ", "Error: "):
+        text = text.removeprefix(prefix)
+    text = text[:400]
+    lines = warnings(results)
+    jobs = recent_error_logs(Path(results), since)
+    if not jobs:
+        return [*lines, ERROR_PREFIX + f"{workdir}: Snakemake stopped: {text}"]
+    lines.append(f"difftex: Snakemake stopped: {text}")
+    errors = dict.fromkeys(job_error(logs, rule) for rule, _, logs in jobs)
+    return [*lines, *errors]
 
 
 def print_warnings(results: str | Path) -> None:

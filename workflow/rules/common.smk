@@ -2,7 +2,6 @@
 
 import shlex
 import sys
-import time
 from pathlib import Path
 
 # The workflow imports difftex from this checkout even when it is not installed.
@@ -16,8 +15,6 @@ import difftex.workflow as wf
 from difftex import runguard, runlog
 from difftex.errors import DifftexError
 
-# When this run started: the failure report's fallback reads only logs written since.
-STARTED = time.time()
 
 try:
     _user = wf.user_config(
