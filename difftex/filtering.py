@@ -82,7 +82,7 @@ def check_kept(records: list[PhotoRecord], proxy: Proxy, images_dir) -> None:
         for r in records:
             key = r.reason.split(" (")[0]
             reasons[key] = reasons.get(key, 0) + 1
-        detail = ", ".join(f"{n} {why}" for why, n in sorted(reasons.items(), key=lambda kv: -kv[1]))
+        detail = "; ".join(f"{why}: {n} of {len(records)}" for why, n in sorted(reasons.items(), key=lambda kv: -kv[1]))
         hint = " Is the proxy in the COLMAP model's frame and units?" if len(blind) == len(records) else ""
         raise DifftexError(f"{images_dir}: every photo was filtered out ({detail}); nothing to texture.{hint}")
     if blind:
@@ -135,8 +135,8 @@ def filter_photos(proxy: Proxy, photos: list[Photo], cfg: FilterConfig, progress
         )
     if unseen:
         log.warning(
-            "%s: %d of %d polygons are seen by no kept photo and stay untextured (grey): %s",
-            proxy.path, len(unseen), len(per_polygon), ", ".join(unseen),
+            "%s: seen by no kept photo, so untextured (grey): %s (%d of %d polygons)",
+            proxy.path, ", ".join(unseen), len(unseen), len(per_polygon),
         )
     return {
         "config": cfg.__dict__,

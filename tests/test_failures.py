@@ -265,7 +265,7 @@ CASES = [
     ("proxy-elsewhere", lambda s: B.transform_proxy(s, lambda V: V + [500.0, 0, 0]), "error", ["proxy.obj", "does not fit"]),
     ("proxy-10x-small", lambda s: B.scale_proxy(s, 0.1), "warning", ["proxy.obj", "far from the proxy"]),
     # what the photos see
-    ("polygon-behind-everything", _inside_wall, "warning", ["proxy.obj", "seen by no kept photo", "hidden"]),
+    ("polygon-behind-everything", _inside_wall, "warning", ["proxy.obj", "seen by no kept photo", "hidden (1 of 7 polygons)"]),
     ("camera-sees-nothing", lambda s: B.turn_camera_around(s, 4), "warning", ["images", "1 photo sees no proxy polygon"]),
     ("every-photo-filtered-out", _turn_all, "error", ["images", "every photo was filtered out", "frame and units"]),
     ("all-photos-blurry", _blur_all, "ok", []),
