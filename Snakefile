@@ -45,4 +45,4 @@ onsuccess:
 
 onerror:
     RUN_GUARD.finished = True
-    runlog.report_failure(workflow, R, RUN_GUARD.started)
+    runlog.report_failure(workflow, R, RUN_GUARD.started, RUN_GUARD.interrupted)

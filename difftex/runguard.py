@@ -23,6 +23,7 @@ import fcntl
 import json
 import logging
 import os
+import signal
 import socket
 import sys
 import time
@@ -84,6 +85,7 @@ class RunGuard:
         # set by the Snakefile's onsuccess/onerror handlers; a real run that ends without either
         # stopped on an error of Snakemake itself (e.g. its metadata on a full disk)
         self.finished = False
+        self.interrupted = False  # Ctrl-C (SIGINT) seen
         self.snakemake_error = _LastError()
 
     def __call__(self, workflow) -> list:
@@ -123,6 +125,23 @@ class RunGuard:
         remove_temporary_files(self.results)
         logging.getLogger("snakemake.logging").addHandler(self.snakemake_error)
         atexit.register(self.at_exit)
+        self._note_interrupts()
+
+    def _note_interrupts(self) -> None:
+        """Remember a Ctrl-C, then let Snakemake handle it as before (its scheduler turns the
+        KeyboardInterrupt into a plain failure, which the failure report must not blame on a job)."""
+        previous = signal.getsignal(signal.SIGINT)
+        if not callable(previous):
+            return
+
+        def handler(signum, frame):
+            self.interrupted = True
+            return previous(signum, frame)
+
+        try:
+            signal.signal(signal.SIGINT, handler)
+        except ValueError:  # not the main thread: no note, the report is only less precise
+            pass
 
     def at_exit(self) -> None:
         """When Snakemake stopped on its own error (no onsuccess/onerror), end the console with

@@ -123,12 +123,12 @@ def failure_report(jobs: list[tuple[str, str, list[str]]], results: str | Path) 
     return lines
 
 
-def report_failure(workflow, results: str | Path, since: float) -> None:
+def report_failure(workflow, results: str | Path, since: float, interrupted: bool = False) -> None:
     """The Snakefile's onerror handler: print the report on stderr and exit with status 1, so
     that the error line is the last line on the console (Snakemake would otherwise add its
     own lines after the handler's). After Ctrl-C: one line saying how to resume, status 130."""
     scheduler = getattr(workflow, "scheduler", None)
-    if getattr(scheduler, "_user_kill", None):
+    if interrupted or getattr(scheduler, "_user_kill", None):
         print("difftex: interrupted; run the same command again to resume", file=sys.stderr, flush=True)
         raise SystemExit(130)
     jobs = failed_jobs(workflow) or recent_error_logs(Path(results), since)

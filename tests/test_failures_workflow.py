@@ -230,7 +230,9 @@ def test_interrupted_and_killed_runs_resume_to_the_same_textures(resume_scene, r
     # 2. Ctrl-C (SIGINT) during the per-polygon stage
     wait_for(lambda: n_textures(work) >= 1, first, "the first texture")
     os.killpg(first.pid, signal.SIGINT)
-    assert first.wait(timeout=120) != 0
+    assert first.wait(timeout=120) == 130
+    said = [ln for ln in (tmp_path / "first.log").read_text().splitlines() if ln.strip()]
+    assert said[-1] == "difftex: interrupted; run the same command again to resume", said[-5:]
     done = n_textures(work)
     assert done < total, "the run ended before it could be interrupted; make the scene slower"
 
