@@ -94,6 +94,7 @@ class RunGuard:
         if not self.checked and is_real_run(workflow):
             self.checked = True
             self.acquire(clear_snakemake_locks=_file_backend(workflow))
+            self.install_hooks()
         return []
 
     def acquire(self, clear_snakemake_locks: bool = True) -> None:
@@ -123,6 +124,10 @@ class RunGuard:
                       f"locks and {redo} incomplete output(s), which are made again", file=sys.stderr, flush=True)
         check_writable(self.results)
         remove_temporary_files(self.results)
+
+    def install_hooks(self) -> None:
+        """For the rest of this Snakemake process: note Snakemake's last error and Ctrl-C, and
+        report an abnormal end at exit."""
         logging.getLogger("snakemake.logging").addHandler(self.snakemake_error)
         atexit.register(self.at_exit)
         self._note_interrupts()

@@ -170,11 +170,21 @@ def stage_config_paths(results: str | Path, texts: dict[str, str]) -> dict[str, 
     }
 
 
-def write_stage_config(path: str | Path, text: str) -> None:
-    """The ``stage_config`` rule's job: write ``text`` (atomically) to ``path``."""
+def write_stage_config(path: str | Path, text: str, log: str | Path | None = None) -> None:
+    """The ``stage_config`` rule's job: write ``text`` (atomically) to ``path``. A failure (a full
+    disk) goes to ``log`` as the one error line the end-of-run report shows, then stops the job."""
+    from difftex.errors import ERROR_PREFIX, one_line
     from difftex.io import write_text
 
-    write_text(path, text)
+    try:
+        write_text(path, text)
+    except DifftexError as exc:
+        if log is not None:
+            try:
+                Path(log).write_text(ERROR_PREFIX + one_line(str(exc)) + "\n")
+            except OSError:
+                pass
+        raise
 
 
 # ---------------------------------------------------------------------------------------------

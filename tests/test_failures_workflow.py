@@ -137,7 +137,7 @@ def test_read_only_results_folder(scene, tmp_path):
 def test_scene_path_with_spaces_and_accents(small_synth_scene, tmp_path):
     scene = B.copy_scene(small_synth_scene, tmp_path / "Kölner Dom (west)")
     work = tmp_path / "work dir"
-    r = snakemake(work, "results/Kölner_Dom_west/visibility/summary.json", "--config", f"scene={scene}")
+    r = snakemake(work, "results/Kölner_Dom_west/visibility/summary.json", "--config", f"scene={scene}", *QUICK)
     assert r.returncode == 0, r.stdout[-3000:]
     summary = json.loads((work / "results/Kölner_Dom_west/visibility/summary.json").read_text())
     assert len(summary["polygons"]) == 6

@@ -34,4 +34,4 @@ rule stage_config:
         f"{R}/logs/stage_config/{{stage}}-{{digest}}.log",
     localrule: True
     run:
-        wf.write_stage_config(output[0], params.text)
+        wf.write_stage_config(output[0], params.text, log[0])
