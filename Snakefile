@@ -5,6 +5,8 @@
 #   snakemake --cores all --config scene=... preset=fast 'optimize={lr: 0.01}'
 #
 # Results: <results>/<scene name>/ in the working directory (see docs/workflow.md).
+# A failed run ends with the failed jobs' one-line errors and their logs; the same command
+# resumes after a crash or a kill (docs/failures.md).
 
 from snakemake.utils import min_version
 
@@ -28,6 +30,8 @@ localrules:
 
 rule all:
     input:
+        # the run guard first: it takes the run lock in real runs (and adds no input)
+        lambda wc: RUN_GUARD(workflow),
         f"{R}/model/summary.json",
         f"{R}/report.md",
         f"{R}/report/index.html",
@@ -35,4 +39,11 @@ rule all:
 
 
 onsuccess:
+    RUN_GUARD.finished = True
+    runlog.print_warnings(R)
     wf.print_summary(R)
+
+
+onerror:
+    RUN_GUARD.finished = True
+    runlog.report_failure(workflow, R, RUN_GUARD.started, RUN_GUARD.interrupted)

@@ -7,12 +7,15 @@ models take a closed-form path that gives the same numbers without the per-call 
 
 from __future__ import annotations
 
+import logging
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
 from difftex.errors import DifftexError
+
+log = logging.getLogger(__name__)
 
 IMAGE_SUFFIXES = {".jpg", ".jpeg", ".png", ".tif", ".tiff", ".exr", ".bmp"}
 _PINHOLE = {"SIMPLE_PINHOLE", "PINHOLE"}
@@ -115,56 +118,51 @@ def _rigid(image) -> tuple[np.ndarray, np.ndarray]:
 
 
 def read_reconstruction(sparse_dir: str | Path):
-    """pycolmap.Reconstruction from a binary or text COLMAP model, with one-line errors."""
-    import pycolmap
+    """pycolmap.Reconstruction from a binary or text COLMAP model, checked (difftex.colmap)."""
+    from difftex.colmap import read_model
 
-    sparse_dir = Path(sparse_dir)
-    if not sparse_dir.is_dir():
-        raise DifftexError(f"{sparse_dir}: COLMAP model folder not found")
-    names = {p.name for p in sparse_dir.iterdir()}
-    if not ({"cameras.bin", "images.bin"} <= names or {"cameras.txt", "images.txt"} <= names):
-        raise DifftexError(f"{sparse_dir}: no COLMAP model (cameras/images .bin or .txt) in this folder")
-    if (sparse_dir / "images.txt").is_file():
-        _check_text_poses(sparse_dir / "images.txt")
-    try:
-        return pycolmap.Reconstruction(str(sparse_dir))
-    except Exception as exc:  # pycolmap raises bare RuntimeErrors with multi-line C++ context
-        first = str(exc).strip().splitlines()[-1] if str(exc).strip() else type(exc).__name__
-        raise DifftexError(f"{sparse_dir}: unreadable COLMAP model ({first})") from None
+    return read_model(sparse_dir)
 
 
-def _check_text_poses(path: Path) -> None:
-    """Name the image whose pose is not finite: pycolmap's own parser only reports a C++ stream error."""
-    lines = [ln for ln in path.read_text(errors="replace").splitlines() if ln.strip() and not ln.startswith("#")]
-    # images.txt alternates a pose line and a (possibly empty, then skipped above) points line.
-    for ln in lines:
-        parts = ln.split()
-        if len(parts) < 10:
-            continue
-        try:
-            int(parts[0]), int(parts[8])
-        except ValueError:
-            continue  # a points2D line
-        try:
-            vals = np.array([float(x) for x in parts[1:8]])
-        except ValueError:
-            raise DifftexError(f"{path}: image '{parts[9]}' has an unreadable pose ({' '.join(parts[1:8])})") from None
-        if not np.isfinite(vals).all():
-            raise DifftexError(f"{path}: pose of image '{parts[9]}' is not finite (NaN or inf)")
+def _model_file(sparse_dir: Path, stem: str) -> Path:
+    """The file that defines ``stem`` (cameras/images): the binary one when both exist, as read."""
+    binary = sparse_dir / f"{stem}.bin"
+    return binary if binary.is_file() else sparse_dir / f"{stem}.txt"
 
 
-def load_photos(sparse_dir: str | Path, images_dir: str | Path, check_images: bool = True) -> list[Photo]:
+def unlisted_photos(images_dir: Path, listed: set[str]) -> list[str]:
+    """Photo files under ``images_dir`` (relative names, as COLMAP writes them) that the model
+    does not list, sorted."""
+    if not images_dir.is_dir():
+        return []
+    names = (p.relative_to(images_dir).as_posix() for p in images_dir.rglob("*") if p.suffix.lower() in IMAGE_SUFFIXES)
+    return sorted(n for n in names if n not in listed and (images_dir / n).is_file())
+
+
+def load_photos(
+    sparse_dir: str | Path, images_dir: str | Path, check_images: bool = True, reconstruction=None
+) -> list[Photo]:
     """All registered images of a COLMAP model, sorted by name.
 
-    A NaN pose, a bad camera, a missing image file or an image whose size disagrees with its
-    camera is an error naming the image (header only is read here; pixels are read on use).
+    The model is checked when read (difftex.colmap: cameras, poses, duplicate names). With
+    ``check_images``, a missing image file or one whose size disagrees with its camera is an error
+    naming the image (header only is read here; pixels are read on use), and photos in
+    ``images_dir`` that the model does not list are ignored with one warning giving their count.
+
+    Args:
+        sparse_dir: the COLMAP model folder.
+        images_dir: the photos; the model's image names are relative to it.
+        check_images: check the files (False where only the cameras are needed).
+        reconstruction: the already read model of ``sparse_dir``, to avoid reading it again.
     """
     from difftex.io import image_size
 
-    rec = read_reconstruction(sparse_dir)
+    sparse_dir = Path(sparse_dir)
+    rec = reconstruction if reconstruction is not None else read_reconstruction(sparse_dir)
     images_dir = Path(images_dir)
     if check_images and not images_dir.is_dir():
         raise DifftexError(f"{images_dir}: images folder not found")
+    images_file = _model_file(sparse_dir, "images")
     photos = []
     for image in rec.images.values():
         if hasattr(image, "has_pose") and not image.has_pose:
@@ -172,20 +170,16 @@ def load_photos(sparse_dir: str | Path, images_dir: str | Path, check_images: bo
         cam = rec.cameras[image.camera_id]
         R, t = _rigid(image)
         path = images_dir / image.name
-        if not (np.isfinite(R).all() and np.isfinite(t).all()):
-            raise DifftexError(f"{path}: pose in {sparse_dir} is not finite (NaN or inf)")
         if abs(np.linalg.det(R) - 1.0) > 1e-3:
-            raise DifftexError(f"{path}: rotation in {sparse_dir} is not a rotation (det {np.linalg.det(R):.3f})")
-        params = np.asarray(cam.params, dtype=np.float64)
-        if not np.isfinite(params).all() or cam.width <= 0 or cam.height <= 0 or cam.has_bogus_params(0.1, 10.0, 10.0):
-            raise DifftexError(f"{path}: camera {cam.camera_id} ({cam.model_name}) has invalid parameters {params.tolist()}")
+            raise DifftexError(f"{images_file}: image '{image.name}': rotation is not a rotation (det {np.linalg.det(R):.3f})")
         if check_images:
             if not path.is_file():
-                raise DifftexError(f"{path}: image listed in {sparse_dir} is missing")
+                raise DifftexError(f"{path}: image listed in {images_file} is missing")
             size = image_size(path)
             if size != (cam.width, cam.height):
                 raise DifftexError(
-                    f"{path}: image is {size[0]}x{size[1]} but camera {cam.camera_id} says {cam.width}x{cam.height}"
+                    f"{path}: image is {size[0]}x{size[1]} but camera {cam.camera_id} in "
+                    f"{_model_file(sparse_dir, 'cameras')} says {cam.width}x{cam.height}"
                 )
         photos.append(
             Photo(
@@ -200,7 +194,15 @@ def load_photos(sparse_dir: str | Path, images_dir: str | Path, check_images: bo
             )
         )
     if not photos:
-        raise DifftexError(f"{sparse_dir}: COLMAP model has no registered images")
+        raise DifftexError(f"{images_file}: COLMAP model has no registered images")
+    if check_images:
+        extra = unlisted_photos(images_dir, {im.name for im in rec.images.values()})
+        if extra:
+            shown = ", ".join(extra[:3]) + (", ..." if len(extra) > 3 else "")
+            log.warning(
+                "%s: %d photo%s not in the COLMAP model %s, ignored (%s)",
+                images_dir, len(extra), "s are" if len(extra) > 1 else " is", images_file, shown,
+            )
     return sorted(photos, key=lambda p: p.name)
 
 

@@ -24,10 +24,30 @@ def from_dict(cls: type[T], data: dict[str, Any] | None, where: str = "") -> T:
     unknown = sorted(set(data) - names)
     if unknown:
         raise DifftexError(f"{where or cls.__name__}: unknown key(s) {', '.join(unknown)} (known: {', '.join(sorted(names))})")
+    for f in dataclasses.fields(cls):
+        if f.name in data:
+            problem = _type_problem(data[f.name], f.default)
+            if problem:
+                raise DifftexError(f"{where or cls.__name__}: {f.name}: {problem}")
     try:
         return cls(**data)
     except (TypeError, ValueError) as exc:
         raise DifftexError(f"{where or cls.__name__}: {exc}") from None
+
+
+def _type_problem(value: Any, default: Any) -> str | None:
+    """A value of the wrong kind for a scalar key (judged by its default), or None. A string
+    where a number belongs would otherwise fail deep inside a stage with a Python error."""
+    if value is None or default is None or default is dataclasses.MISSING:
+        return None
+    if isinstance(default, bool):
+        return None if isinstance(value, bool) else f"must be true or false, got {value!r}"
+    if isinstance(default, (int, float)):
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            return f"must be a number, got {value!r}"
+    if isinstance(default, str) and not isinstance(value, str):
+        return f"must be a string, got {value!r}"
+    return None
 
 
 def read_config(path: str | Path | None) -> dict[str, Any]:

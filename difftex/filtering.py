@@ -6,6 +6,7 @@ to the set's median so that the threshold does not depend on the camera or the s
 
 from __future__ import annotations
 
+import logging
 import time
 from dataclasses import dataclass
 from math import ceil
@@ -14,9 +15,12 @@ import numpy as np
 
 from difftex.camera import Photo
 from difftex.config import FilterConfig
+from difftex.errors import DifftexError
 from difftex.io import read_image
 from difftex.proxy import Proxy
 from difftex.visibility import id_buffer, prepare
+
+log = logging.getLogger(__name__)
 
 
 def sharpness(image: np.ndarray, long_side: int = 1024) -> float:
@@ -64,6 +68,28 @@ def viewing_angles(proxy: Proxy, photo: Photo, ids: np.ndarray, dist: np.ndarray
     return out
 
 
+def check_kept(records: list[PhotoRecord], proxy: Proxy, images_dir) -> None:
+    """Warn about photos that see no polygon; stop when no photo is left at all.
+
+    A photo that sees nothing is normal (a view of the street); every photo seeing nothing is
+    not: the proxy and the photos do not meet (wrong frame or units), and continuing would
+    write an all-grey model.
+    """
+    blind = [r.name for r in records if not r.polygons]
+    kept = [r for r in records if r.kept]
+    if not kept:
+        reasons: dict[str, int] = {}
+        for r in records:
+            key = r.reason.split(" (")[0]
+            reasons[key] = reasons.get(key, 0) + 1
+        detail = "; ".join(f"{why}: {n} of {len(records)}" for why, n in sorted(reasons.items(), key=lambda kv: -kv[1]))
+        hint = " Is the proxy in the COLMAP model's frame and units?" if len(blind) == len(records) else ""
+        raise DifftexError(f"{images_dir}: every photo was filtered out ({detail}); nothing to texture.{hint}")
+    if blind:
+        shown = ", ".join(blind[:3]) + (", ..." if len(blind) > 3 else "")
+        log.warning("%s: %d photo%s no proxy polygon, dropped (%s)", images_dir, len(blind), "s see" if len(blind) > 1 else " sees", shown)
+
+
 def filter_photos(proxy: Proxy, photos: list[Photo], cfg: FilterConfig, progress: bool = True) -> dict:
     """Decide which photos to keep, globally and per polygon; returns the table as a dict."""
     from rich.progress import track
@@ -86,6 +112,7 @@ def filter_photos(proxy: Proxy, photos: list[Photo], cfg: FilterConfig, progress
             r.kept, r.reason = False, "sees no proxy polygon"
         elif r.sharpness_rel < cfg.blur_ratio:
             r.kept, r.reason = False, f"blurry (sharpness {r.sharpness_rel:.2f} x median < {cfg.blur_ratio})"
+    check_kept(records, proxy, photos[0].image_path.parent if photos else None)
     per_polygon = {}
     for poly in proxy.polygons:
         kept, dropped = [], {}
@@ -100,6 +127,17 @@ def filter_photos(proxy: Proxy, photos: list[Photo], cfg: FilterConfig, progress
             else:
                 kept.append(r.name)
         per_polygon[poly.id] = {"kept": kept, "dropped": dropped}
+    unseen = [pid for pid, d in per_polygon.items() if not d["kept"]]
+    if len(unseen) == len(per_polygon):
+        raise DifftexError(
+            f"{proxy.path}: no polygon keeps a photo after filtering (every view is inclined beyond "
+            f"filter.max_angle_deg = {cfg.max_angle_deg:g} or dropped); nothing to texture"
+        )
+    if unseen:
+        log.warning(
+            "%s: seen by no kept photo, so untextured (grey): %s (%d of %d polygons)",
+            proxy.path, ", ".join(unseen), len(unseen), len(per_polygon),
+        )
     return {
         "config": cfg.__dict__,
         "median_sharpness": med,

@@ -15,7 +15,24 @@ from typing import Any, Iterator
 
 import numpy as np
 
-from difftex.errors import DifftexError
+from difftex.errors import DifftexError, os_error_message
+
+
+def current_umask() -> int:
+    """The process's file-creation mask, read without changing it.
+
+    ``os.umask`` can only be read by setting it, which races with other threads creating files;
+    Linux shows it in /proc/self/status, so the set-and-restore is only the fallback.
+    """
+    try:
+        for line in Path("/proc/self/status").read_text().splitlines():
+            if line.startswith("Umask:"):
+                return int(line.split()[1], 8)
+    except (OSError, ValueError, IndexError):
+        pass
+    mask = os.umask(0o022)
+    os.umask(mask)
+    return mask
 
 
 @contextlib.contextmanager
@@ -23,17 +40,28 @@ def atomic_path(path: str | os.PathLike, suffix: str | None = None) -> Iterator[
     """Yield a temporary path beside ``path``; rename it onto ``path`` only if the block succeeds.
 
     The temporary name keeps ``path``'s extension (or ``suffix``) because writers such as
-    OpenImageIO and numpy choose the format from it.
+    OpenImageIO and numpy choose the format from it. ``tempfile.mkstemp`` creates the file with
+    mode 0600 whatever the umask; the result gets the mode a plain ``open`` would give (0666
+    minus the umask), so colleagues and web servers can read the outputs where the umask allows.
+    An OS error (disk full, permission denied) becomes a one-line DifftexError naming ``path``,
+    and the temporary file is removed: nothing half-written is left.
     """
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    ext = suffix if suffix is not None else "".join(path.suffixes[-1:])
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=f".part{ext}", dir=path.parent)
-    os.close(fd)
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        ext = suffix if suffix is not None else "".join(path.suffixes[-1:])
+        fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=f".part{ext}", dir=path.parent)
+        os.close(fd)
+    except OSError as exc:
+        raise DifftexError(os_error_message(exc, path)) from None
     tmp_path = Path(tmp)
     try:
-        yield tmp_path
-        os.replace(tmp_path, path)
+        try:
+            yield tmp_path
+            os.chmod(tmp_path, 0o666 & ~current_umask())
+            os.replace(tmp_path, path)
+        except OSError as exc:
+            raise DifftexError(os_error_message(exc, path)) from None
     finally:
         if tmp_path.exists():
             tmp_path.unlink()

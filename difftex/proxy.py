@@ -126,7 +126,7 @@ def _safe_id(name: str) -> str:
 
 
 def _read_obj(path: Path):
-    verts, faces, names = [], [], []
+    verts, faces, names, lines = [], [], [], []
     group = ""
     for lineno, raw in enumerate(path.read_text(errors="replace").splitlines(), 1):
         parts = raw.split("#", 1)[0].split()
@@ -145,9 +145,12 @@ def _read_obj(path: Path):
                     idx.append(i - 1 if i > 0 else len(verts) + i)
                 faces.append(idx)
                 names.append(group)
+                lines.append(lineno)
         except (ValueError, IndexError):
             raise DifftexError(f"{path}:{lineno}: malformed OBJ line '{raw.strip()}'") from None
-    return np.asarray(verts, dtype=np.float64).reshape(-1, 3), faces, names
+    if any(len(v) != 3 for v in verts):
+        raise DifftexError(f"{path}: a vertex line ('v') has fewer than 3 coordinates")
+    return np.asarray(verts, dtype=np.float64).reshape(-1, 3), faces, names, lines
 
 
 def _read_off(path: Path):
@@ -168,7 +171,7 @@ def _read_off(path: Path):
             pos += 1 + k  # colour values after the indices are not supported (rare in proxies)
     except (ValueError, IndexError) as exc:
         raise DifftexError(f"{path}: malformed OFF file ({exc})") from None
-    return verts, faces, [""] * len(faces)
+    return verts, faces, [""] * len(faces), [None] * len(faces)
 
 
 def _read_trimesh(path: Path):
@@ -189,8 +192,8 @@ def _read_trimesh(path: Path):
         names.extend([str(name)] * len(geom.faces))
         offset += len(geom.vertices)
     if not verts:
-        return np.zeros((0, 3)), [], []
-    return np.concatenate(verts), faces, names
+        return np.zeros((0, 3)), [], [], []
+    return np.concatenate(verts), faces, names, [None] * len(faces)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -323,6 +326,78 @@ def _polygons_from_triangles(verts, tris, angle_tol_deg, dist_tol_rel):
 # ---------------------------------------------------------------------------------------------
 
 
+def degenerate_reason(outer: np.ndarray, holes: tuple = ()) -> str | None:
+    """Why a polygon cannot be textured as a surface, or None.
+
+    Zero area (collinear or coincident vertices) is degenerate, and so is a sliver thinner than a
+    millionth of its size: its texture map would be one texel high, and the model is written with
+    float32 positions (glTF), in which its area does not survive (assembly then finds the
+    reloaded polygon smaller than the proxy's). So the area is also checked after rounding the
+    vertices to float32, against a tenth of the assembly check's tolerance (1e-4).
+
+    Args:
+        outer: (n, 3) boundary loop.
+        holes: (m, 3) loops.
+
+    Returns:
+        A short phrase, or None for a usable polygon.
+    """
+    if len(outer) < 3:
+        return f"{len(outer)} vertices"
+    diam = float(np.linalg.norm(np.ptp(outer, axis=0)))
+    area = polygon_area(outer) - sum(polygon_area(h) for h in holes)
+    if diam == 0 or area <= 1e-6 * diam * diam:
+        return f"zero area: collinear or coincident vertices; area {area:.3g} for a size of {diam:.3g}"
+    rounded = polygon_area(outer.astype(np.float32).astype(np.float64)) - sum(
+        polygon_area(h.astype(np.float32).astype(np.float64)) for h in holes
+    )
+    if abs(rounded - area) > 1e-5 * area:
+        return f"too thin to store: its area {area:.3g} changes by {abs(rounded - area) / area:.1e} in float32"
+    return None
+
+
+def assign_ids(names: list[str], path: Path) -> list[str]:
+    """Unique polygon ids from group names, deterministic across runs.
+
+    A name used by one polygon is its id (made filename-safe). A name shared by several polygons
+    (two OBJ groups with the same name, a triangle group that splits into several planes, or
+    names that become equal once made safe) gets suffixes ``_1``, ``_2``... in file order, with one
+    warning listing them. Unnamed polygons are ``poly<index>``.
+    """
+    safe = [_safe_id(n) for n in names]
+    counts: dict[str, int] = {}
+    for n in safe:
+        counts[n] = counts.get(n, 0) + 1
+    taken = {n for n in safe if n and counts[n] == 1}
+    ids: list[str] = []
+    shared: dict[str, list[str]] = {}
+    next_suffix: dict[str, int] = {}
+    for i, n in enumerate(safe):
+        if n and counts[n] == 1:
+            ids.append(n)
+            continue
+        while True:
+            if n:
+                next_suffix[n] = next_suffix.get(n, 0) + 1
+                cand = f"{n}_{next_suffix[n]}"
+            else:
+                cand = f"poly{i:04d}" if f"poly{i:04d}" not in taken else f"poly{i:04d}_{len(taken)}"
+            if cand not in taken:
+                break
+        taken.add(cand)
+        ids.append(cand)
+        if n:
+            shared.setdefault(n, []).append(cand)
+    if shared:
+        shown = "; ".join(f"'{n}' -> {', '.join(v)}" for n, v in list(shared.items())[:3])
+        more = f"; and {len(shared) - 3} more names" if len(shared) > 3 else ""
+        log.warning(
+            "%s: %d polygon name%s shared by several polygons, so their ids get suffixes: %s%s",
+            path, len(shared), "s are" if len(shared) > 1 else " is", shown, more,
+        )
+    return ids
+
+
 def load_proxy(
     path: str | Path,
     angle_tol_deg: float = 1.0,
@@ -332,48 +407,59 @@ def load_proxy(
 
     n-gon faces are kept as they are; triangles are grouped into coplanar connected polygons.
     A non-planar n-gon (deviation above ``dist_tol_rel`` of its diameter) is an error naming it;
-    degenerate polygons (zero area, collinear) are skipped with a warning.
+    faces with fewer than 3 vertices and degenerate polygons (zero area, collinear, slivers; see
+    ``degenerate_reason``) are skipped with a warning naming them. Ids are unique (``assign_ids``).
     """
     path = Path(path)
     if not path.is_file():
         raise DifftexError(f"{path}: proxy file not found")
     suffix = path.suffix.lower()
     if suffix == ".obj":
-        verts, faces, names = _read_obj(path)
+        verts, faces, names, lines = _read_obj(path)
     elif suffix == ".off":
-        verts, faces, names = _read_off(path)
+        verts, faces, names, lines = _read_off(path)
     elif suffix in (".ply", ".glb", ".gltf", ".stl"):
-        verts, faces, names = _read_trimesh(path)
+        verts, faces, names, lines = _read_trimesh(path)
     else:
         raise DifftexError(f"{path}: unsupported proxy format '{suffix}' (use OBJ, PLY, OFF, GLB or glTF)")
     if not np.isfinite(verts).all():
         raise DifftexError(f"{path}: proxy has non-finite vertex coordinates")
-    for f in faces:
-        if any(i < 0 or i >= len(verts) for i in f):
-            raise DifftexError(f"{path}: face refers to vertex {max(f) + 1} but the file has {len(verts)} vertices")
+    for f, ln in zip(faces, lines):
+        bad = [i for i in f if i < 0 or i >= len(verts)]
+        if bad:
+            where = f"{path}:{ln}" if ln else str(path)
+            raise DifftexError(f"{where}: face refers to vertex {bad[0] + 1} but the file has {len(verts)} vertices")
 
     # (outer, holes, name, order key)
     raw: list[tuple[np.ndarray, tuple, str, int]] = []
     tri_by_group: dict[str, list[tuple[int, list[int]]]] = {}
-    for fi, (face, name) in enumerate(zip(faces, names)):
+    for fi, (face, name, ln) in enumerate(zip(faces, names, lines)):
         if len(face) == 3:
             tri_by_group.setdefault(name, []).append((fi, face))
         elif len(face) > 3:
             raw.append((verts[np.asarray(face)], (), name, fi))
+        else:
+            where = f"{path}:{ln}" if ln else f"{path}: face {fi}"
+            label = f"'{name}'" if name else "an unnamed group"
+            log.warning("%s: face of %s has %d vertices (a polygon needs 3), skipped", where, label, len(face))
     for name, items in tri_by_group.items():
         fids = [fi for fi, _ in items]
-        for outer, holes, first in _polygons_from_triangles(verts, [f for _, f in items], angle_tol_deg, dist_tol_rel):
+        groups = _polygons_from_triangles(verts, [f for _, f in items], angle_tol_deg, dist_tol_rel)
+        if not groups:
+            log.warning("%s: the triangles of '%s' are all degenerate (zero area), skipped", path, name or "an unnamed group")
+        for outer, holes, first in groups:
             raw.append((outer, holes, name, fids[first]))
     raw.sort(key=lambda r: r[3])
 
-    kept = []
+    kept, thin = [], 0
     for i, (outer, holes, name, _) in enumerate(raw):
         label = name or f"face {i}"
-        diam = float(np.linalg.norm(np.ptp(outer, axis=0)))
-        area = polygon_area(outer) - sum(polygon_area(h) for h in holes)
-        if diam == 0 or area <= 1e-10 * diam * diam:
-            log.warning("%s: polygon '%s' is degenerate (area %.3g), skipped", path, label, area)
+        why = degenerate_reason(outer, holes)
+        if why:
+            log.warning("%s: polygon '%s' is degenerate (%s); skipped", path, label, why)
+            thin += why.startswith("too thin")
             continue
+        diam = float(np.linalg.norm(np.ptp(outer, axis=0)))
         dev = planarity_deviation(np.concatenate([outer, *holes]) if holes else outer)
         if dev > dist_tol_rel * diam:
             raise DifftexError(
@@ -382,15 +468,14 @@ def load_proxy(
             )
         kept.append((outer, holes, name))
     if not kept:
-        raise DifftexError(f"{path}: proxy has no usable polygons")
+        hint = ""
+        if raw and thin == len(raw):  # every polygon tiny next to its distance from the origin
+            v = np.concatenate([r[0] for r in raw])
+            hint = (f" (it is {np.linalg.norm(np.ptp(v, axis=0)):.3g} across, "
+                    f"{np.linalg.norm(v.mean(axis=0)):.3g} from the origin: wrong units?)")
+        raise DifftexError(f"{path}: proxy has no usable polygons{hint}")
 
-    names = [_safe_id(n) for _, _, n in kept]
-    counts = {n: names.count(n) for n in names}
-    ids = []
-    for i, n in enumerate(names):
-        ids.append(n if n and counts[n] == 1 else f"poly{i:04d}")
-    if len(set(ids)) != len(ids):  # a group named like a fallback id ("poly0003"); fall back wholesale
-        ids = [f"poly{i:04d}" for i in range(len(kept))]
+    ids = assign_ids([n for _, _, n in kept], path)
     polys = [Polygon(id=pid, outer=o, holes=h) for pid, (o, h, _) in zip(ids, kept)]
     return Proxy(polygons=polys, path=path)
 

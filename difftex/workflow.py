@@ -169,33 +169,38 @@ def stage_config_text(cfg: dict, stage: str) -> str:
     return f"# written by the difftex workflow: the '{stage}' stage's sections\n" + yaml.safe_dump(sections, sort_keys=True)
 
 
-def write_if_changed(path: str | Path, text: str) -> bool:
-    """Write ``text`` only if the file's content differs, so its mtime (which Snakemake compares)
-    changes only with the content. True if written."""
+def stage_config_paths(results: str | Path, texts: dict[str, str]) -> dict[str, str]:
+    """{stage: R/config/<stage>-<digest>.yaml}: each stage's config file, named by its content.
+
+    The files are made by the workflow's ``stage_config`` rule, not when the Snakefile is read,
+    so a dry run writes nothing. A changed section gives a new file name, hence a changed input
+    of that stage's jobs and of nothing else: Snakemake reruns exactly what reads the section,
+    and the file's content can never be stale (a rewritten file of the same name could be, in a
+    results folder whose metadata Snakemake lost).
+    """
+    import hashlib
+
+    return {
+        stage: str(Path(results) / "config" / f"{stage}-{hashlib.sha256(text.encode()).hexdigest()[:12]}.yaml")
+        for stage, text in texts.items()
+    }
+
+
+def write_stage_config(path: str | Path, text: str, log: str | Path | None = None) -> None:
+    """The ``stage_config`` rule's job: write ``text`` (atomically) to ``path``. A failure (a full
+    disk) goes to ``log`` as the one error line the end-of-run report shows, then stops the job."""
+    from difftex.errors import ERROR_PREFIX, one_line
     from difftex.io import write_text
 
-    path = Path(path)
     try:
-        if path.read_text() == text:
-            return False
-    except (FileNotFoundError, UnicodeDecodeError):
-        pass
-    write_text(path, text)
-    return True
-
-
-def write_stage_configs(cfg: dict, results: str | Path) -> dict[str, str]:
-    """R/config/<stage>.yaml for every stage; returns {stage: path}.
-
-    Snakemake 9 reruns a job when an input's content (checksum) or a param changed, not when only
-    its mtime did; the rules also carry the text as a param, so both triggers see a change.
-    """
-    out = {}
-    for stage in STAGE_SECTIONS:
-        path = Path(results) / "config" / f"{stage}.yaml"
-        write_if_changed(path, stage_config_text(cfg, stage))
-        out[stage] = str(path)
-    return out
+        write_text(path, text)
+    except DifftexError as exc:
+        if log is not None:
+            try:
+                Path(log).write_text(ERROR_PREFIX + one_line(str(exc)) + "\n")
+            except OSError:
+                pass
+        raise
 
 
 # ---------------------------------------------------------------------------------------------
@@ -203,10 +208,16 @@ def write_stage_configs(cfg: dict, results: str | Path) -> dict[str, str]:
 
 
 def scene_name(scene: str | Path) -> str:
+    """The results folder's name: the scene folder's, with characters a shell would split on
+    or expand (spaces, quotes, $...) replaced by '_', so that every path the rules pass to a
+    command is one word. Letters of any script are kept."""
+    import re
+
     name = Path(scene).resolve().name
-    if not name:
+    safe = re.sub(r"_+", "_", re.sub(r"[^\w.+@,=-]", "_", name)).strip("_")
+    if not safe or safe.strip(".") == "":
         raise DifftexError(f"{scene}: cannot name the results folder after this scene path")
-    return name
+    return safe
 
 
 def scene_inputs(scene: str | Path) -> list[str]:

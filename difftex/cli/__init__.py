@@ -3,17 +3,23 @@
 Each module ``difftex/cli/<name>.py`` defines ``NAME``, ``HELP``, ``add_arguments(parser)`` and
 ``run(args) -> int``; they are discovered here so that stages can be added without touching this
 file. Modules import their heavy dependencies inside ``run`` to keep ``difftex --help`` fast.
+
+Every failure ends in one line on stderr, ``difftex: error: <file>: <problem>`` (exit 2), and
+every warning is one line ``difftex: warning: ...``, printed once per process: the workflow
+shows these lines on the console (docs/failures.md).
 """
 
 from __future__ import annotations
 
 import argparse
 import importlib
+import logging
 import pkgutil
 import sys
+import traceback
 
 from difftex import __version__
-from difftex.errors import DifftexError
+from difftex.errors import ERROR_PREFIX, WARNING_PREFIX, DifftexError, one_line, os_error_message
 
 
 def _commands() -> list:
@@ -38,21 +44,67 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+class _Once(logging.Filter):
+    """Pass each distinct message once: several stages of one process may load the same scene,
+    and a warning about it is worth one line."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.seen: set[str] = set()
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        msg = record.getMessage()
+        if msg in self.seen:
+            return False
+        self.seen.add(msg)
+        return True
+
+
+class _OneLine(logging.Formatter):
+    def format(self, record: logging.LogRecord) -> str:
+        prefix = ERROR_PREFIX if record.levelno >= logging.ERROR else WARNING_PREFIX
+        return prefix + one_line(record.getMessage())
+
+
+def _warnings_to_stderr() -> logging.Handler:
+    """Route the package's log warnings to stderr as ``difftex: warning: ...`` lines."""
+    handler = logging.StreamHandler(sys.stderr)
+    handler.setLevel(logging.WARNING)
+    handler.setFormatter(_OneLine())
+    handler.addFilter(_Once())
+    logging.getLogger("difftex").addHandler(handler)
+    return handler
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     if not getattr(args, "_run", None):
         parser.print_help()
         return 1
+    handler = _warnings_to_stderr()
     try:
         return int(args._run(args) or 0)
     except DifftexError as exc:
         # One line, whatever a library put in the message.
-        print("difftex: error: " + " ".join(str(exc).split()), file=sys.stderr)
+        print(ERROR_PREFIX + one_line(str(exc)), file=sys.stderr)
+        return 2
+    except OSError as exc:
+        # Disk full, permission denied, read-only folder: the OS names the file.
+        print(ERROR_PREFIX + os_error_message(exc), file=sys.stderr)
+        return 2
+    except MemoryError:
+        print(ERROR_PREFIX + f"{args.command}: out of memory (give the job more memory: run.base_mem_mb)", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         print("difftex: interrupted", file=sys.stderr)
         return 130
+    except Exception as exc:  # noqa: BLE001 -- a bug: keep its traceback, but end in the one line
+        traceback.print_exc()
+        print(ERROR_PREFIX + one_line(f"{args.command}: internal error {type(exc).__name__}: {exc} (traceback above)"), file=sys.stderr)
+        return 3
+    finally:
+        logging.getLogger("difftex").removeHandler(handler)
 
 
 if __name__ == "__main__":

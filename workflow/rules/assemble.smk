@@ -31,7 +31,7 @@ rule assemble:
         mem_mb=lambda wc, input: wf.assemble_mem_mb(input.summary, config),
         runtime=60,
     shell:
-        "difftex assemble --scene {params.scene} --textures {params.textures} "
+        "difftex assemble --scene {params.scene:q} --textures {params.textures} "
         "--visibility {params.visibility} --config {input.config} --out-dir {params.out_dir} > {log} 2>&1"
 
 
@@ -75,4 +75,4 @@ rule html_report:
         mem_mb=2000,
         runtime=10,
     shell:
-        "difftex report --results {params.results} --scene {params.scene} --out {output} > {log} 2>&1"
+        "difftex report --results {params.results} --scene {params.scene:q} --out {output} > {log} 2>&1"

@@ -4,8 +4,6 @@ import shlex
 import sys
 from pathlib import Path
 
-from snakemake.exceptions import WorkflowError
-
 # The workflow imports difftex from this checkout even when it is not installed.
 sys.path.insert(0, str(Path(workflow.basedir)))
 
@@ -14,7 +12,9 @@ sys.path.insert(0, str(Path(workflow.basedir)))
 shell.prefix(f"set -euo pipefail; export PATH={shlex.quote(str(Path(sys.executable).parent))}:$PATH; ")
 
 import difftex.workflow as wf
+from difftex import runguard, runlog
 from difftex.errors import DifftexError
+
 
 try:
     _user = wf.user_config(
@@ -36,20 +36,28 @@ try:
     )
     # What per-polygon jobs read of the scene besides their candidate photos.
     SCENE_MODEL = [p for p in SCENE_INPUTS if Path(p).suffix.lower() not in wf.IMAGE_EXTS]
-    # One small file per stage with only that stage's sections, rewritten only when they
-    # change: editing an optimization parameter reruns optimization and what follows, nothing else.
-    STAGE_CFG = wf.write_stage_configs(config, R)
-    STAGE_TEXT = {stage: wf.stage_config_text(config, stage) for stage in STAGE_CFG}
+    # One small file per stage with only that stage's sections, named by its content and made
+    # by the stage_config rule (nothing is written while the Snakefile is read, so a dry run
+    # changes nothing): editing an optimization parameter reruns optimization and what
+    # follows, nothing else.
+    STAGE_TEXT = {stage: wf.stage_config_text(config, stage) for stage in wf.STAGE_SECTIONS}
+    STAGE_CFG = wf.stage_config_paths(R, STAGE_TEXT)
     # Perspective quality on every scene; ground-truth maps and views where the scene has them.
     EVALUATE = wf.want_evaluation(config)
 except DifftexError as exc:
-    raise WorkflowError(f"difftex: {exc}") from None
+    # One line and no Snakemake frame around it (SystemExit passes Snakemake's handlers).
+    runguard.stop(str(exc))
 
 RUN = config["run"]
+# One real run per working directory; a run killed earlier leaves stale locks that this one
+# clears (difftex/runguard.py). Called as an input function, when the kind of run is known.
+RUN_GUARD = runguard.RunGuard(R)
 
 
 wildcard_constraints:
     pid="[A-Za-z0-9_-]+",
+    stage="|".join(wf.STAGE_SECTIONS),
+    digest="[0-9a-f]{12}",
 
 
 # Named input functions of the per-polygon rules (their rows come from the visibility checkpoint).

@@ -26,5 +26,5 @@ rule evaluate:
         mem_mb=8000,
         runtime=60,
     shell:
-        "OMP_NUM_THREADS={threads} difftex evaluate --quiet --scene {params.scene} --results {params.results} "
+        "OMP_NUM_THREADS={threads} difftex evaluate --quiet --scene {params.scene:q} --results {params.results} "
         "--config {input.config} --out {output} > {log} 2>&1"

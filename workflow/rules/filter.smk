@@ -22,5 +22,5 @@ rule filter:
         mem_mb=lambda wc, input: wf.scene_mem_mb(input.scene, RUN),
         runtime=60,
     shell:
-        "OMP_NUM_THREADS={threads} difftex filter --quiet --scene {params.scene} "
+        "OMP_NUM_THREADS={threads} difftex filter --quiet --scene {params.scene:q} "
         "--config {input.config} --out {output.table} > {log} 2>&1"

@@ -1,4 +1,5 @@
 # The bundled example: a small synthetic building, generated on first use (seconds to minutes).
+# The per-stage config files (R/config/<stage>-<digest>.yaml), written when a run needs them.
 
 
 rule synth_example:
@@ -18,4 +19,31 @@ rule synth_example:
         mem_mb=4000,
         runtime=30,
     shell:
-        "difftex synth --preset tiny --out {params.out} > {log} 2>&1"
+        "difftex synth --preset tiny --out {params.out:q} > {log:q} 2>&1"
+
+
+rule stage_config:
+    input:
+        # no inputs: the hook takes the run lock (and clears a crashed run's) in real runs
+        lambda wc: RUN_GUARD(workflow),
+    output:
+        f"{R}/config/{{stage}}-{{digest}}.yaml",
+    params:
+        text=lambda wc: STAGE_TEXT[wc.stage],
+    log:
+        f"{R}/logs/stage_config/{{stage}}-{{digest}}.log",
+    localrule: True
+    run:
+        wf.write_stage_config(output[0], params.text, log[0])
+
+
+rule compute_config:
+    output:
+        f"{R}/config/compute.yaml",
+    params:
+        text=STAGE_TEXT["compute"],
+    log:
+        f"{R}/logs/stage_config/compute.log",
+    localrule: True
+    run:
+        wf.write_stage_config(output[0], params.text, log[0])

@@ -11,6 +11,9 @@ rule texture:
         vis=f"{R}/visibility/{{pid}}.npz",
         photos=get_polygon_photos,
         config=STAGE_CFG["texture"],
+        # device and compilation: read, but ancient() and a fixed name keep a change of them
+        # from rerunning anything (they change no result beyond float tolerance)
+        compute=ancient(f"{R}/config/compute.yaml"),
     output:
         weights=f"{R}/optimized/{{pid}}/weights.npz",
         stats=f"{R}/optimized/{{pid}}/stats.json",
@@ -19,8 +22,6 @@ rule texture:
         stage_config=STAGE_TEXT["texture"],
         scene=lambda wc, input: Path(input.scene[0]).parent,
         out_dir=lambda wc, output: Path(output.weights).parent,
-        # a path, not an input: a change of device or compilation reruns nothing
-        compute=STAGE_CFG["compute"],
     conda:
         "../envs/difftex.yaml"
     log:
@@ -33,9 +34,9 @@ rule texture:
         runtime=get_polygon_runtime,
         gpu=RUN["gpu"],
     shell:
-        "OMP_NUM_THREADS={threads} difftex texture --threads {threads} --no-progress --scene {params.scene} "
-        "--visibility {input.vis} --config {input.config} --compute-config {params.compute} "
-        "--out-dir {params.out_dir} > {log} 2>&1"
+        "OMP_NUM_THREADS={threads} difftex texture --threads {threads} --no-progress --scene {params.scene:q} "
+        "--visibility {input.vis:q} --config {input.config:q} --compute-config {input.compute:q} "
+        "--out-dir {params.out_dir:q} > {log:q} 2>&1"
 
 
 rule finish:

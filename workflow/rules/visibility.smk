@@ -24,5 +24,5 @@ checkpoint visibility:
         mem_mb=lambda wc, input: wf.scene_mem_mb(input.scene, RUN, factor=8.0),
         runtime=120,
     shell:
-        "OMP_NUM_THREADS={threads} difftex visibility --quiet --scene {params.scene} "
+        "OMP_NUM_THREADS={threads} difftex visibility --quiet --scene {params.scene:q} "
         "--photos {input.photos} --config {input.config} --out-dir {params.out_dir} > {log} 2>&1"
