@@ -56,7 +56,7 @@ def loss_curve(stats: dict, out: Path) -> Path | None:
         return None
     fig, ax = plt.subplots(figsize=(5, 3), dpi=80)
     start = 0
-    for key, colour in (("total", "k"), ("render", "C0"), ("persp", "C1"), ("para", "C2"), ("sparsity", "C3")):
+    for key, colour in (("total", "k"), ("render", "C0"), ("persp", "C1"), ("para", "C2"), ("ghost", "C3")):
         xs, ys, start = [], [], 0
         for lv in levels:
             vals = (lv.get("loss") or {}).get(key) or []

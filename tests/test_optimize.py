@@ -228,7 +228,7 @@ def test_command_chain_on_the_analytic_wall(tmp_path):
     assert main(["texture", *common, "--out-dir", str(R / "opt"), "--png-dir", str(R / "tex"), "--no-progress"]) == 0
     assert main(["baseline", *common, "--method", "average", "--out-dir", str(R / "avg")]) == 0
     stats = json.loads((R / "opt" / "stats.json").read_text())
-    assert len(stats["levels"]) == 2 and set(stats["levels"][0]["loss"]) >= {"render", "persp", "para", "sparsity", "total"}
+    assert len(stats["levels"]) == 2 and set(stats["levels"][0]["loss"]) >= {"render", "ghost", "persp", "para", "total"}
     report = json.loads((R / "tex" / "report.json").read_text())
     assert report["coverage"] == 1.0 and report["histogram_matching"]
     tex = read_image(R / "tex" / "texture.png")
@@ -254,10 +254,10 @@ def test_ablation_switches():
     res = optimize(inp, fast_cfg(use_render=False, use_persp=False, use_para=False, data_elimination=False))
     assert all(lv["iterations"] == 0 for lv in res.stats["levels"])
     # single level without coarse-to-fine; terms switched off stay at zero in the curves
-    res = optimize(inp, fast_cfg(coarse_to_fine=False, use_para=False, use_sparsity=False, max_iters_per_level=(30,)))
+    res = optimize(inp, fast_cfg(coarse_to_fine=False, use_para=False, ghost=0.0, max_iters_per_level=(30,)))
     assert len(res.stats["levels"]) == 1 and res.stats["levels"][0]["shape"] == list(inp.frame.shape)
     lv = res.stats["levels"][0]
-    assert max(lv["loss"]["para"]) == 0 and max(lv["loss"]["sparsity"]) == 0 and max(lv["loss"]["persp"]) > 0
+    assert max(lv["loss"]["para"]) == 0 and max(lv["loss"]["ghost"]) == 0 and max(lv["loss"]["persp"]) > 0
     # data elimination off: nothing eliminated or dropped even with an aggressive threshold
     res = optimize(inp, fast_cfg(data_elimination=False, sigma_k=0.1, tau_w=0.01))
     assert res.stats["dropped"] == [] and all(lv["eliminated_pixels"] == 0 for lv in res.stats["levels"])

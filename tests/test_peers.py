@@ -316,7 +316,7 @@ def run_and_compare(tmp_path, method):
 
     scene = rendered_scene(tmp_path / "scene")
     cfg = tmp_path / "cfg.yaml"
-    cfg.write_text("texture: {long_side: 64}\nvisibility: {min_texels: 4}\noptimize: {device: cpu}\n")
+    cfg.write_text("texture: {long_side: 64}\nvisibility: {min_texels: 4}\ncompute: {device: cpu}\n")
     R = tmp_path / "R"
     assert main(["visibility", "--quiet", "--scene", str(scene), "--config", str(cfg), "--out-dir", str(R / "vis")]) == 0
     assert main(["baseline", "--scene", str(scene), "--visibility", str(R / "vis" / "front.npz"), "--config", str(cfg),

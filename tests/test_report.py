@@ -20,7 +20,7 @@ def fake_results(root: Path, method="difftex") -> Path:
         write_json(d / "report.json", {"method": method, "coverage": 0.9, "filled_texels": 3, "time_s": 1.5,
                                        "source_colours": {"a.jpg": "#ff0000"}})
         write_image(root / "evaluation" / "error_maps" / f"{pid}.png", rng.random((16, 24)).astype(np.float32))
-        loss = {k: list(np.linspace(1, 0.1, 30)) for k in ("total", "render", "persp", "para", "sparsity")}
+        loss = {k: list(np.linspace(1, 0.1, 30)) for k in ("total", "render", "ghost", "persp", "para")}
         write_json(root / "optimized" / pid / "stats.json", {"levels": [{"loss": loss}, {"loss": loss}], "time_total_s": 2.0})
     write_json(root / "evaluation" / "metrics.json", {
         "maps": {"overall": {"error90": 0.1, "error95": 0.2, "ssim": 0.8, "lpips": 0.3, "psnr": 25.0, "lpips_variant": "stlpips"},
