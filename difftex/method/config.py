@@ -43,6 +43,7 @@ class OptimizeConfig:
     tau: float = 0.01  # activation threshold on normalised weights
     tau_w: float = 0.95  # drop a photo when this share of its texels has zero weight
     sigma_k: float = 3.0  # pixel elimination: standard deviations
+    resolution_weight: float = 1.0  # exponent of Q_r = min(1, pixels per texel) in Q (0: the paper's Q = Q_a Q_c)
     sigma_min: float = 0.02  # noise floor of colour standard deviations (Q_c and elimination)
     elimination_test: EliminationTest = "loo"  # "loo": leave-one-out mean/std; "paper": including the pixel
     eliminate_every: int = 10  # iterations between pixel-elimination passes

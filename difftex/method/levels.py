@@ -73,12 +73,14 @@ def gradient_magnitude(col: torch.Tensor, vis: torch.Tensor) -> torch.Tensor:
 
 
 def quality(cos: torch.Tensor, colour: torch.Tensor, mu: torch.Tensor, msd: torch.Tensor, visible: torch.Tensor,
-            sigma_min: float) -> torch.Tensor:
-    """The initial weight Q = Q_a Q_c of one photo at every texel (Sec. 3.2).
+            sigma_min: float, footprint: torch.Tensor | None = None, resolution_weight: float = 0.0) -> torch.Tensor:
+    """The initial weight Q = Q_a Q_c (Q_r) of one photo at every texel (Sec. 3.2).
 
     Q_a is the frontality (cosine between the texel-to-camera direction and the normal); Q_c a
     Gaussian of the colour's squared distance to the candidates' mean, with their mean squared
-    distance (plus a noise floor) as its variance.
+    distance (plus a noise floor) as its variance. Q_r = min(1, footprint)^resolution_weight
+    (not in the paper) lowers photos with less than one pixel per texel, which cannot hold the
+    texel's detail and blur a blend; at one pixel per texel or more every photo holds it.
 
     Args:
         cos: (h, w) Q_a.
@@ -86,12 +88,15 @@ def quality(cos: torch.Tensor, colour: torch.Tensor, mu: torch.Tensor, msd: torc
         mu: (3, h, w) mean colour of the candidates; msd: (h, w) their mean squared distance to it.
         visible: (h, w) bool.
         sigma_min: noise floor of the colour standard deviation.
+        footprint: (h, w) the texel's size in the photo's pixels; resolution_weight: exponent of Q_r.
 
     Returns:
         (h, w) Q, zero where the photo does not see the texel.
     """
     d2 = ((colour - mu) ** 2).sum(0)
     q = cos * torch.exp(-0.5 * d2 / (msd + sigma_min**2))
+    if footprint is not None and resolution_weight > 0:
+        q = q * footprint.clamp(max=1.0) ** resolution_weight
     return torch.where(visible, q, torch.zeros_like(q))
 
 
@@ -240,7 +245,7 @@ def build_level(photos: PhotoSet, frame: UVFrame, cfg: OptimizeConfig, transfers
             mp = photos.map(n, frame, mask_np, transfers[n] if transfers is not None else None)
             maps += 1
         assert mp is not None
-        q = quality(mp.cos, mp.colour, mu, msd, mp.visible, cfg.sigma_min)
+        q = quality(mp.cos, mp.colour, mu, msd, mp.visible, cfg.sigma_min, mp.footprint, cfg.resolution_weight)
         pc = losses.persp_cost(mp.view[None], v_tilde)[0]
         weight = q  # the paper's initialisation: W proportional to Q
         if prev is not None:

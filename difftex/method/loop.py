@@ -16,6 +16,7 @@ import numpy as np
 import torch
 
 from difftex import losses
+from difftex.method import diagnostics
 from difftex.method.config import ComputeConfig, OptimizeConfig
 from difftex.method.elimination import (base_mask, dropped_slot_mask, eliminate_pixels, photo_zero_share,
                                         photos_to_drop, update_activation)
@@ -93,6 +94,18 @@ def optimize_polygon(photos: PhotoSet, cfg: OptimizeConfig, compute: ComputeConf
     with torch.no_grad():
         W = losses.blend_weights(prev.z, prev.active)
         U = losses.compose(W, lv.colours)
+    lmask = lv.mask
+    stats["diagnostics"] = {
+        **diagnostics.effective_photos(W, lmask),
+        "sharpness": diagnostics.sharpness(U, lv.colours, lv.idx, lv.visible, lmask),
+        "misalignment_texels": diagnostics.misalignment(U, lv.colours, lv.idx, lv.visible, W, lmask),
+    }
+    for key in ("sharpness", "misalignment_texels"):  # photo indices to names
+        d = stats["diagnostics"][key]
+        if key == "sharpness" and d.get("photo") is not None:
+            d["photo"] = inp.photos[d["photo"]].name
+        if key == "misalignment_texels":
+            stats["diagnostics"][key] = {(inp.photos[k].name if isinstance(k, int) else k): v for k, v in d.items()}
     mask = inp.texel_mask
     has = (W.sum(0) > 0).cpu().numpy() & mask
     stats["coverage"] = float(has.sum() / max(mask.sum(), 1))
@@ -135,6 +148,7 @@ def _run_level(lv: Level, li: int, cfg: OptimizeConfig, compute: ComputeConfig, 
     anything = cfg.use_render or cfg.use_persp or cfg.use_para
     iter_times: list[float] = []
     W_check = losses.blend_weights(st.z, st.active)
+    dominant_start = diagnostics.dominant_photo(lv.idx, W_check)
     changes: list[float] = []
     for it in range(1, cap + 1 if anything else 1):
         st.it = it
@@ -188,6 +202,7 @@ def _run_level(lv: Level, li: int, cfg: OptimizeConfig, compute: ComputeConfig, 
     if bar is not None and it < cap:
         bar.update(cap - it)
     final_terms = {k: float(v) for k, v in value_and_grad(st, cfg)[0].items()}
+    W_end = losses.blend_weights(st.z, st.active)
     lvl_stats = {
         "level": li, "shape": list(lv.frame.shape), "top_k": lv.idx.shape[0],
         "candidates": lv.n_candidates, "iterations": it if anything else 0, "cap": cap,
@@ -200,6 +215,8 @@ def _run_level(lv: Level, li: int, cfg: OptimizeConfig, compute: ComputeConfig, 
         "tensor_bytes": lv.nbytes(), "final": final_terms, "loss": hist,
         "v_tilde": lv.v_tilde.tolist(), "compiled": fn is not None and fn is not objective,
         "weight_change": changes,
+        **diagnostics.effective_photos(W_end, lv.mask),
+        "dominant_changed": diagnostics.changed_share(dominant_start, diagnostics.dominant_photo(lv.idx, W_end), lv.mask),
     }
     if lv.pixel_sets is not None:
         lvl_stats["render_pixels"] = lv.pixel_sets.n

@@ -1,0 +1,135 @@
+"""Where a polygon's texture loses detail: figures written to stats.json and the report.
+
+- effective photos per texel, 1 / sum_k W_k^2 (1: one photo; n: an even blend of n), and the
+  largest weight: how much the optimizer selects;
+- the share of texels whose dominant photo changed during a level (did the weights move?);
+- residual misalignment of each photo against the texture, by masked phase correlation
+  (scikit-image), in texels;
+- sharpness: mean gradient magnitude of the texture against that of the sharpest single photo
+  over the same texels.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from difftex.method.elimination import argmax0
+
+
+def effective_photos(W: torch.Tensor, mask: torch.Tensor) -> dict:
+    """Mean and median of 1 / sum_k W_k^2, and the median largest weight, over textured texels.
+
+    Args:
+        W: (K, h, w) blend weights; mask: (h, w) bool polygon texels.
+    """
+    s2 = (W * W).sum(0)
+    sel = mask & (s2 > 0)
+    if not bool(sel.any()):
+        return {"effective_photos_mean": None, "effective_photos_median": None, "max_weight_median": None}
+    n = (1.0 / s2[sel]).float()
+    return {"effective_photos_mean": float(n.mean()), "effective_photos_median": float(n.median()),
+            "max_weight_median": float(W.amax(0)[sel].float().median())}
+
+
+def dominant_photo(idx: torch.Tensor, W: torch.Tensor) -> torch.Tensor:
+    """(h, w) photo index with the largest weight per texel (-1 where no weight)."""
+    j = argmax0(W)
+    d = torch.gather(idx, 0, j)[0]
+    return torch.where(W.amax(0) > 0, d, torch.full_like(d, -1))
+
+
+def changed_share(a: torch.Tensor, b: torch.Tensor, mask: torch.Tensor) -> float | None:
+    """Share of the polygon's texels (both defined) where two dominant-photo maps differ."""
+    sel = mask & (a >= 0) & (b >= 0)
+    return float((a != b)[sel].float().mean()) if bool(sel.any()) else None
+
+
+def mean_gradient(img: torch.Tensor, mask: torch.Tensor) -> float:
+    """Mean gradient magnitude (forward differences, mean over channels) over texel pairs inside ``mask``."""
+    gx = (img[:, :, 1:] - img[:, :, :-1]).abs().mean(0)
+    gy = (img[:, 1:, :] - img[:, :-1, :]).abs().mean(0)
+    mx = mask[:, 1:] & mask[:, :-1]
+    my = mask[1:, :] & mask[:-1, :]
+    n = int(mx.sum() + my.sum())
+    return float((gx[mx].sum() + gy[my].sum()) / n) if n else 0.0
+
+
+def sharpness(U: torch.Tensor, colours: torch.Tensor, idx: torch.Tensor, visible: torch.Tensor,
+              mask: torch.Tensor, min_share: float = 0.25) -> dict:
+    """The texture's mean gradient against the sharpest single photo's, on that photo's texels.
+
+    Args:
+        U: (3, h, w) texture; colours / idx / visible: the level's slots (K, 3, h, w), (K, h, w).
+        min_share: photos seeing less than this share of the polygon are not candidates.
+
+    Returns:
+        {"texture": mean gradient of U, "sharpest_photo": the photo's, "ratio": texture / photo on
+        the photo's texels, "photo": its index}.
+    """
+    best = {"texture": mean_gradient(U, mask), "sharpest_photo": None, "ratio": None, "photo": None}
+    n_tex = int(mask.sum())
+    top = 0.0
+    for n in torch.unique(idx[idx >= 0]).tolist():
+        sel = (idx == n) & visible
+        seen = sel.any(0) & mask
+        if int(seen.sum()) < min_share * n_tex:
+            continue
+        col = (colours * sel[:, None]).sum(0)  # photo n's colours where it holds a slot
+        g = mean_gradient(col, seen)
+        if g > top:
+            top = g
+            best.update(sharpest_photo=g, photo=int(n), ratio=mean_gradient(U, seen) / max(g, 1e-12))
+    return best
+
+
+def misalignment(U: torch.Tensor, colours: torch.Tensor, idx: torch.Tensor, visible: torch.Tensor,
+                 W: torch.Tensor, mask: torch.Tensor, min_share: float = 0.25, max_side: int = 512) -> dict:
+    """Shift (texels) of each photo's mapped colours against the texture, by phase correlation.
+
+    Photos that carry weight and see at least ``min_share`` of the polygon are measured, in grey,
+    on at most ``max_side`` texels (the shift is scaled back to the level's texels), to a tenth
+    of a texel; texels the photo does not see take the texture's values, so that the edge of
+    its view adds no false edge (scikit-image's masked variant only finds whole texels). The
+    texture includes the photo's own contribution, which pulls the figure towards zero.
+
+    Returns:
+        {photo index: [dy, dx] in texels, ...} and "median_abs" (the weight-share-weighted median of
+        |shift| over the measured photos).
+    """
+    from skimage.registration import phase_cross_correlation
+
+    h, w = mask.shape
+    step = max(1, int(np.ceil(max(h, w) / max_side)))
+    grey_u = U.mean(0)[::step, ::step].cpu().numpy()
+    m = mask[::step, ::step].cpu().numpy()
+    n_tex = int(mask.sum())
+    out: dict = {}
+    mags, shares = [], []
+    for n in torch.unique(idx[idx >= 0]).tolist():
+        sel = (idx == n) & visible
+        seen = sel.any(0) & mask
+        share = float((W * (idx == n)).sum(0)[mask].sum()) / max(n_tex, 1)
+        if int(seen.sum()) < min_share * n_tex or share <= 0:
+            continue
+        col = (colours * sel[:, None]).sum(0).mean(0)[::step, ::step].cpu().numpy()
+        sm = seen[::step, ::step].cpu().numpy() & m
+        if sm.sum() < 64:
+            continue
+        ys, xs = np.nonzero(m)
+        box = (slice(ys.min(), ys.max() + 1), slice(xs.min(), xs.max() + 1))
+        ref = np.where(m, grey_u, grey_u[m].mean())[box]
+        mov = np.where(sm, col, np.where(m, grey_u, grey_u[m].mean()))[box]
+        try:
+            shift = phase_cross_correlation(ref, mov, upsample_factor=10, normalization=None)[0]
+        except (ValueError, RuntimeError):
+            continue
+        s = np.asarray(shift, float) * step
+        out[int(n)] = [round(float(v), 3) for v in s]
+        mags.append(float(np.hypot(*s)))
+        shares.append(share)
+    if mags:
+        order = np.argsort(mags)
+        cum = np.cumsum(np.asarray(shares)[order])
+        out["median_abs"] = float(np.asarray(mags)[order][np.searchsorted(cum, cum[-1] / 2)])
+    return out
