@@ -113,14 +113,15 @@ def level_frame(frame: UVFrame, long_side: int) -> UVFrame:
     return frame if long_side == max(frame.shape) else frame.resized(long_side)
 
 
-def resample_nearest(arr: np.ndarray, src: UVFrame, dst: UVFrame) -> np.ndarray:
-    """(..., H, W) array of ``src`` to ``dst`` texel centres (same rectangle), nearest texel."""
+def resample_nearest(arr: np.ndarray, src: UVFrame, dst: UVFrame, region: "Region | None" = None) -> np.ndarray:
+    """(..., H, W) array of ``src`` to ``dst`` texel centres (same rectangle), nearest texel;
+    ``region``: only that rectangle of ``dst``."""
+    y0, y1, x0, x1 = region if region is not None else (0, dst.height, 0, dst.width)
     if src.shape == dst.shape and src.texel_size == dst.texel_size:
-        return arr
-    tx, ty = dst.centres()
+        return arr[..., y0:y1, x0:x1] if region is not None else arr
     r = dst.texel_size / src.texel_size
-    ix = np.clip(np.floor(tx[0] * r).astype(int), 0, src.width - 1)
-    iy = np.clip(np.floor(ty[:, 0] * r).astype(int), 0, src.height - 1)
+    ix = np.clip(np.floor((np.arange(x0, x1) + 0.5) * r).astype(int), 0, src.width - 1)
+    iy = np.clip(np.floor((np.arange(y0, y1) + 0.5) * r).astype(int), 0, src.height - 1)
     return arr[..., iy[:, None], ix[None, :]]
 
 
@@ -159,7 +160,10 @@ def _exact_pixels(frame: UVFrame, photo: Photo, tx: np.ndarray, ty: np.ndarray) 
     return pix
 
 
-def texel_map(frame: UVFrame, photo: Photo, device: torch.device | str = "cpu") -> TexelMap:
+Region = tuple[int, int, int, int]  # (y0, y1, x0, x1): a rectangle of a frame's texels
+
+
+def texel_map(frame: UVFrame, photo: Photo, device: torch.device | str = "cpu", region: Region | None = None) -> TexelMap:
     """f_k^i at the texel centres of ``frame`` for ``photo``, vectorised in torch.
 
     Pinhole cameras: the homography H = K [R | t] A, exact, with its Jacobian in closed form.
@@ -167,13 +171,13 @@ def texel_map(frame: UVFrame, photo: Photo, device: torch.device | str = "cpu") 
     displacement, which is computed exactly (pycolmap) every ``DISTORTION_GRID`` texels and
     interpolated bilinearly (it is smooth; tests bound the error), and the footprint likewise.
     Projecting millions of texels through pycolmap one level at a time would cost seconds per
-    photo; this costs a few tensor passes.
+    photo; this costs a few tensor passes. ``region``: only that rectangle of texels.
     """
     device = torch.device(device)
-    h, w = frame.shape
+    y0, y1, x0, x1 = region if region is not None else (0, frame.height, 0, frame.width)
     Hm = torch.from_numpy(_homography(frame, photo)).to(device)
-    ty, tx = torch.meshgrid(torch.arange(h, device=device, dtype=torch.float64) + 0.5,
-                            torch.arange(w, device=device, dtype=torch.float64) + 0.5, indexing="ij")
+    ty, tx = torch.meshgrid(torch.arange(y0, y1, device=device, dtype=torch.float64) + 0.5,
+                            torch.arange(x0, x1, device=device, dtype=torch.float64) + 0.5, indexing="ij")
     q = Hm[:, 0, None, None] * tx + Hm[:, 1, None, None] * ty + Hm[:, 2, None, None]
     depth = q[2]
     front = depth > 1e-9
@@ -185,7 +189,7 @@ def texel_map(frame: UVFrame, photo: Photo, device: torch.device | str = "cpu") 
     footprint = (jxx * jyy - jxy * jyx).abs().sqrt()
     pix = torch.stack([px, py], -1)
     if not photo.is_pinhole:
-        pix, footprint = _distorted(frame, photo, pix, footprint, device)
+        pix, footprint = _distorted(frame, photo, pix, footprint, device, (y0, y1, x0, x1))
     # viewing geometry, relative to the frame origin so that float32 keeps precision in large
     # (e.g. UTM) coordinates
     s = frame.texel_size
@@ -203,12 +207,14 @@ def texel_map(frame: UVFrame, photo: Photo, device: torch.device | str = "cpu") 
                     view=(-v).float(), cos=cos.clamp(0.0, 1.0).float(), valid=valid)
 
 
-def _distorted(frame: UVFrame, photo: Photo, pix_u: torch.Tensor, fp_u: torch.Tensor, device) -> tuple[torch.Tensor, torch.Tensor]:
+def _distorted(frame: UVFrame, photo: Photo, pix_u: torch.Tensor, fp_u: torch.Tensor, device,
+               region: Region) -> tuple[torch.Tensor, torch.Tensor]:
     """Add the lens distortion to undistorted pixels: exact on a coarse grid, bilinear between."""
-    h, w = frame.shape
+    y0, y1, x0, x1 = region
+    h, w = y1 - y0, x1 - x0
     g = DISTORTION_GRID
-    cx = np.unique(np.minimum(np.arange(0, w + g, g), w - 1)).astype(np.float64) + 0.5
-    cy = np.unique(np.minimum(np.arange(0, h + g, g), h - 1)).astype(np.float64) + 0.5
+    cx = np.unique(np.minimum(np.arange(0, w + g, g), w - 1)).astype(np.float64) + 0.5 + x0
+    cy = np.unique(np.minimum(np.arange(0, h + g, g), h - 1)).astype(np.float64) + 0.5 + y0
     TX, TY = np.meshgrid(cx, cy)
     exact = _exact_pixels(frame, photo, TX, TY)
     Hn = _homography(frame, photo)
@@ -222,12 +228,12 @@ def _distorted(frame: UVFrame, photo: Photo, pix_u: torch.Tensor, fp_u: torch.Te
     a, b = ex_dx - exact, ex_dy - exact
     with np.errstate(invalid="ignore"):
         fp = np.sqrt(np.abs(a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0]))
-    und_fp = F.grid_sample(fp_u[None, None].float(), _grid(TX, TY, w, h, device), mode="bilinear",
+    und_fp = F.grid_sample(fp_u[None, None].float(), _grid(TX - x0, TY - y0, w, h, device), mode="bilinear",
                            padding_mode="border", align_corners=False)[0, 0].double().cpu().numpy()
     ratio = np.nan_to_num(fp / np.maximum(und_fp, 1e-12), nan=1.0)
     coarse = torch.from_numpy(np.concatenate([disp.transpose(2, 0, 1), ratio[None]])).to(device)
     # Interpolate the coarse samples (at texel centres cx, cy) at every texel centre.
-    fine = _interp_grid(coarse, cx, cy, w, h, device)
+    fine = _interp_grid(coarse, cx - x0, cy - y0, w, h, device)
     return pix_u + fine[:2].permute(1, 2, 0), fp_u * fine[2]
 
 
@@ -474,16 +480,19 @@ class PhotoSet:
         return int(sum(s.nbytes() for s in self.samplers.values()))
 
     def map(self, n: int, frame: UVFrame, mask: np.ndarray, transfer: np.ndarray | None = None,
-            visible: np.ndarray | None = None) -> MappedPhoto | None:
+            region: Region | None = None) -> MappedPhoto | None:
         """Photo n mapped into ``frame`` over the texels of ``mask``; None if it sees none.
 
-        ``visible``: photo n's texel visibility at this frame (default: resampled from the
-        input's); ``transfer``: its brightness transfer (difftex.colour), applied to the colours.
+        ``transfer``: its brightness transfer (difftex.colour), applied to the colours;
+        ``region``: only that rectangle of the frame (the MappedPhoto is that size; ``mask`` is
+        the whole frame's).
         """
         inp, ph = self.inp, self.inp.photos[n]
-        if visible is None:
-            visible = resample_nearest(inp.texel_visible[n], inp.frame, frame)
-        tm = texel_map(frame, ph, self.device)
+        visible = resample_nearest(inp.texel_visible[n], inp.frame, frame, region)
+        if region is not None:
+            y0, y1, x0, x1 = region
+            mask = mask[y0:y1, x0:x1]
+        tm = texel_map(frame, ph, self.device, region)
         vis = tm.valid & torch.from_numpy(np.ascontiguousarray(visible & mask)).to(self.device)
         if not bool(vis.any()):
             return None

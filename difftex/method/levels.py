@@ -19,7 +19,7 @@ import torch.nn.functional as F
 from difftex import losses
 from difftex.mapping import UVFrame
 from difftex.method.config import OptimizeConfig
-from difftex.sampling import MappedPhoto, PhotoSet, resample_nearest
+from difftex.sampling import MappedPhoto, PhotoSet, Region, resample_nearest
 
 MAP_CACHE_BYTES = 1 << 30  # mapped photos held at once while a level is built
 
@@ -129,12 +129,13 @@ def _scatter_photo_field(idx: torch.Tensor, values: torch.Tensor, n: int) -> tup
     return (values * sel).sum(0), sel.any(0)
 
 
-def upsample_photo_weight(prev_level: Level, prev_W: torch.Tensor, n: int, frame: UVFrame) -> tuple[torch.Tensor, torch.Tensor]:
+def upsample_photo_weight(prev_level: Level, prev_W: torch.Tensor, n: int, frame: UVFrame,
+                          region: Region | None = None) -> tuple[torch.Tensor, torch.Tensor]:
     """Bilinear upsampling of photo n's blend weight from the previous level (paper: W upsampled).
 
     Args:
         prev_level: the coarser level; prev_W: (K, h', w') its blend weights.
-        n: photo index; frame: the finer level's frame.
+        n: photo index; frame: the finer level's frame; region: only that rectangle of it.
 
     Returns:
         (W (h, w), covered (h, w) bool); only coarse texels where photo n was a candidate
@@ -143,6 +144,9 @@ def upsample_photo_weight(prev_level: Level, prev_W: torch.Tensor, n: int, frame
     vals, has = _scatter_photo_field(prev_level.idx, prev_W, n)
     src = prev_level.frame
     tx, ty = frame.centres()
+    if region is not None:
+        y0, y1, x0, x1 = region
+        tx, ty = tx[y0:y1, x0:x1], ty[y0:y1, x0:x1]
     r = frame.texel_size / src.texel_size
     gx = (tx * r) / src.width * 2 - 1
     gy = (ty * r) / src.height * 2 - 1
@@ -154,14 +158,57 @@ def upsample_photo_weight(prev_level: Level, prev_W: torch.Tensor, n: int, frame
 
 
 def upsample_known(prev_level: Level, frame: UVFrame) -> torch.Tensor:
-    """(h, w) bool: texels of ``frame`` whose nearest texel at the coarser level had a candidate."""
+    """(h, w) bool: texels of ``frame`` whose nearest texel at the coarser level, or one of its
+    neighbours, had a candidate."""
     known = (prev_level.visible.any(0) & prev_level.mask).float()
+    known = F.max_pool2d(known[None, None], 3, stride=1, padding=1)[0, 0]
     src = prev_level.frame
     tx, ty = frame.centres()
     r = frame.texel_size / src.texel_size
     grid = torch.from_numpy(np.stack([(tx * r) / src.width * 2 - 1, (ty * r) / src.height * 2 - 1], -1).astype(np.float32))
     up = F.grid_sample(known[None, None], grid.to(known.device)[None], mode="nearest", padding_mode="border", align_corners=False)
     return up[0, 0] > 0.5
+
+
+def photo_regions(photos: PhotoSet, frame: UVFrame, mask: np.ndarray, prev: tuple[Level, torch.Tensor] | None,
+                  prev_known: torch.Tensor | None, tau: float, pad: int = 2) -> dict[int, Region]:
+    """The rectangle of ``frame`` each photo must be mapped over: all of it at the first level;
+    after it, around the texels where the photo held weight (> tau) at the coarser level, plus
+    any texels the coarser level knew nothing about. Photos without either are not mapped.
+
+    This keeps a level's cost in texels x K rather than texels x candidates: a photo the
+    coarser level outranked everywhere starts at zero weight anyway (build_level).
+    """
+    h, w = frame.shape
+    if prev is None:
+        return {n: (0, h, 0, w) for n in sorted(photos.samplers)}
+    plv, pW = prev
+    r = frame.texel_size / plv.frame.texel_size  # a fine texel in coarse texels
+    unknown = torch.from_numpy(mask).to(prev_known.device) & ~prev_known
+    ubox = _bbox(unknown) if bool(unknown.any()) else None
+    held = (pW > tau) & plv.visible
+    out = {}
+    for n in sorted(photos.samplers):
+        sup = ((plv.idx == n) & held).any(0)
+        boxes = []
+        if bool(sup.any()):
+            cy0, cy1, cx0, cx1 = _bbox(sup)
+            boxes.append((int(np.floor(cy0 / r)) - pad, int(np.ceil(cy1 / r)) + pad,
+                          int(np.floor(cx0 / r)) - pad, int(np.ceil(cx1 / r)) + pad))
+        if ubox is not None and resample_nearest(photos.inp.texel_visible[n], photos.inp.frame, frame, ubox).any():
+            boxes.append(ubox)
+        if not boxes:
+            continue
+        b = np.array(boxes)
+        out[n] = (max(0, int(b[:, 0].min())), min(h, int(b[:, 1].max())), max(0, int(b[:, 2].min())), min(w, int(b[:, 3].max())))
+    return out
+
+
+def _bbox(m: torch.Tensor) -> Region:
+    """(y0, y1, x0, x1) of a non-empty (h, w) bool mask."""
+    ys = torch.nonzero(m.any(1)).flatten()
+    xs = torch.nonzero(m.any(0)).flatten()
+    return int(ys[0]), int(ys[-1]) + 1, int(xs[0]), int(xs[-1]) + 1
 
 
 def build_level(photos: PhotoSet, frame: UVFrame, cfg: OptimizeConfig, transfers: list | None = None,
@@ -189,11 +236,22 @@ def build_level(photos: PhotoSet, frame: UVFrame, cfg: OptimizeConfig, transfers
     h, w = frame.shape
     K = cfg.top_k
     dropped = dropped or set()
-    order = sorted(photos.samplers)
-    per_photo = h * w * 4 * 9  # colour, view, cos, footprint, visible
-    keep_all = mapped is not None or len(order) <= K or len(order) * per_photo <= MAP_CACHE_BYTES
+    prev_known = upsample_known(prev[0], frame) if prev is not None else None
+    regions = photo_regions(photos, frame, mask_np, prev, prev_known, cfg.tau)
+    order = list(regions)
+    per_texel = 4 * 9  # colour, view, cos, footprint, visible
+    area = sum((y1 - y0) * (x1 - x0) for y0, y1, x0, x1 in regions.values())
+    keep_all = mapped is not None or len(order) <= K or area * per_texel <= MAP_CACHE_BYTES
     cache: dict[int, MappedPhoto | None] = dict(mapped) if mapped is not None else {}
     maps = 0
+
+    def mapped_photo(n: int) -> MappedPhoto | None:
+        nonlocal maps
+        if n in cache:
+            return cache[n]
+        maps += 1
+        return photos.map(n, frame, mask_np, transfers[n] if transfers is not None else None, regions[n])
+
     s1 = torch.zeros(3, h, w, device=device)
     s2 = torch.zeros(h, w, device=device)
     cnt = torch.zeros(h, w, device=device)
@@ -201,34 +259,32 @@ def build_level(photos: PhotoSet, frame: UVFrame, cfg: OptimizeConfig, transfers
     vsum = []
     seen = []
     for n in order:
-        if n in cache:
-            mp = cache[n]
-        else:
-            mp = photos.map(n, frame, mask_np, transfers[n] if transfers is not None else None)
-            maps += 1
+        mp = mapped_photo(n)
         if mp is None:
             cache[n] = None
             continue
+        y0, y1, x0, x1 = regions[n] if mapped is None else (0, h, 0, w)
         seen.append(n)
         v = mp.visible.float()
-        s1 += mp.colour * v
-        s2 += (mp.colour * mp.colour).sum(0) * v
-        cnt += v
-        gsum += gradient_magnitude(mp.colour, mp.visible) * v
+        s1[:, y0:y1, x0:x1] += mp.colour * v
+        s2[y0:y1, x0:x1] += (mp.colour * mp.colour).sum(0) * v
+        cnt[y0:y1, x0:x1] += v
+        gsum[y0:y1, x0:x1] += gradient_magnitude(mp.colour, mp.visible) * v
         vd = (mp.view * v).sum((1, 2))
         vsum.append(vd / vd.norm().clamp_min(1e-12))
-        cache[n] = mp if keep_all else cache.get(n)
+        if keep_all:
+            cache[n] = mp
     c = cnt.clamp_min(1.0)
     mu = s1 / c
     msd = (s2 / c - (mu * mu).sum(0)).clamp_min(0.0)  # mean squared distance to the mean
     G = gsum / c
     noise = level_noise(msd, cnt, cfg.sigma_min)
     normal = torch.tensor(frame.normal, dtype=torch.float32, device=device)
-    v_tilde = losses.guidance_direction(torch.stack(vsum), normal) if vsum else -normal
+    if prev is not None:  # the guidance direction of the first level, whose photos are all the candidates
+        v_tilde = torch.from_numpy(prev[0].v_tilde).to(device)
+    else:
+        v_tilde = losses.guidance_direction(torch.stack(vsum), normal) if vsum else -normal
 
-    prev_known = None
-    if prev is not None:
-        prev_known = upsample_known(prev[0], frame)
     fixed = len(seen) <= K  # every candidate fits: slot j is photo seen[j] at every texel
     if fixed:
         K = max(1, len(seen))
@@ -240,30 +296,31 @@ def build_level(photos: PhotoSet, frame: UVFrame, cfg: OptimizeConfig, transfers
     cost = torch.zeros((K, h, w), device=device)
     w0 = torch.zeros((K, h, w), device=device)
     for j, n in enumerate(seen):
-        mp = cache.get(n)
-        if mp is None:
-            mp = photos.map(n, frame, mask_np, transfers[n] if transfers is not None else None)
-            maps += 1
+        mp = mapped_photo(n)
         assert mp is not None
-        q = quality(mp.cos, mp.colour, mu, msd, mp.visible, cfg.sigma_min, mp.footprint, cfg.resolution_weight)
+        reg = regions[n] if mapped is None else (0, h, 0, w)
+        y0, y1, x0, x1 = reg
+        sl = (slice(y0, y1), slice(x0, x1))
+        q = quality(mp.cos, mp.colour, mu[:, y0:y1, x0:x1], msd[sl], mp.visible, cfg.sigma_min, mp.footprint,
+                    cfg.resolution_weight)
         pc = losses.persp_cost(mp.view[None], v_tilde)[0]
         weight = q  # the paper's initialisation: W proportional to Q
         if prev is not None:
-            w_up, cov = upsample_photo_weight(prev[0], prev[1], n, frame)
+            w_up, cov = upsample_photo_weight(prev[0], prev[1], n, frame, reg)
             # Where the coarser level had candidates but not this photo among its slots, the
             # photo was outranked there: it starts at zero, not at Q (which would bring back
             # the photos the coarser levels left out). Only texels the coarser level did not
             # see at all start from Q.
-            weight = torch.where(cov, w_up, torch.where(prev_known, torch.zeros_like(q), q))
+            weight = torch.where(cov, w_up, torch.where(prev_known[sl], torch.zeros_like(q), q))
         if fixed:
-            idx[j] = n
-            vis[j], cols[j], Q[j], cost[j], w0[j] = mp.visible, mp.colour, q, pc, weight
+            idx[j][sl] = n
+            vis[j][sl], cols[j][:, y0:y1, x0:x1], Q[j][sl], cost[j][sl], w0[j][sl] = mp.visible, mp.colour, q, pc, weight
             continue
         # Rank: upsampled weight (or Q where the coarse level had no data); the small Q term
         # breaks ties between photos that were both deactivated at the coarse level.
         score = weight + 1e-3 * q - (2.0 if n in dropped else 0.0)  # dropped photos only fill empty slots
         score = torch.where(mp.visible, score, torch.full_like(q, -10.0))
-        all_score = torch.cat([best_score, score[None]])
+        all_score = torch.cat([best_score[:, y0:y1, x0:x1], score[None]])
         top = torch.topk(all_score, K, dim=0)
         sel = top.indices
 
@@ -273,13 +330,13 @@ def build_level(photos: PhotoSet, frame: UVFrame, cfg: OptimizeConfig, transfers
                 return torch.gather(allv, 0, sel[:, None].expand(-1, allv.shape[1], -1, -1))
             return torch.gather(allv, 0, sel)
 
-        best_score = top.values
-        idx = pick(idx, torch.full((h, w), n, dtype=torch.long, device=device))
-        vis = pick(vis, mp.visible)
-        cols = pick(cols, mp.colour)
-        Q = pick(Q, q)
-        cost = pick(cost, pc)
-        w0 = pick(w0, weight)
+        best_score[:, y0:y1, x0:x1] = top.values
+        idx[:, y0:y1, x0:x1] = pick(idx[:, y0:y1, x0:x1], torch.full((y1 - y0, x1 - x0), n, dtype=torch.long, device=device))
+        vis[:, y0:y1, x0:x1] = pick(vis[:, y0:y1, x0:x1], mp.visible)
+        cols[:, :, y0:y1, x0:x1] = pick(cols[:, :, y0:y1, x0:x1], mp.colour)
+        Q[:, y0:y1, x0:x1] = pick(Q[:, y0:y1, x0:x1], q)
+        cost[:, y0:y1, x0:x1] = pick(cost[:, y0:y1, x0:x1], pc)
+        w0[:, y0:y1, x0:x1] = pick(w0[:, y0:y1, x0:x1], weight)
     idx = torch.where(vis, idx, torch.full_like(idx, -1))
     return Level(frame=frame, mask=mask, idx=idx, visible=vis, colours=cols, Q=Q, cost=cost, G=G, z0=init_logits(w0 * vis),
                  v_tilde=v_tilde.cpu().numpy(), n_candidates=len(seen), fixed_slots=fixed, maps=maps, noise=noise)
