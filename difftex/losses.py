@@ -57,8 +57,15 @@ def render_quality(active: torch.Tensor, Q: torch.Tensor) -> torch.Tensor:
     return aq * aq
 
 
-def ghost_loss(W, U, colours, active, Q, n_tex: float) -> torch.Tensor:
-    """The spread of the blend: sum_t A(t) sum_k W_k(t) |I^_k(t) - U(t)|^2, A = sum_k q_k.
+def ghost_spread(d2: torch.Tensor, margin: float) -> torch.Tensor:
+    """psi(d^2) = d^4 / (d^2 + margin): a photo's squared distance to the blend, discounted
+    below ``margin`` (the photometric noise: blending photos that differ by noise only averages
+    the noise away, which is wanted), equal to d^2 - margin + O(margin^2 / d^2) above it."""
+    return d2 if margin <= 0 else d2 * d2 / (d2 + margin)
+
+
+def ghost_loss(W, U, colours, active, Q, n_tex: float, margin: float = 0.0) -> torch.Tensor:
+    """The spread of the blend: sum_t A(t) sum_k W_k(t) psi(|I^_k(t) - U(t)|^2), A = sum_k q_k.
 
     Not in the paper. L_Render alone is minimised by the q-weighted mean of the photos (the mean
     minimises a sum of squared distances), so it pulls every texel towards a blend, and ghosts
@@ -68,12 +75,14 @@ def ghost_loss(W, U, colours, active, Q, n_tex: float) -> torch.Tensor:
 
     the expected render error of using one photo, drawn with probability W: linear in W, so
     its minimum selects photos, and blending photos that agree costs nothing while blending
-    photos that disagree (relief parallax, misalignment, an occluder) costs their spread.
+    photos that disagree (relief parallax, misalignment, an occluder) costs their spread. With
+    ``margin`` > 0 (psi, ghost_spread) differences at the noise level cost next to nothing, so
+    photos that agree up to noise are blended (the noise averages out) and the others selected.
 
     Shapes: W (K, H, W), U (3, H, W), colours (K, 3, H, W), active / Q (K, H, W).
     """
     A = render_quality(active, Q).sum(0)
-    spread = (W * ((colours - U[None]) ** 2).sum(1)).sum(0)
+    spread = (W * ghost_spread(((colours - U[None]) ** 2).sum(1), margin)).sum(0)
     return (A * spread).sum() / n_tex
 
 

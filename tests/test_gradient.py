@@ -37,7 +37,7 @@ def random_level(K: int, H: int, W: int, photos: int, seed: int):
 
 
 @pytest.mark.parametrize("photos", [4, 7])
-@pytest.mark.parametrize("kw", [{}, {"ghost": 0.0}, {"ghost": 0.3, "para_eps": 0.0}, {"use_para": False},
+@pytest.mark.parametrize("kw", [{}, {"ghost": 0.0}, {"ghost": 0.3, "para_eps": 0.0}, {"ghost_margin": 2.0}, {"use_para": False},
                                 {"use_render": False}, {"use_persp": False}])
 def test_texel_gradient_matches_autograd(photos, kw):
     K, H, W = 4, 9, 11
@@ -50,9 +50,10 @@ def test_texel_gradient_matches_autograd(photos, kw):
     U0 = losses.compose(losses.blend_weights(theta, active), colours)
     D = losses.edge_weights(U0, G, (1, 2))
     th = theta.clone().requires_grad_(True)
-    ref = objective(th, active, colours, Q, cost, D, matches, None, None, n_tex, cfg)
+    margin = kw.get("ghost_margin", 0.0) * 0.01
+    ref = objective(th, active, colours, Q, cost, D, matches, None, None, n_tex, cfg, margin)
     ref["total"].backward()
-    terms, grad = texel_value_and_grad(theta, active, texel_data(colours, Q, cost, n_tex), D, matches, cfg)
+    terms, grad = texel_value_and_grad(theta, active, texel_data(colours, Q, cost, n_tex, margin), D, matches, cfg)
     for k in ("total", "render", "persp", "para", "ghost"):
         if k in ref:
             assert float(terms[k]) == pytest.approx(float(ref[k].detach()), rel=1e-9, abs=1e-12), k

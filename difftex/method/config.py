@@ -37,6 +37,7 @@ class OptimizeConfig:
     lambda_s: float = 0.5
     para_eps: float = 0.01  # Charbonnier smoothing of |.| in L_Para (0: exact L1)
     render_units: RenderUnits = "noise"  # L_Render in units of the photometric noise ("noise") or raw ("raw": the paper)
+    ghost_margin: float = 1.0  # squared differences below this many sigma_c^2 cost little in the ghost term (0: all)
     ghost: float = 1.0  # weight of the blend's spread next to L_Render (0: the paper's L_Render alone; see losses.ghost_loss)
     lr: float = 0.1  # Adam step on the logits of the weights (paper: 0.005 on the weights)
     betas: tuple[float, float] = (0.9, 0.99)

@@ -29,10 +29,13 @@ class TexelData:
     Q: torch.Tensor  # (K, H, W)
     cost: torch.Tensor  # (K, H, W) |V^ - v~|^2 (L_Persp)
     n_tex: float
+    ghost_margin: float = 0.0  # losses.ghost_spread's margin, squared colour units
 
 
-def texel_data(colours: torch.Tensor, Q: torch.Tensor, cost: torch.Tensor, n_tex: float) -> TexelData:
-    return TexelData(colours=colours, sq=(colours * colours).sum(1), Q=Q, cost=cost, n_tex=n_tex)
+def texel_data(colours: torch.Tensor, Q: torch.Tensor, cost: torch.Tensor, n_tex: float,
+               ghost_margin: float = 0.0) -> TexelData:
+    return TexelData(colours=colours, sq=(colours * colours).sum(1), Q=Q, cost=cost, n_tex=n_tex,
+                     ghost_margin=ghost_margin)
 
 
 def _smooth_abs_grad(x: torch.Tensor, eps: float) -> torch.Tensor:
@@ -98,9 +101,21 @@ def texel_value_and_grad(z: torch.Tensor, active: torch.Tensor, data: TexelData,
         MC = (M[None] * data.colours).sum(1)  # (K, H, W) M . I_j
         gW += cfg.alpha * 2 * (A[None] * UC - MC) / n
         if cfg.ghost > 0:
-            spread = (W * data.sq).sum(0) - UU  # sum_k W_k |I_k - U|^2
-            terms["ghost"] = (A * spread).sum() / n
-            gW += cfg.alpha * cfg.ghost * A[None] * (data.sq - 2 * UC) / n
+            m = data.ghost_margin
+            if m <= 0:
+                spread = (W * data.sq).sum(0) - UU  # sum_k W_k |I_k - U|^2
+                terms["ghost"] = (A * spread).sum() / n
+                gW += cfg.alpha * cfg.ghost * A[None] * (data.sq - 2 * UC) / n
+            else:
+                # sum_k W_k psi(d_k), d_k = |I_k - U|^2: d/dW_k = psi(d_k) - 2 R . I_k with
+                # R = sum_j W_j psi'(d_j) (I_j - U)
+                diff = data.colours - U[None]
+                d2 = (diff * diff).sum(1)
+                psi = losses.ghost_spread(d2, m)
+                dpsi = d2 * (d2 + 2 * m) / (d2 + m) ** 2
+                R = ((W * dpsi)[:, None] * diff).sum(0)
+                terms["ghost"] = (A * (W * psi).sum(0)).sum() / n
+                gW += cfg.alpha * cfg.ghost * A[None] * (psi - 2 * (R[None] * data.colours).sum(1)) / n
     if cfg.use_persp:
         terms["persp"] = (W * data.cost).sum() / n
         gW += cfg.beta * data.cost / n

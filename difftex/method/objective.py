@@ -30,7 +30,7 @@ class LevelState:
 
 
 def objective(z, active, colours, Q, cost, D, matches, pixel_sets, support, n_tex: float,
-              cfg: OptimizeConfig) -> dict[str, torch.Tensor]:
+              cfg: OptimizeConfig, ghost_margin: float = 0.0) -> dict[str, torch.Tensor]:
     """Every term of L for one level and its weighted total: a pure function of tensors, so
     torch.compile can fuse it (``ComputeConfig.compile``)."""
     W = losses.blend_weights(z, active)
@@ -42,7 +42,7 @@ def objective(z, active, colours, Q, cost, D, matches, pixel_sets, support, n_te
             terms["render"] = losses.render_loss_pixels(U, support, pixel_sets, active, Q, n_tex)
         else:
             terms["render"] = losses.render_loss_texel(U, colours, active, Q, n_tex)
-        terms["ghost"] = losses.ghost_loss(W, U, colours, active, Q, n_tex) if cfg.ghost > 0 else zero
+        terms["ghost"] = losses.ghost_loss(W, U, colours, active, Q, n_tex, ghost_margin) if cfg.ghost > 0 else zero
     terms["persp"] = losses.persp_loss(W, cost, n_tex) if cfg.use_persp else zero
     if cfg.use_para:
         terms["para"] = losses.para_loss(W, U, active, None, matches, cfg.lambda_s, n_tex, cfg.para_eps, D)
@@ -61,6 +61,11 @@ def render_weights(lv: Level, cfg: OptimizeConfig) -> torch.Tensor:
     and the ghost term count squared colour differences in units of the level's photometric
     noise, levels.level_noise), Q itself with "raw" (the paper)."""
     return lv.Q / lv.noise if cfg.render_units == "noise" else lv.Q
+
+
+def ghost_margin(lv: Level, cfg: OptimizeConfig) -> float:
+    """The ghost term's noise margin in squared colour units: ghost_margin x sigma_c^2."""
+    return cfg.ghost_margin * lv.noise**2
 
 
 def refresh_edge_weights(st: LevelState, cfg: OptimizeConfig) -> None:
@@ -85,16 +90,17 @@ def value_and_grad(st: LevelState, cfg: OptimizeConfig, fn=None) -> tuple[dict[s
     Q = render_weights(lv, cfg)
     if cfg.loss_mode == "texel":
         if st.texel is None:
-            st.texel = texel_data(lv.colours, Q, lv.cost, lv.n_tex)
+            st.texel = texel_data(lv.colours, Q, lv.cost, lv.n_tex, ghost_margin(lv, cfg))
         with torch.no_grad():
             return texel_value_and_grad(st.z, st.active, st.texel, st.D, st.matches, cfg)
     support = render_support(lv) if cfg.use_render else None
     if fn is None:
         with torch.no_grad():
             return objective(st.z, st.active, lv.colours, Q, lv.cost, st.D, st.matches, lv.pixel_sets, support,
-                             lv.n_tex, cfg), None
+                             lv.n_tex, cfg, ghost_margin(lv, cfg)), None
     z = st.z.detach().requires_grad_(True)
-    terms = fn(z, st.active, lv.colours, Q, lv.cost, st.D, st.matches, lv.pixel_sets, support, lv.n_tex, cfg)
+    terms = fn(z, st.active, lv.colours, Q, lv.cost, st.D, st.matches, lv.pixel_sets, support, lv.n_tex, cfg,
+               ghost_margin(lv, cfg))
     terms["total"].backward()
     return {k: v.detach() for k, v in terms.items()}, z.grad
 
