@@ -16,7 +16,7 @@ import numpy as np
 from difftex.camera import Photo
 from difftex.config import FilterConfig
 from difftex.errors import DifftexError
-from difftex.io import read_image
+from difftex.io import decode_photo
 from difftex.proxy import Proxy
 from difftex.visibility import id_buffer, prepare
 
@@ -99,7 +99,9 @@ def filter_photos(proxy: Proxy, photos: list[Photo], cfg: FilterConfig, progress
     records = []
     it = track(photos, description="filtering photos", disable=not progress, transient=True)
     for ph in it:
-        img = read_image(ph.image_path, expected_size=(ph.width, ph.height))
+        # Sharpness is measured at sharpness_long_side: a JPEG decodes straight to about that size.
+        reduce = 2 ** int(np.floor(np.log2(max(1.0, max(ph.width, ph.height) / cfg.sharpness_long_side))))
+        img = decode_photo(ph.image_path, (ph.width, ph.height), reduce)
         stride = max(1, ceil(max(ph.width, ph.height) / cfg.analysis_long_side))
         ids, dist = id_buffer(pp, ph, stride=stride)
         rec = PhotoRecord(name=ph.name, sharpness=sharpness(img, cfg.sharpness_long_side))

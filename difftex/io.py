@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import contextlib
 import json
+import math
 import os
 import tempfile
 from pathlib import Path
@@ -195,3 +196,59 @@ def write_image(path: str | os.PathLike, pixels: np.ndarray, bits: int = 8) -> N
             out.close()
             raise DifftexError(f"{path}: cannot write image ({err.strip()})")
         out.close()
+
+
+JPEG_SUFFIXES = {".jpg", ".jpeg"}
+
+
+def decode_photo(path: str | os.PathLike, size: tuple[int, int], reduce: int = 1) -> np.ndarray:
+    """An image of ``size`` (width, height) as float32 RGB (h, w, 3) in [0, 1], at 1/``reduce`` of
+    full size (a power of 2).
+
+    A JPEG is decoded at the reduced size directly (libjpeg's DCT scaling through Pillow's
+    ``draft``: 1/2, 1/4, 1/8), which OpenImageIO cannot do; other formats are read in full with
+    OpenImageIO (difftex.io.read_image) and box-averaged. Pixel (j, i) of the result covers
+    full-resolution pixels [j r, (j + 1) r) x [i r, (i + 1) r), as in a box pyramid. The size
+    is ceil(width / r) x ceil(height / r).
+    """
+    if reduce < 1 or reduce & (reduce - 1):
+        raise ValueError(f"reduce must be a power of two, got {reduce}")
+    path = Path(path)
+    if reduce > 1 and path.suffix.lower() in JPEG_SUFFIXES:
+        img, got = _decode_jpeg_scaled(path, size, reduce)
+        return box_reduce(img, reduce // got)
+    return box_reduce(read_image(path, expected_size=size), reduce)
+
+
+def _decode_jpeg_scaled(path: Path, size: tuple[int, int], reduce: int) -> tuple[np.ndarray, int]:
+    """(image, achieved reduction) of a JPEG decoded with DCT scaling (at most 1/8)."""
+    from PIL import Image
+
+    try:
+        with Image.open(path) as im:
+            width, height = size
+            if im.size != (width, height):
+                raise DifftexError(f"{path}: image is {im.size[0]}x{im.size[1]} but its camera says {width}x{height}")
+            r = min(reduce, 8)
+            im.draft("RGB", (math.ceil(width / r), math.ceil(height / r)))
+            got = max(1, round(width / im.size[0]))
+            arr = np.asarray(im.convert("RGB"), dtype=np.float32) / 255.0
+    except DifftexError:
+        raise
+    except (OSError, ValueError, SyntaxError) as exc:
+        raise DifftexError(f"{path}: corrupt image ({str(exc).splitlines()[0] if str(exc) else type(exc).__name__})") from None
+    if arr.shape[:2] != (math.ceil(height / got), math.ceil(width / got)):
+        # a decoder that did not honour the draft exactly: fall back to the general path
+        return read_image(path, expected_size=size), 1
+    return arr, got
+
+
+def box_reduce(img: np.ndarray, r: int) -> np.ndarray:
+    """Average r x r blocks (the last partial row/column of blocks averages what it has)."""
+    if r <= 1:
+        return img
+    import torch
+    import torch.nn.functional as F
+
+    t = torch.from_numpy(np.ascontiguousarray(img, dtype=np.float32)).permute(2, 0, 1)[None]
+    return F.avg_pool2d(t, r, ceil_mode=True, count_include_pad=False)[0].permute(1, 2, 0).numpy()

@@ -28,12 +28,12 @@ import torch.nn.functional as F
 from difftex.camera import Photo
 from difftex.colour import apply_transfer_torch
 from difftex.errors import DifftexError
+from difftex.io import box_reduce, decode_photo
 from difftex.mapping import UVFrame
 
 # Texel spacing of the exact projections that the distortion displacement is interpolated from
 # (texel_map): the displacement of every COLMAP model is a smooth function of the position.
 DISTORTION_GRID = 8
-JPEG_SUFFIXES = {".jpg", ".jpeg"}
 
 
 def pick_device(name: str | torch.device) -> torch.device:
@@ -272,61 +272,6 @@ def _interp_grid(coarse: torch.Tensor, cx: np.ndarray, cy: np.ndarray, w: int, h
 # Decoding and pyramids
 
 
-def decode_photo(photo: Photo, reduce: int = 1) -> np.ndarray:
-    """Photo pixels as float32 RGB (h, w, 3) in [0, 1], at 1/``reduce`` of full size (power of 2).
-
-    A JPEG is decoded at the reduced size directly (libjpeg's DCT scaling through Pillow's
-    ``draft``: 1/2, 1/4, 1/8), which OpenImageIO cannot do; other formats are read in full with
-    OpenImageIO (difftex.io.read_image) and box-averaged. Pixel (j, i) of the result covers
-    full-resolution pixels [j r, (j + 1) r) x [i r, (i + 1) r), as in a box pyramid. The size
-    is ceil(width / r) x ceil(height / r).
-    """
-    from difftex.io import read_image
-
-    if reduce < 1 or reduce & (reduce - 1):
-        raise ValueError(f"reduce must be a power of two, got {reduce}")
-    path = Path(photo.image_path) if photo.image_path is not None else None
-    if path is None:
-        raise DifftexError(f"photo '{photo.name}' has no image file")
-    if reduce > 1 and path.suffix.lower() in JPEG_SUFFIXES:
-        img, got = _decode_jpeg_scaled(path, photo, reduce)
-        return box_reduce(img, reduce // got)
-    return box_reduce(read_image(path, expected_size=(photo.width, photo.height)), reduce)
-
-
-def _decode_jpeg_scaled(path: Path, photo: Photo, reduce: int) -> tuple[np.ndarray, int]:
-    """(image, achieved reduction) of a JPEG decoded with DCT scaling (at most 1/8)."""
-    from PIL import Image
-
-    try:
-        with Image.open(path) as im:
-            if im.size != (photo.width, photo.height):
-                raise DifftexError(f"{path}: image is {im.size[0]}x{im.size[1]} but its camera says "
-                                   f"{photo.width}x{photo.height}")
-            r = min(reduce, 8)
-            im.draft("RGB", (math.ceil(photo.width / r), math.ceil(photo.height / r)))
-            got = max(1, round(photo.width / im.size[0]))
-            arr = np.asarray(im.convert("RGB"), dtype=np.float32) / 255.0
-    except DifftexError:
-        raise
-    except (OSError, ValueError, SyntaxError) as exc:
-        raise DifftexError(f"{path}: corrupt image ({str(exc).splitlines()[0] if str(exc) else type(exc).__name__})") from None
-    if arr.shape[:2] != (math.ceil(photo.height / got), math.ceil(photo.width / got)):
-        # a decoder that did not honour the draft exactly: fall back to the general path
-        from difftex.io import read_image
-
-        return read_image(path, expected_size=(photo.width, photo.height)), 1
-    return arr, got
-
-
-def box_reduce(img: np.ndarray, r: int) -> np.ndarray:
-    """Average r x r blocks (the last partial row/column of blocks averages what it has)."""
-    if r <= 1:
-        return img
-    t = torch.from_numpy(np.ascontiguousarray(img, dtype=np.float32)).permute(2, 0, 1)[None]
-    return F.avg_pool2d(t, r, ceil_mode=True, count_include_pad=False)[0].permute(1, 2, 0).numpy()
-
-
 class PhotoSampler:
     """A photo cropped to the polygon, as a 2x box-filtered pyramid, sampled at pixel positions.
 
@@ -466,7 +411,7 @@ class PhotoSet:
                 if img.shape[:2] != (ph.height, ph.width):
                     raise DifftexError(f"{ph.image_path}: image is {img.shape[1]}x{img.shape[0]}, camera says {ph.width}x{ph.height}")
             else:
-                img = decode_photo(ph, reduce)
+                img = decode_photo(ph.image_path, (ph.width, ph.height), reduce)
             ps.reads += 1
             base = int(math.log2(reduce))
             ps.samplers[n] = PhotoSampler(img, box, device, base=base)

@@ -412,7 +412,7 @@ def test_cli_turns_os_errors_into_one_line(small_synth_scene, tmp_path, capsys, 
     def fail(path, *a, **k):
         raise PermissionError(errno.EACCES, os.strerror(errno.EACCES), str(path))
 
-    monkeypatch.setattr(difftex.filtering, "read_image", fail)
+    monkeypatch.setattr(difftex.filtering, "decode_photo", fail)
     code, err = run_filter(capsys, small_synth_scene, tmp_path)
     assert_error(code, err, "img_0000.png", "Permission denied")
 

@@ -1,0 +1,238 @@
+"""Speed of the whole workflow per preset against texrecon and a plain average, in one run.
+
+    python evaluation/bench_speed.py --scene data/synth/paper/archive --scene ../shared/data/herzjesu-p8
+    python evaluation/bench_speed.py --scene data/synth/paper/archive --subset 50   # + a 50-photo copy
+
+For every scene, in this order and on the same machine:
+
+1. texrecon (mvs-texturing) through difftex's peer runner (``difftex peer``): the program's own wall
+   and CPU seconds and peak RSS; difftex's preparation (photos resampled as centred pinhole cameras,
+   the proxy meshed) and the import of its atlas are reported apart. Not run if texrecon is not
+   found (``DIFFTEX_TEXRECON`` or PATH; ``../shared/peers/build_texrecon.sh`` builds it).
+2. The workflow, once per preset, as a user runs it: ``snakemake --cores N --config scene=S
+   preset=P 'run={evaluate: false}'`` in a fresh folder; wall seconds of the command, CPU seconds
+   and peak RSS of every job (Snakemake's benchmark files), texels and K x texels per polygon,
+   iterations per level.
+3. The floor: a plain per-texel average (``difftex baseline --method average``) of every polygon
+   at the first preset's texel sizes, in-process (no interpreter start-up per polygon).
+
+``--subset N`` adds a copy of each scene with N of its photos (evenly spread), to show how the
+time grows with the photos at the same texels. Writes JSON and markdown with the machine.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import resource
+import shutil
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from evaluation import common as C  # noqa: E402
+
+
+def children_cpu() -> float:
+    ru = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return ru.ru_utime + ru.ru_stime
+
+
+def read_benchmarks(results: Path) -> dict[str, dict]:
+    """{rule: {"jobs", "wall_s", "cpu_s", "max_rss_mb"}} from Snakemake's benchmark files."""
+    out: dict[str, dict] = {}
+    for tsv in sorted((results / "benchmarks").rglob("*.tsv")):
+        rule = tsv.relative_to(results / "benchmarks").parts[0]
+        head, row = (ln.split("\t") for ln in tsv.read_text().splitlines()[:2])
+        rec = dict(zip(head, row))
+        d = out.setdefault(rule, {"jobs": 0, "wall_s": 0.0, "cpu_s": 0.0, "max_rss_mb": 0.0})
+        d["jobs"] += 1
+        d["wall_s"] += float(rec["s"])
+        for key, dst in (("cpu_time", "cpu_s"),):
+            if rec.get(key, "NA") not in ("NA", "-", ""):
+                d[dst] += float(rec[key])
+        if rec.get("max_rss", "NA") not in ("NA", "-", ""):
+            d["max_rss_mb"] = max(d["max_rss_mb"], float(rec["max_rss"]))
+    return out
+
+
+def polygon_work(results: Path) -> dict:
+    """Texels, slots and iterations of the run's texture stage (visibility summary, stats.json)."""
+    from difftex.io import read_json
+
+    vis = read_json(results / "visibility" / "summary.json")["polygons"]
+    texels = sum(int(p["texels"]) for p in vis if p.get("photos"))
+    slots = iters = 0
+    levels = []
+    for p in vis:
+        st = results / "optimized" / p["id"] / "stats.json"
+        if not st.is_file():
+            continue
+        s = read_json(st)
+        last = s["levels"][-1]
+        slots += int(last["top_k"]) * int(s.get("texels", 0))
+        iters += sum(int(lv["iterations"]) for lv in s["levels"])
+        levels.append([int(lv["iterations"]) for lv in s["levels"]])
+    return {"polygons": len(vis), "textured": sum(1 for p in vis if p.get("photos")), "texels": texels,
+            "slot_texels": slots, "iterations": iters, "iterations_per_level": levels,
+            "map_sizes": {p["id"]: [p["width"], p["height"]] for p in vis},
+            "texel_sizes": {p["id"]: p.get("texel_size") for p in vis}}
+
+
+def run_workflow(scene: Path, work: Path, preset: str, cores: int) -> dict:
+    work.mkdir(parents=True, exist_ok=True)
+    bin_dir = Path(sys.executable).parent
+    cmd = [str(bin_dir / "snakemake"), "-s", str(ROOT / "Snakefile"), "--directory", str(work), "--cores", str(cores),
+           "--config", f"scene={scene.resolve()}", f"preset={preset}", "run={evaluate: false}"]
+    env = dict(os.environ, PATH=f"{bin_dir}{os.pathsep}{os.environ.get('PATH', '')}")
+    c0, t0 = children_cpu(), time.perf_counter()
+    r = subprocess.run(cmd, capture_output=True, text=True, env=env)
+    wall, cpu = time.perf_counter() - t0, children_cpu() - c0
+    if r.returncode != 0:
+        raise RuntimeError(f"workflow failed on {scene} ({preset}): {(r.stdout + r.stderr)[-1500:]}")
+    from difftex.workflow import scene_name
+
+    results = work / "results" / scene_name(scene)
+    stages = read_benchmarks(results)
+    return {"preset": preset, "wall_s": wall, "cpu_s": cpu, "stages": stages,
+            "peak_rss_mb": max((d["max_rss_mb"] for d in stages.values()), default=0.0),
+            **polygon_work(results), "results": str(results)}
+
+
+def run_texrecon(scene: Path, work: Path, results: Path) -> dict:
+    """texrecon on the scene's photos the workflow kept, imported into the workflow's frames."""
+    from evaluation import peers
+
+    why = peers.unavailable("texrecon")
+    if why:
+        return {"missing": why}
+    common = {"visibility": results / "visibility", "config": results / "config" / "x.yaml",
+              "polygons": [p for p in json.loads((results / "visibility" / "summary.json").read_text())["polygons"] if p["photos"]]}
+    (results / "config" / "x.yaml").parent.mkdir(exist_ok=True)
+    shutil.copyfile(results / "photos.json", results / "config" / "photos.json")
+    return peers.run_peer("texrecon", scene, work / "texrecon", common)
+
+
+def run_average(scene: Path, results: Path) -> dict:
+    """The plain per-texel average of every textured polygon at the run's texel sizes, in-process."""
+    from difftex.baselines import baseline_texture
+    from difftex.sampling import polygon_input_from_visibility
+    from difftex.scene import load_scene
+    from difftex.visibility import load_visibility
+
+    t0, c0 = time.perf_counter(), time.process_time()
+    sc = load_scene(scene, check_images=False)
+    by = {p.name: p for p in sc.photos}
+    n = 0
+    for npz in sorted((results / "visibility").glob("*.npz")):
+        vis = load_visibility(npz)
+        if vis.photos:
+            baseline_texture(polygon_input_from_visibility(vis, by), "average", "cpu")
+            n += 1
+    return {"wall_s": time.perf_counter() - t0, "cpu_s": time.process_time() - c0, "polygons": n}
+
+
+def subset_scene(scene: Path, n: int, out: Path) -> Path:
+    from difftex.camera import load_photos
+    from difftex.evaluate import prepare_holdout
+    from difftex.scene import find_sparse
+
+    names = [p.name for p in load_photos(find_sparse(scene), scene / "images", check_images=False)]
+    step = max(1, len(names) // n)
+    dst = out / f"{scene.name}-{n}"
+    if not (dst / "sparse").is_dir():
+        prepare_holdout(scene, 0, dst, keep=names[::step][:n])
+    return dst
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--scene", action="append", required=True)
+    ap.add_argument("--presets", default="fast,balanced")
+    ap.add_argument("--subset", type=int, default=0, help="also a copy of each scene with this many photos")
+    ap.add_argument("--cores", type=int, default=2)
+    ap.add_argument("--work", default="evaluation/out/bench_speed")
+    ap.add_argument("--out", default="evaluation/results/bench_speed")
+    args = ap.parse_args(argv)
+
+    work = Path(args.work)
+    scenes = [Path(s) for s in args.scene]
+    if args.subset:
+        scenes += [subset_scene(s, args.subset, work / "scenes") for s in list(scenes)]
+    mach = C.machine()
+    rows = []
+    for scene in scenes:
+        row: dict = {"scene": str(scene), "load_avg_start": os.getloadavg()}
+        presets = args.presets.split(",")
+        row["runs"] = []
+        for p in presets:
+            wd = work / scene.name / p
+            if wd.exists():
+                shutil.rmtree(wd)
+            run = run_workflow(scene, wd, p, args.cores)
+            row["runs"].append(run)
+            print(f"bench_speed: {scene.name} {p}: {run['wall_s']:.0f} s wall, {run['cpu_s']:.0f} s CPU, "
+                  f"peak {run['peak_rss_mb']:.0f} MB, {run['texels'] / 1e6:.2f} M texels", flush=True)
+        first = Path(row["runs"][0]["results"])
+        row["texrecon"] = run_texrecon(scene, work / scene.name, first)
+        if "peer_s" in row["texrecon"]:
+            print(f"bench_speed: {scene.name} texrecon: {row['texrecon']['peer_s']:.0f} s wall", flush=True)
+        row["average"] = run_average(scene, first)
+        row["load_avg_end"] = os.getloadavg()
+        rows.append(row)
+        write(Path(args.out), rows, mach, args)
+    print(Path(args.out).with_suffix(".md").read_text())
+    return 0
+
+
+def write(stem: Path, rows: list[dict], mach: dict, args) -> None:
+    lines = [C.header("Speed: the workflow per preset against texrecon and a plain average",
+                      "python evaluation/bench_speed.py " + " ".join(sys.argv[1:]), mach, [
+                          "One run per row, in the order texrecon's input (the first preset's run), the presets, "
+                          "texrecon, the average; wall seconds of the whole command on the machine below, "
+                          f"Snakemake with --cores {args.cores}, evaluation off (the workflow's other stages all on).",
+                          "texrecon: the program's own wall time (difftex's preparation of its input and the import of "
+                          "its atlas apart, in the JSON). Average: every polygon's plain per-texel average at the first "
+                          "preset's texel sizes, in one process.",
+                          "Ratio = workflow wall / texrecon wall. CPU: all jobs of the run; RSS: the largest job.",
+                      ])]
+    lines.append("| scene | photos | method | wall (s) | CPU (s) | peak RSS (MB) | texels (M) | K x texels (M) | iterations | vs texrecon |")
+    lines.append("|---|---|---|---|---|---|---|---|---|---|")
+    from difftex.camera import load_photos
+    from difftex.scene import find_sparse
+
+    for row in rows:
+        sc = Path(row["scene"])
+        n_ph = len(load_photos(find_sparse(sc), sc / "images", check_images=False))
+        tr = row.get("texrecon", {})
+        tw = tr.get("peer_s")
+        if tw is not None:
+            lines.append(f"| {sc.name} | {n_ph} | texrecon | {tw:.1f} | {tr['peer_cpu_s']:.1f} | {tr['peer_peak_rss_mib']:.0f} "
+                         f"| | | | 1.0 |")
+        else:
+            lines.append(f"| {sc.name} | {n_ph} | texrecon | not run: {tr.get('missing', '?')} | | | | | | |")
+        for run in row["runs"]:
+            ratio = f"{run['wall_s'] / tw:.1f}" if tw else "n/a"
+            lines.append(f"| {sc.name} | {n_ph} | difftex {run['preset']} | {run['wall_s']:.1f} | {run['cpu_s']:.1f} | "
+                         f"{run['peak_rss_mb']:.0f} | {run['texels'] / 1e6:.2f} | {run['slot_texels'] / 1e6:.2f} | "
+                         f"{run['iterations']} | {ratio} |")
+        av = row["average"]
+        lines.append(f"| {sc.name} | {n_ph} | plain average | {av['wall_s']:.1f} | {av['cpu_s']:.1f} | | | | | "
+                     f"{av['wall_s'] / tw:.1f} |" if tw else f"| {sc.name} | {n_ph} | plain average | {av['wall_s']:.1f} | {av['cpu_s']:.1f} | | | | | n/a |")
+    lines.append("")
+    lines.append("CPU seconds per stage (sum over the stage's jobs):")
+    lines.append("")
+    for row in rows:
+        for run in row["runs"]:
+            parts = ", ".join(f"{k} {d['cpu_s']:.1f}" + (f"/{d['jobs']}" if d["jobs"] > 1 else "") for k, d in run["stages"].items())
+            lines.append(f"- {Path(row['scene']).name} {run['preset']}: {parts}")
+    C.write_outputs(stem, "\n".join(lines) + "\n", {"machine": mach, "args": vars(args), "rows": rows})
+
+
+if __name__ == "__main__":
+    sys.exit(main())
