@@ -351,6 +351,30 @@ class MappedPhoto:
     footprint: torch.Tensor  # (h, w) texel size in full-resolution pixels
 
 
+@dataclass
+class Correction:
+    """An affine correction of a photo's mapping in its pixels: p -> p + d + M (p - c) / s.
+
+    ``params`` = (dx, dy, m11, m12, m21, m22) in pixels; ``centre`` c and ``scale`` s normalise
+    the affine part to the polygon's extent in the photo, so all six parameters are in pixels
+    of displacement at the polygon's edge.
+    """
+
+    params: torch.Tensor  # (6,) float64
+    centre: tuple[float, float]
+    scale: float
+
+    def displacement(self, pix: torch.Tensor) -> torch.Tensor:
+        """(..., 2) pixel displacement at ``pix`` (..., 2)."""
+        p = self.params.to(pix.device, pix.dtype)
+        u = (pix[..., 0] - self.centre[0]) / self.scale
+        v = (pix[..., 1] - self.centre[1]) / self.scale
+        return torch.stack([p[0] + p[2] * u + p[3] * v, p[1] + p[4] * u + p[5] * v], -1)
+
+    def apply(self, pix: torch.Tensor) -> torch.Tensor:
+        return pix + self.displacement(pix)
+
+
 PROBE_LONG_SIDE = 64  # texels of the probe level that sizes crops and decode scales
 # Crop origins are multiples of 2^CROP_ALIGN pixels, so the box-filter pyramid's pixels fall on
 # the same image blocks whatever the crop (for levels <= CROP_ALIGN): sampled colours then do
@@ -371,6 +395,9 @@ class PhotoSet:
     samplers: dict[int, PhotoSampler]
     reads: int = 0
     decode_scale: dict[int, int] = field(default_factory=dict)
+    # Per photo, a small affine correction of f_k^i in pixels (difftex.method.alignment):
+    # p -> p + d + M (p - c) / s, parameters (dx, dy, m11, m12, m21, m22), centre c, scale s.
+    corrections: dict[int, "Correction"] = field(default_factory=dict)
 
     @classmethod
     def load(cls, inp: PolygonInput, device, finest: UVFrame | None = None, exact_decode: bool = False,
@@ -438,6 +465,8 @@ class PhotoSet:
             y0, y1, x0, x1 = region
             mask = mask[y0:y1, x0:x1]
         tm = texel_map(frame, ph, self.device, region)
+        if n in self.corrections:
+            tm.pix = self.corrections[n].apply(tm.pix)
         vis = tm.valid & torch.from_numpy(np.ascontiguousarray(visible & mask)).to(self.device)
         if not bool(vis.any()):
             return None

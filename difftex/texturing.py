@@ -69,6 +69,8 @@ def texture_polygon(inp: PolygonInput, cfg: OptimizeConfig, compute: ComputeConf
         "photos_seeing": [inp.photos[n].name for n in sorted(photos.samplers)],
         "photo_reads": photos.reads, "decode_scale": {inp.photos[n].name: s for n, s in photos.decode_scale.items()},
         "photo_bytes": photos.nbytes(), "time_read_photos_s": t_read, "time_histmatch_s": t_match,
+        "corrections": {inp.photos[n].name: {"params": c.params.tolist(), "centre": list(c.centre), "scale": c.scale}
+                        for n, c in photos.corrections.items()},
         "time_stage_s": time.perf_counter() - t0,
     })
     report = {"polygon_id": inp.polygon_id, "method": "difftex", "histogram_matching": transfers is not None, **fill}

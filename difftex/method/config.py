@@ -17,6 +17,7 @@ HistmatchReference = Literal["median", "best", "pooled"]
 Device = Literal["auto", "cpu", "cuda"]
 CompileMode = Literal["auto", "on", "off"]
 RenderUnits = Literal["noise", "raw"]
+AlignModel = Literal["translation", "affine"]
 
 
 def _check_choice(name: str, value, choices: tuple) -> None:
@@ -58,6 +59,12 @@ class OptimizeConfig:
     data_elimination: bool = True
     coarse_to_fine: bool = True
     histogram_matching: bool = True
+    align: bool = True  # refine each photo's mapping (affine, pixels) against the consensus texture
+    align_model: AlignModel = "translation"  # correction per photo: translation (2 parameters) or affine (6)
+    align_iterations: int = 3  # Gauss-Newton steps per level
+    align_prior_px: float = 2.0  # prior standard deviation of a correction, pixels
+    align_max_px: float = 8.0  # a correction moving the polygon's edge further than this is rejected
+    align_max_long_side: int = 1024  # align at levels up to this long side
     histmatch_reference: HistmatchReference = "median"  # per-texel median of the candidates, the best photo, or pooled
     histmatch_channels: str = "sv"  # HSV channels matched; hue is circular and left alone by default
     exact_decode: bool = False  # decode every photo at full size (default: JPEG DCT scaling where levels allow)
@@ -67,6 +74,7 @@ class OptimizeConfig:
         _check_choice("loss_mode", self.loss_mode, ("texel", "render"))
         _check_choice("elimination_test", self.elimination_test, ("loo", "paper"))
         _check_choice("render_units", self.render_units, ("noise", "raw"))
+        _check_choice("align_model", self.align_model, ("translation", "affine"))
         _check_choice("histmatch_reference", self.histmatch_reference, ("best", "median", "pooled"))
         if not set(self.histmatch_channels) <= set("hsv") or not self.histmatch_channels:
             raise ValueError(f"histmatch_channels must be letters of 'hsv', got {self.histmatch_channels!r}")

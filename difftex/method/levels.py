@@ -157,6 +157,16 @@ def upsample_photo_weight(prev_level: Level, prev_W: torch.Tensor, n: int, frame
     return up[0] / up[1].clamp_min(1e-3), cov
 
 
+def upsample_field(field: torch.Tensor, src: UVFrame, frame: UVFrame) -> torch.Tensor:
+    """(C, h, w) bilinear resampling of a (C, h', w') field of frame ``src`` at the texel centres of
+    ``frame`` (the same rectangle at another resolution)."""
+    tx, ty = frame.centres()
+    r = frame.texel_size / src.texel_size
+    grid = torch.from_numpy(np.stack([(tx * r) / src.width * 2 - 1, (ty * r) / src.height * 2 - 1], -1).astype(np.float32))
+    return F.grid_sample(field[None].float(), grid.to(field.device)[None], mode="bilinear", padding_mode="border",
+                         align_corners=False)[0]
+
+
 def upsample_known(prev_level: Level, frame: UVFrame) -> torch.Tensor:
     """(h, w) bool: texels of ``frame`` whose nearest texel at the coarser level, or one of its
     neighbours, had a candidate."""

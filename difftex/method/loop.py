@@ -16,15 +16,15 @@ import numpy as np
 import torch
 
 from difftex import losses
-from difftex.method import diagnostics
+from difftex.method import alignment, diagnostics
 from difftex.method.config import ComputeConfig, OptimizeConfig
 from difftex.method.elimination import (base_mask, dropped_slot_mask, eliminate_pixels, photo_zero_share,
                                         photos_to_drop, update_activation)
-from difftex.method.levels import Level, build_level
+from difftex.method.levels import Level, build_level, upsample_field
 from difftex.method.gradient import Adam
 from difftex.method.objective import LevelState, compiled_objective, objective, value_and_grad
 from difftex.method.render import build_pixel_sets
-from difftex.sampling import MappedPhoto, PhotoSet, level_frame, level_sides
+from difftex.sampling import MappedPhoto, PhotoSet, level_frame, level_sides, resample_nearest
 
 LOSS_KEYS = ("total", "render", "ghost", "persp", "para")
 
@@ -74,10 +74,15 @@ def optimize_polygon(photos: PhotoSet, cfg: OptimizeConfig, compute: ComputeConf
         from tqdm import tqdm
 
         bar = tqdm(total=sum(cfg.cap(i) for i in range(len(sides))), desc=f"optimize {inp.polygon_id}", leave=False)
+    stats["alignment"] = []
     for li, side in enumerate(sides):
         tl = time.perf_counter()
         frame = level_frame(inp.frame, side)
-        lv = build_level(photos, frame, cfg, transfers, dropped=dropped, mapped=first if li == 0 else None,
+        aligned = False
+        if cfg.align and side <= cfg.align_max_long_side:
+            stats["alignment"].append(_align(photos, frame, transfers, prev, cfg))
+            aligned = True
+        lv = build_level(photos, frame, cfg, transfers, dropped=dropped, mapped=first if li == 0 and not aligned else None,
                          prev=(prev.level, losses.blend_weights(prev.z, prev.active)) if prev is not None else None)
         if cfg.use_render and cfg.loss_mode == "render":
             lv.pixel_sets = build_pixel_sets(photos, lv, transfers)
@@ -116,6 +121,26 @@ def optimize_polygon(photos: PhotoSet, cfg: OptimizeConfig, compute: ComputeConf
         stats["cuda_peak_bytes"] = int(torch.cuda.max_memory_allocated(device))
     return Result(idx=lv.idx.cpu().numpy().astype(np.int32), W=W.cpu().numpy().astype(np.float32),
                   U=U.permute(1, 2, 0).cpu().numpy(), stats=stats)
+
+
+def _align(photos: PhotoSet, frame, transfers, prev: LevelState | None, cfg: OptimizeConfig) -> dict:
+    """Refine the photos' mapping corrections at this level against the consensus texture: the
+    per-texel median of the photos at the first level, the previous level's texture after it."""
+    t0 = time.perf_counter()
+    inp = photos.inp
+    mask = resample_nearest(inp.texel_mask, inp.frame, frame)
+    if prev is None:
+        consensus, defined = alignment.consensus_median(photos, frame, mask, transfers)
+        noise = 0.05
+    else:
+        plv = prev.level
+        U = losses.compose(losses.blend_weights(prev.z, prev.active), plv.colours)
+        consensus = upsample_field(U, plv.frame, frame)
+        defined = upsample_field((plv.visible.sum(0) >= 2).float()[None], plv.frame, frame)[0] > 0.99
+        noise = plv.noise
+    st = alignment.AlignSettings(cfg.align_model, cfg.align_iterations, cfg.align_prior_px, cfg.align_max_px, max(noise, cfg.sigma_min))
+    report = alignment.align_level(photos, frame, mask, transfers, consensus, defined & torch.from_numpy(mask).to(defined.device), st)
+    return {"long_side": max(frame.shape), "photos": report, "time_s": time.perf_counter() - t0}
 
 
 def _run_level(lv: Level, li: int, cfg: OptimizeConfig, compute: ComputeConfig, dropped: set[int], stats: dict,

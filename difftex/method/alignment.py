@@ -1,0 +1,193 @@
+"""Alignment refinement: a small affine correction of each photo's mapping f_k^i, per polygon.
+
+Registered photos are off by a pixel or more (pose noise, residual distortion, rolling shutter),
+so their mapped colours disagree at edges: blends ghost and seams break. Before the weights of
+each level are optimized, every candidate photo's mapping is corrected in its own pixels,
+
+    f_k^i(t) -> f_k^i(t) + d + M (f_k^i(t) - c) / s,
+
+six parameters (translation d, affine part M normalised to the polygon's extent s in the photo)
+found by Gauss-Newton (Lucas-Kanade) against the consensus texture: the previous level's
+optimized texture, or at the first level the per-texel median of the photos. The photo is
+sampled through the same trilinear pyramid sampling as everywhere (difftex.sampling); its
+gradient by central differences. A robust (Cauchy) weight ignores occluded texels, and a
+Gaussian prior of ``align_prior_px`` keeps corrections small where the texture says little
+(flat walls). The corrections accumulate from coarse to fine levels.
+
+Why per polygon and not a pose update shared by a photo's polygons: a homography per plane is
+exactly what a small pose error does to a planar polygon, and per-polygon parameters absorb
+residual lens distortion and rolling shutter too, which a rigid pose cannot; small polygons,
+where the per-polygon fit is poorly conditioned, are held near zero by the prior.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from difftex.colour import apply_transfer_torch
+from difftex.mapping import UVFrame
+from difftex.sampling import Correction, PhotoSet, resample_nearest, texel_map
+
+MAX_POINTS = 65536  # texels per photo and Gauss-Newton step (a strided subset above it)
+
+
+@dataclass(frozen=True)
+class AlignSettings:
+    model: str  # "translation" (2 parameters) or "affine" (6)
+    iterations: int  # Gauss-Newton steps per level
+    prior_px: float  # standard deviation of the prior on every parameter, pixels
+    max_px: float  # corrections larger than this (at the polygon's edge) are rejected
+    noise: float  # colour noise (sigma_c): the prior's and the robust weight's scale
+
+
+def _basis(pix: torch.Tensor, centre: tuple[float, float], scale: float) -> torch.Tensor:
+    """(n, 2, 6) derivative of the correction's displacement with respect to its parameters."""
+    u = (pix[:, 0] - centre[0]) / scale
+    v = (pix[:, 1] - centre[1]) / scale
+    one, zero = torch.ones_like(u), torch.zeros_like(u)
+    row_x = torch.stack([one, zero, u, v, zero, zero], -1)
+    row_y = torch.stack([zero, one, zero, zero, u, v], -1)
+    return torch.stack([row_x, row_y], 1)
+
+
+def _sample(photos: PhotoSet, n: int, pix: torch.Tensor, fp: torch.Tensor, transfer) -> torch.Tensor:
+    """(3, m) colours of photo n at pixels (m, 2), through its brightness transfer."""
+    col = photos.samplers[n].sample(pix.float()[None], fp.float()[None])[:, 0]
+    return apply_transfer_torch(col[:, :, None], transfer)[:, :, 0] if transfer is not None else col
+
+
+def gauss_newton(photos: PhotoSet, n: int, pix0: torch.Tensor, fp: torch.Tensor, target: torch.Tensor,
+                 weight: torch.Tensor, corr: Correction, transfer, st: AlignSettings) -> Correction:
+    """``st.iterations`` Gauss-Newton steps of photo n's correction against ``target``.
+
+    Args:
+        pix0: (m, 2) uncorrected pixel positions of the texels; fp: (m,) their footprints.
+        target: (3, m) consensus colours; weight: (m,) confidence of each texel (the robust
+            weight multiplies it).
+    """
+    B = _basis(pix0.double(), corr.centre, corr.scale)  # (m, 2, 6)
+    # The affine part is held four times closer to zero than the translation: a small pose error
+    # moves a polygon's image mostly as a whole, while differences of blur between photos (their
+    # footprints differ) would otherwise leak into the scale and shear terms.
+    affine_sd = 0.25 if st.model == "affine" else 1e-6  # "translation": the affine part held at zero
+    sd = torch.tensor([1.0, 1.0] + [affine_sd] * 4, dtype=torch.float64) * st.prior_px
+    prior = torch.diag(1.0 / sd**2)
+    inv_var = 1.0 / (3 * st.noise**2)  # per texel, over the three channels
+    params = corr.params.clone()
+    for _ in range(st.iterations):
+        cur = Correction(params, corr.centre, corr.scale)
+        pix = cur.apply(pix0)
+        h = (0.5 * fp).clamp_min(0.5)[:, None]  # half a texel, at least half a pixel
+        ex = torch.zeros_like(pix)
+        ex[:, 0] = 1.0
+        ey = torch.zeros_like(pix)
+        ey[:, 1] = 1.0
+        col = _sample(photos, n, pix, fp, transfer)
+        gx = (_sample(photos, n, pix + h * ex, fp, transfer) - _sample(photos, n, pix - h * ex, fp, transfer)) / (2 * h.T)
+        gy = (_sample(photos, n, pix + h * ey, fp, transfer) - _sample(photos, n, pix - h * ey, fp, transfer)) / (2 * h.T)
+        r = (col - target).double()  # (3, m)
+        grad = torch.stack([gx, gy], -1).double()  # (3, m, 2)
+        J = torch.einsum("cmk,mkp->cmp", grad, B)  # (3, m, 6)
+        # Cauchy weights at three robust standard deviations of this photo's residuals (its
+        # median absolute residual), at least the noise: an occluded texel hardly counts, while
+        # the blur differences at edges, which every photo has, keep their weight.
+        e2 = (r * r).sum(0)
+        c2 = max(9.0 * 2.2 * float(e2.median()), 9.0 * st.noise**2)
+        w = weight.double() / (1.0 + e2 / c2)
+        Hm = torch.einsum("cmp,m,cmq->pq", J, w, J) * inv_var + prior
+        g = torch.einsum("cmp,m,cm->p", J, w, r) * inv_var + prior @ params
+        try:
+            step = -torch.linalg.solve(Hm, g)
+        except RuntimeError:  # singular: nothing to align on
+            break
+        params = params + step
+        if float(step.abs().max()) < 1e-3:
+            break
+    return Correction(params, corr.centre, corr.scale)
+
+
+def consensus_median(photos: PhotoSet, frame: UVFrame, mask: np.ndarray, transfers: list | None) -> tuple[torch.Tensor, torch.Tensor]:
+    """Per-texel median of the mapped photos ((3, h, w)) and where two or more define it."""
+    maps = {n: photos.map(n, frame, mask, transfers[n] if transfers else None) for n in sorted(photos.samplers)}
+    maps = {n: mp for n, mp in maps.items() if mp is not None}
+    if not maps:
+        h, w = frame.shape
+        return torch.zeros(3, h, w, device=photos.device), torch.zeros(h, w, dtype=torch.bool, device=photos.device)
+    col = torch.stack([mp.colour for mp in maps.values()])
+    vis = torch.stack([mp.visible for mp in maps.values()])
+    x = torch.where(vis[:, None], col, torch.full_like(col, float("nan")))
+    med = torch.nanmedian(x, dim=0).values
+    return torch.nan_to_num(med), vis.sum(0) >= 2
+
+
+def align_level(photos: PhotoSet, frame: UVFrame, mask: np.ndarray, transfers: list | None, consensus: torch.Tensor,
+                defined: torch.Tensor, st: AlignSettings) -> dict:
+    """Refine every candidate photo's correction against ``consensus`` (3, h, w) at ``frame``.
+
+    Returns per photo name: the correction's largest displacement at the polygon's extent
+    (pixels), its parameters, and whether it was kept (one beyond ``max_px`` is discarded).
+    """
+    inp = photos.inp
+    report = {}
+    # Not the polygon's border texels: their footprint reaches past the polygon's edge, where
+    # photos see other surfaces (and the consensus blends them), which would pull the fit.
+    outside = torch.nn.functional.pad((~defined).float()[None, None], (2, 2, 2, 2), value=1.0)
+    inner = torch.nn.functional.max_pool2d(outside, 5, stride=1)[0, 0] == 0
+    defined = defined & inner
+    for n in sorted(photos.samplers):
+        ph = inp.photos[n]
+        tm = texel_map(frame, ph, photos.device)
+        vis = resample_nearest(inp.texel_visible[n], inp.frame, frame) & mask
+        sel = tm.valid & torch.from_numpy(np.ascontiguousarray(vis)).to(photos.device) & defined
+        if int(sel.sum()) < 64:
+            continue
+        idx = torch.nonzero(sel.flatten()).flatten()
+        if len(idx) > MAX_POINTS:
+            idx = idx[:: math.ceil(len(idx) / MAX_POINTS)]
+        pix0 = tm.pix.reshape(-1, 2)[idx].double()
+        fp = tm.footprint.reshape(-1)[idx]
+        corr = photos.corrections.get(n)
+        if corr is None:
+            lo, hi = pix0.min(0).values, pix0.max(0).values
+            centre = (float((lo[0] + hi[0]) / 2), float((lo[1] + hi[1]) / 2))
+            corr = Correction(torch.zeros(6, dtype=torch.float64), centre, max(float((hi - lo).max()) / 2, 1.0))
+        target = consensus.reshape(3, -1)[:, idx]
+        weight = torch.ones(len(idx), device=pix0.device)
+        new = gauss_newton(photos, n, pix0, fp, target, weight, corr, transfers[n] if transfers else None, st)
+        if bool(torch.isfinite(new.params).all()):
+            photos.corrections[n] = new
+        report[ph.name] = n
+    _fix_gauge(photos)
+    out = {}
+    for name, n in report.items():
+        c = photos.corrections.get(n)
+        edge = max_shift(c) if c is not None else 0.0
+        out[name] = {"max_shift_px": round(edge, 3), "kept": c is not None and edge <= st.max_px,
+                     "params": [round(float(v), 4) for v in c.params] if c is not None else None}
+        if c is not None and edge > st.max_px:
+            del photos.corrections[n]
+    return out
+
+
+def max_shift(c: Correction) -> float:
+    """The correction's largest displacement at the corners of the polygon's extent, pixels."""
+    s = c.scale
+    corners = torch.tensor([[c.centre[0] + a * s, c.centre[1] + b * s] for a in (-1, 1) for b in (-1, 1)],
+                           dtype=torch.float64)
+    return float(c.displacement(corners).norm(dim=1).max())
+
+
+def _fix_gauge(photos: PhotoSet) -> None:
+    """Remove the corrections' common part (their median): shifting every photo together changes
+    no agreement between them, so the consensus alone does not fix it, and a photo that is off
+    pulls the consensus, and with it the others, towards itself over the levels. The median
+    photo stays where its registration put it."""
+    if len(photos.corrections) < 3:
+        return
+    med = torch.stack([c.params for c in photos.corrections.values()]).median(0).values
+    for n, c in photos.corrections.items():
+        photos.corrections[n] = Correction(c.params - med, c.centre, c.scale)
