@@ -88,7 +88,7 @@ def test_three_photos_occluder_in_the_most_frontal_photo_is_rejected():
     assert err < 0.05
 
 
-def test_pose_error_photo_loses_weight():
+def test_pose_error_photo_loses_weight_unless_aligned():
     names = ["a", "b", "c", "d"]
     yaws, pitches = [-12.0, 12.0, -4.0, 4.0], [6.0, 6.0, -6.0, -6.0]
     photos = [make_photo(n, y, pitch_deg=p) for n, y, p in zip(names, yaws, pitches)]
@@ -100,15 +100,21 @@ def test_pose_error_photo_loses_weight():
     R = Ry @ bad.R
     photos[3] = dataclasses.replace(bad, R=R, t=-R @ bad.center)
     inp = make_input(photos, imgs, long_side=64)
-    res = optimize(inp, fast_cfg())
+    res = optimize(inp, fast_cfg(align=False))
     m = inp.texel_mask & inp.texel_visible.all(0)
     share = np.array([photo_weight(res.idx, res.W, n)[m].mean() for n in range(4)])
     # reference: the same scene with accurate poses
     inp_ok = make_input([make_photo(n, y, pitch_deg=p) for n, y, p in zip(names, yaws, pitches)], imgs, long_side=64)
-    res_ok = optimize(inp_ok, fast_cfg())
+    res_ok = optimize(inp_ok, fast_cfg(align=False))
     share_ok = np.array([photo_weight(res_ok.idx, res_ok.W, n)[m].mean() for n in range(4)])
     assert share[3] < 0.5 * share_ok[3]
     assert share[3] < 0.5 * share[:3].mean()
+    # aligned, the photo is corrected instead (by about its 2 px) and keeps its weight
+    res = optimize(inp, fast_cfg())
+    shift = res.stats["corrections"]["d"]["params"][:2]
+    assert 1.0 < abs(shift[0]) < 3.0
+    share_al = np.array([photo_weight(res.idx, res.W, n)[m].mean() for n in range(4)])
+    assert share_al[3] > 0.5 * share_ok[3]
 
 
 @pytest.mark.parametrize("case", ["single", "flat", "grazing", "tau"])
@@ -161,7 +167,8 @@ def test_compiled_objective_matches_eager(mode):
         assert comp.stats["levels"][0]["compiled"] or "compile_failed" in comp.stats
     else:
         assert not comp.stats["levels"][0]["compiled"]
-    assert np.abs(comp.W - eager.W).max() < 1e-4
+    # Adam's steps on the logits (lr 0.1) carry float rounding further than on the weights
+    assert np.abs(comp.W - eager.W).max() < 2e-3
     assert np.abs(comp.U - eager.U).max() < 1e-4
 
 
