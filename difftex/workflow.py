@@ -351,7 +351,7 @@ def assemble_mem_mb(summary: str | Path, cfg: dict) -> int:
 # Summary and report
 
 
-def _benchmarks(results: Path) -> dict[str, dict]:
+def stage_benchmarks(results: Path) -> dict[str, dict]:
     """{rule: {"jobs": n, "seconds": sum of wall seconds, "max_rss_mb": max}} from Snakemake's
     benchmark files R/benchmarks/<rule>/*.tsv."""
     out: dict[str, dict] = {}
@@ -394,7 +394,7 @@ def run_summary(results: str | Path) -> dict:
         "untextured_reasons": summary.get("untextured_reasons", {}),
         "textured_from_oblique": summary.get("textured_from_oblique", {}),
         "check": summary.get("check"),
-        "stages": _benchmarks(results),
+        "stages": stage_benchmarks(results),
     }
     metrics = results / "evaluation" / "metrics.json"
     if metrics.is_file():
@@ -414,6 +414,9 @@ def _polygon_state(p: dict) -> str:
         state += f", oblique only ({min(p['oblique_angles'].values()):.0f} deg)"
     elif p.get("textured_from_glimpses"):
         state += ", from glimpses (under filter.min_pixels)"
+    if p.get("rescued"):
+        n = len(p["rescued"])
+        state += f", {n} of them only for texels no other photo sees"
     return state
 
 

@@ -250,6 +250,7 @@ def test_model_summary_and_end_message_name_the_untextured_with_their_reason():
     info = {"front": {"photos": ["a", "b", "c"]},
             "side": {"photos": ["a"], "textured_from_oblique": True, "oblique_angles": {"a": 84.6}},
             "inner": {"photos": [], "untextured_reason": "hidden behind other polygons in the 3 photo(s) that have it in view"}}
+    info["front"]["rescued"] = {"c": {"texels": 40, "why": "inclined (84.0 deg > 80.0)"}}
     polygon_notes(summary, info)
     assert summary["textured_from_oblique"] == {"side": {"a": 84.6}}
     assert summary["untextured_reasons"]["inner"].startswith("hidden behind")
@@ -258,6 +259,7 @@ def test_model_summary_and_end_message_name_the_untextured_with_their_reason():
     lines = text.splitlines()
     assert lines[0] == "difftex: 2/4 polygons textured"
     assert any(ln.startswith("  side") and "oblique only (85 deg)" in ln for ln in lines)
+    assert any(ln.startswith("  front") and "1 of them only for texels no other photo sees" in ln for ln in lines)
     assert "textured from oblique photos only (every photo sees them beyond filter.max_angle_deg): side (85 deg)" in lines
     i = lines.index("untextured (grey), no photo sees them:")
     assert lines[i + 1] == "  inner: hidden behind other polygons in the 3 photo(s) that have it in view"
