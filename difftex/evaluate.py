@@ -184,8 +184,8 @@ def view_weights(pt: PolygonTexture, results: Path) -> tuple[list[str], np.ndarr
         raise DifftexError(f"{src}: not a difftex source file (no {exc})") from None
     if dom.shape != pt.frame.shape:
         raise DifftexError(f"{src}: {dom.shape[1]}x{dom.shape[0]} texels, its frame says {pt.frame.width}x{pt.frame.height}")
-    return names, np.stack([(dom == i) for i in range(len(names))]).astype(np.float32).reshape(len(names), *dom.shape), \
-        "dominant photo (source.npz)"
+    w = (dom[None] == np.arange(len(names))[:, None, None]).astype(np.float32)  # (K, H, W), K may be 0
+    return names, w, "dominant photo (source.npz)" if names else "none"
 
 
 def perspective_quality(pt: PolygonTexture, results: Path, centres: dict[str, np.ndarray]) -> dict | None:

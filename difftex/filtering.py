@@ -140,32 +140,36 @@ def polygon_photos(pid: str, records: list[PhotoRecord], cfg: FilterConfig) -> d
     return out
 
 
-def sight_line(caster: ProxyCaster, index: int, photo: Photo, long_side: int = 32) -> dict:
-    """How ``photo`` sees polygon ``index``, from points on the polygon (texel centres of a
-    ``long_side`` frame) rather than from the photo's pixels, so that a polygon too small for the
-    filter's analysis size is still found.
+def polygon_points(poly, long_side: int = 32) -> np.ndarray:
+    """(N, 3) points spread over a polygon: its texel centres at ``long_side`` and its centroid."""
+    from difftex.mapping import texel_mask, uv_frame
+
+    frame = uv_frame(poly, np.array([0.0, 0.0, 1.0]), long_side=long_side)
+    ty, tx = np.nonzero(texel_mask(poly, frame))
+    return np.concatenate([frame.texel_to_world(tx + 0.5, ty + 0.5), poly.centroid[None]])
+
+
+def sight_line(caster: ProxyCaster, index: int, photo: Photo, points: np.ndarray) -> dict:
+    """How ``photo`` sees polygon ``index``, from ``points`` on it (:func:`polygon_points`)
+    rather than from the photo's pixels, so that a polygon too small for the filter's analysis
+    size is still found.
 
     Returns:
         {"state": "back-facing" (the camera is behind its plane) | "outside" (no point of it in
         the image) | "hidden" (every point in the image is behind another polygon) | "visible",
         "points": visible points, "angle_deg": median viewing angle of those (visible only)}.
     """
-    from difftex.mapping import texel_mask, uv_frame
-
     poly = caster.proxy.polygons[index]
     if float(poly.normal @ (photo.center - poly.centroid)) <= 0:
         return {"state": "back-facing", "points": 0}
-    frame = uv_frame(poly, np.array([0.0, 0.0, 1.0]), long_side=long_side)
-    ty, tx = np.nonzero(texel_mask(poly, frame))
-    X = np.concatenate([frame.texel_to_world(tx + 0.5, ty + 0.5), poly.centroid[None]])
-    pix, depth = photo.project(X)
+    pix, depth = photo.project(points)
     inside = (depth > 0) & photo.in_image(pix)
     if not inside.any():
         return {"state": "outside", "points": 0}
-    rays = X[inside] - photo.center
+    rays = points[inside] - photo.center
     dist = np.linalg.norm(rays, axis=1)
     ids, _ = caster.cast(photo.center, rays / dist[:, None])
-    seen = ids == index  # a ray meets the polygon's plane once: a hit on it is a hit at X
+    seen = ids == index  # a ray meets the polygon's plane once: a hit on it is a hit at the point
     if not seen.any():
         return {"state": "hidden", "points": 0}
     cos = -(rays[seen] / dist[seen, None]) @ poly.normal
@@ -213,13 +217,14 @@ def filter_photos(proxy: Proxy, photos: list[Photo], cfg: FilterConfig, progress
             r.kept, r.reason = False, f"blurry (sharpness {r.sharpness_rel:.2f} x median < {cfg.blur_ratio})"
     check_kept(records, proxy, photos[0].image_path.parent if photos else None)
     per_polygon = {poly.id: polygon_photos(poly.id, records, cfg) for poly in proxy.polygons}
+    by_name = {r.name: r for r in records}
     for i, poly in enumerate(proxy.polygons):
         d = per_polygon[poly.id]
         if d["kept"]:
             continue
         # no sharp photo sees it with min_pixels pixels: look at the polygon itself in every photo
-        sight = {ph.name: sight_line(pp, i, ph) for ph in photos}
-        by_name = {r.name: r for r in records}
+        points = polygon_points(poly)
+        sight = {ph.name: sight_line(pp, i, ph, points) for ph in photos}
         usable = {n: s for n, s in sight.items() if s["state"] == "visible" and not _blurry(by_name[n])}
         if usable:
             d["kept"] = sorted(usable)

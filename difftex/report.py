@@ -310,7 +310,9 @@ def write_report(results: str | Path, out: str | Path | None = None, scene: str 
     base = out.parent
     base.mkdir(parents=True, exist_ok=True)
     tdir = results / "textures"
-    vis_rows = [r for r in _read(results / "visibility" / "summary.json").get("polygons", []) if isinstance(r, dict)]
+    from difftex.evaluate import visibility_dir  # R/visibility, or the shared one an evaluation's method folder names
+
+    vis_rows = [r for r in _read(visibility_dir(results) / "summary.json").get("polygons", []) if isinstance(r, dict)]
     vis = {str(r.get("id")): r for r in vis_rows}
     model = _read(results / "model" / "summary.json")
     photos = _read(results / "photos.json")
