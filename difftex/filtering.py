@@ -190,7 +190,7 @@ def unseen_reason(sight: dict[str, dict], blurry: list[str]) -> str:
         return f"hidden behind other polygons in the {count['hidden']} photo(s) that have it in view"
     if count["outside"]:
         return f"outside every photo (in front of {count['outside']} of {n} cameras, in none of their images)"
-    return f"back-facing to every camera ({n})"
+    return f"back-facing to every camera (all {n})"
 
 
 def filter_photos(proxy: Proxy, photos: list[Photo], cfg: FilterConfig, progress: bool = True) -> dict:

@@ -234,7 +234,8 @@ def _polygon_rows(pids, vis, model, reports, stats, metrics) -> tuple[list[str],
         if v.get("textured_from_glimpses"):
             notes.append("from glimpses (under filter.min_pixels)")
         for name, r in (v.get("rescued") or {}).items():
-            notes.append(f"{_esc(name)} kept for {r.get('texels')} texels only it sees ({_esc(r.get('why'))})")
+            n = r.get("texels")
+            notes.append(f"{_esc(name)} kept for the {n} texel{'' if n == 1 else 's'} only it sees ({_esc(r.get('why'))})")
         t = rep.get("time_s") if rep.get("time_s") is not None else st.get("time_stage_s", st.get("time_total_s"))
         cov = rep.get("coverage", v.get("coverage"))
         row = [pid, len(v.get("photos", [])) if v else None, cov, size, v.get("texel_size"),
@@ -281,8 +282,9 @@ def _metrics_section(metrics: dict) -> list[str]:
     return parts
 
 
-def _photos_section(photos: dict) -> list[str]:
-    """The photo filter's table: per photo kept or dropped and why, polygons seen and used for."""
+def _photos_section(photos: dict, vis: dict) -> list[str]:
+    """The photo filter's table: per photo kept or dropped and why, polygons seen and used for
+    (``vis``: the visibility rows, which add the photos taken back for texels only they see)."""
     recs = [r for r in photos.get("photos") or [] if isinstance(r, dict)]
     if not recs:
         return []
@@ -290,6 +292,9 @@ def _photos_section(photos: dict) -> list[str]:
     for pid, d in (photos.get("polygons") or {}).items():
         for n in (d or {}).get("kept", []):
             used.setdefault(n, []).append(pid)
+    for pid, row in vis.items():
+        for n in row.get("rescued") or {}:
+            used.setdefault(n, []).append(f"{pid} (only the texels no other photo sees)")
     cfg = photos.get("config") or {}
     rows = []
     for r in recs:
@@ -365,7 +370,10 @@ def write_report(results: str | Path, out: str | Path | None = None, scene: str 
         st = stats.get(pid) or {}
         curve = loss_curve(st, base / f"loss_{pid}.png", f"{pid}: loss per iteration") if st else None
         v = vis.get(pid, {})
-        facts = [f"{len(v.get('photos', []))} candidate photos" if v else "",
+        n_cand = len(v.get("photos", []))
+        facts = [f"{n_cand} candidate photo{'' if n_cand == 1 else 's'}" if v else "",
+                 "oblique photos only: " + ", ".join(f"{n} {a:.0f} deg" for n, a in (v.get("oblique_angles") or {}).items())
+                 if v.get("textured_from_oblique") else "",
                  f"{len(st.get('used_photos') or [])} used" if st.get("used_photos") is not None else "",
                  "dropped: " + ", ".join(f"{d.get('photo')} (level {d.get('level')}, iteration {d.get('iteration')})"
                                          for d in st.get("dropped") or [] if isinstance(d, dict)) if st.get("dropped") else "",
@@ -378,7 +386,7 @@ def write_report(results: str | Path, out: str | Path | None = None, scene: str 
                      + "<div class=row>"
                      + (_fig(curve, base, "loss terms per iteration (log scale); dashed lines: next level", "wide") if curve else "")
                      + f"<div>{_level_table(st)}</div></div>")
-    parts += _photos_section(photos)
+    parts += _photos_section(photos, vis)
     # --- held-out views
     vdir = results / "evaluation" / "views"
     if vdir.is_dir():

@@ -160,11 +160,12 @@ def scene_visibility(
 ) -> list[PolygonVisibility]:
     """Visibility of every polygon in its candidate photos (photo names per polygon id).
 
-    A photo that sees fewer than ``min_texels`` texels, and one of ``fallback`` (per polygon id: photo name -> why the filter left it out, e.g. inclined) joins
-    only where it is the last source of some texels: dropping it there would lose their colour
-    for good (paper, Sec. 3.4), and the texturing's quality weights and photo drop keep it out
-    of the texels that other photos see. ``PolygonVisibility.rescued`` lists those photos.
-    ``max_photos`` (best Q_a first) is a cap the user set, applied last.
+    A photo that sees fewer than ``min_texels`` texels, and one of ``fallback`` (per polygon id:
+    photo name -> why the filter left it out, e.g. inclined), joins only where it is the last
+    source of some texels: dropping it there would lose their colour for good (paper, Sec. 3.4),
+    and the texturing's quality weights and photo drop keep it out of the texels that other
+    photos see. ``PolygonVisibility.rescued`` lists those photos. ``max_photos`` (best Q_a
+    first) is a cap the user set, applied last.
 
     One pass over the photos: each photo's id buffer gives, per polygon it sees, the crop of
     a_k^i and (``density: auto``) the photo's ground sampling distance on a probe grid. Then each

@@ -11,7 +11,7 @@ import pytest
 from difftex.errors import DifftexError
 from difftex.evaluate import (EvaluateConfig, PolygonTexture, check_same_plane, evaluate_maps, prepare_holdout,
                               render_proxy, resample_texture, view_weights)
-from difftex.io import read_image, write_image, write_json
+from difftex.io import write_image, write_json
 from difftex.mapping import UVFrame, texel_mask, uv_frame
 from difftex.proxy import Polygon
 from tests.scenes import make_scene, wall

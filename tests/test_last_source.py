@@ -8,12 +8,11 @@ from __future__ import annotations
 from types import SimpleNamespace
 
 import numpy as np
-import pytest
 import torch
 
 torch.set_num_threads(1)
 
-from analytic import UP, fast_cfg, gt_texture, make_input, make_photo, optimize, render, write_scene
+from analytic import fast_cfg, gt_texture, make_input, make_photo, optimize, render, write_scene
 from difftex.config import FilterConfig
 from difftex.filtering import filter_photos
 from difftex.io import read_image, read_json

@@ -101,7 +101,7 @@ def test_report_links_resolve_and_loss_curves_are_readable(tmp_path):
 def test_report_says_what_is_untextured_and_shows_held_out_metrics(tmp_path):
     text = write_report(fake_results(tmp_path / "R")).read_text()
     assert "<b>inner</b>: hidden behind other polygons in the 4 photo(s)" in text
-    assert "oblique photos only (83-89 deg)" in text and "img11.jpg kept for 433 texels" in text
+    assert "oblique photos only (83-89 deg)" in text and "img11.jpg kept for the 433 texels only it sees" in text
     # held-out views: their metrics, not n/a, and no ground-truth columns full of n/a
     assert "0.6543" in text and "0.2345" in text and "21.5000" in text and "held.jpg" in text
     assert "Error 90%" not in text
@@ -110,6 +110,7 @@ def test_report_says_what_is_untextured_and_shows_held_out_metrics(tmp_path):
     assert "effective_photos" in text and "2.75" in text and "30 / 40" in text
     # the photo filter table
     assert "blurry (sharpness 0.12 x median &lt; 0.3)" in text and "wall00 12&deg;" in text
+    assert "wall00 (only the texels no other photo sees)" in text  # img11.jpg, taken back by the visibility stage
     assert "Q_front 0.9000" in text
 
 
