@@ -1,7 +1,7 @@
 """Evaluation of a textured proxy (paper Tables 1 and 2), for difftex and every baseline alike.
 
 Two schemes, both reading only a results folder ``R`` (``R/textures/<pid>/texture.png``,
-``source.png``, ``report.json`` and the frames in ``R/visibility/<pid>.npz``):
+``source.npz``, ``report.json`` and the frames in ``R/visibility/<pid>.npz``):
 
 - **Synthetic** (scene has ``ground_truth/``): every texture is resampled into its polygon's
   ground-truth frame (``ground_truth/frames/<pid>.json``) through world points, so a texture
@@ -17,7 +17,7 @@ Two schemes, both reading only a results folder ``R`` (``R/textures/<pid>/textur
 
 Q_front / Q_vc (perspective quality) need per-texel view directions of the source pixels:
 difftex's optimized blend weights (``R/optimized/<pid>/weights.npz``), the equal weights of the
-averaging baseline, or otherwise the dominant photo per texel decoded from ``source.png``.
+averaging baseline, or otherwise the dominant photo per texel (``R/textures/<pid>/source.npz``).
 """
 
 from __future__ import annotations
@@ -157,21 +157,9 @@ def resample_texture(tex: np.ndarray, src: UVFrame, dst: UVFrame) -> np.ndarray:
 # Per-texel view directions (Q_front, Q_vc)
 
 
-def decode_source_map(source: np.ndarray, colours: dict[str, str]) -> np.ndarray:
-    """Photo index per texel (into sorted(colours)) from a texel source map; -1 for none/filled."""
-    names = list(colours)
-    rgb8 = np.round(np.clip(source, 0, 1) * 255).astype(np.int32)
-    code = (rgb8[..., 0] << 16) | (rgb8[..., 1] << 8) | rgb8[..., 2]
-    out = np.full(source.shape[:2], -1, np.int32)
-    for i, n in enumerate(names):
-        h = colours[n].lstrip("#")
-        out[code == int(h, 16)] = i
-    return out
-
-
 def view_weights(pt: PolygonTexture, results: Path) -> tuple[list[str], np.ndarray, str]:
     """(photo names, per-photo weights (K, H, W), how) of the pixels that coloured each texel."""
-    from difftex.io import read_image, read_npz
+    from difftex.io import read_npz
     from difftex.visibility import load_visibility
 
     method = pt.report.get("method", "")
@@ -186,13 +174,18 @@ def view_weights(pt: PolygonTexture, results: Path) -> tuple[list[str], np.ndarr
     if method == "average":
         vis = load_visibility(visibility_dir(results) / f"{pt.polygon_id}.npz")
         return list(vis.photos), vis.texel_visible.astype(np.float32), "equal weights of visible photos"
-    src = pt.folder / "source.png"
-    colours = pt.report.get("source_colours")
-    if not src.is_file() or not colours:
+    src = pt.folder / "source.npz"
+    if not src.is_file():  # a results folder written before source.npz: its source.png is only colours
         return [], np.zeros((0, *pt.frame.shape), np.float32), "none"
-    dom = decode_source_map(read_image(src), colours)
-    names = list(colours)
-    return names, np.stack([(dom == i) for i in range(len(names))]).astype(np.float32), "dominant photo (source map)"
+    d = read_npz(src)
+    try:
+        names, dom = [str(x) for x in d["photos"]], d["dominant"].astype(np.int64)
+    except KeyError as exc:
+        raise DifftexError(f"{src}: not a difftex source file (no {exc})") from None
+    if dom.shape != pt.frame.shape:
+        raise DifftexError(f"{src}: {dom.shape[1]}x{dom.shape[0]} texels, its frame says {pt.frame.width}x{pt.frame.height}")
+    w = (dom[None] == np.arange(len(names))[:, None, None]).astype(np.float32)  # (K, H, W), K may be 0
+    return names, w, "dominant photo (source.npz)" if names else "none"
 
 
 def perspective_quality(pt: PolygonTexture, results: Path, centres: dict[str, np.ndarray]) -> dict | None:

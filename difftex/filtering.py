@@ -2,6 +2,13 @@
 
 Sharpness is the variance of the Laplacian of the grey image at a common size, judged relative
 to the set's median so that the threshold does not depend on the camera or the scene.
+
+The per-polygon tests (``max_angle_deg``, ``min_pixels``) never take a polygon's last photos
+(paper, Sec. 3.4: improper photo removal causes irreversible colour loss). A polygon that every
+sharp photo sees beyond ``max_angle_deg`` keeps all of those oblique photos (``textured_from_oblique``);
+one that no photo sees with ``min_pixels`` pixels keeps the sharp photos in which some of it is
+visible at all (``textured_from_glimpses``). Only a polygon that no sharp photo sees stays
+untextured, and the table says why (:func:`unseen_reason`).
 """
 
 from __future__ import annotations
@@ -18,6 +25,7 @@ from difftex.config import FilterConfig
 from difftex.errors import DifftexError
 from difftex.io import decode_photo
 from difftex.proxy import Proxy
+from difftex.raycast import ProxyCaster
 from difftex.visibility import id_buffer, prepare
 
 log = logging.getLogger(__name__)
@@ -90,6 +98,101 @@ def check_kept(records: list[PhotoRecord], proxy: Proxy, images_dir) -> None:
         log.warning("%s: %d photo%s no proxy polygon, dropped (%s)", images_dir, len(blind), "s see" if len(blind) > 1 else " sees", shown)
 
 
+def _blurry(r: PhotoRecord) -> bool:
+    return not r.kept and r.reason.startswith("blurry")
+
+
+def _join(a: str, b: str) -> str:
+    return f"{a}; {b}" if a else b
+
+
+def polygon_photos(pid: str, records: list[PhotoRecord], cfg: FilterConfig) -> dict:
+    """The photos one polygon keeps, and those it drops with the reason.
+
+    Photos that see it within ``max_angle_deg`` are kept. When there are none, every sharp
+    photo that sees it is kept, however oblique: all of them rather than the least oblique few,
+    because oblique views of one polygon usually see different parts of it (a side wall from
+    either end), and the texturing's quality weights (Q_a, L_Persp) already prefer, per texel,
+    the least oblique photo that sees it -- a choice per polygon here could only lose texels.
+
+    Returns:
+        {"kept": [names], "dropped": {name: reason}, "inclined": {name: angle} (dropped as
+        inclined; the visibility stage takes one back for texels no kept photo sees),
+        "textured_from_oblique": bool, and when true "oblique_angles": {name: angle}, least oblique first}.
+    """
+    kept, dropped, inclined = [], {}, {}
+    for r in records:
+        seen = (r.polygons or {}).get(pid)
+        if seen is None:
+            continue
+        if not r.kept:
+            dropped[r.name] = r.reason
+        elif seen["angle_deg"] > cfg.max_angle_deg:
+            dropped[r.name] = f"inclined ({seen['angle_deg']:.1f} deg > {cfg.max_angle_deg})"
+            inclined[r.name] = seen["angle_deg"]
+        else:
+            kept.append(r.name)
+    out = {"kept": kept, "dropped": dropped, "inclined": inclined, "textured_from_oblique": False}
+    if not kept and inclined:
+        out.update(kept=sorted(inclined), dropped={n: w for n, w in dropped.items() if n not in inclined},
+                   inclined={}, textured_from_oblique=True,
+                   oblique_angles=dict(sorted(inclined.items(), key=lambda kv: kv[1])))
+    return out
+
+
+def polygon_points(poly, long_side: int = 32) -> np.ndarray:
+    """(N, 3) points spread over a polygon: its texel centres at ``long_side`` and its centroid."""
+    from difftex.mapping import texel_mask, uv_frame
+
+    frame = uv_frame(poly, np.array([0.0, 0.0, 1.0]), long_side=long_side)
+    ty, tx = np.nonzero(texel_mask(poly, frame))
+    return np.concatenate([frame.texel_to_world(tx + 0.5, ty + 0.5), poly.centroid[None]])
+
+
+def sight_line(caster: ProxyCaster, index: int, photo: Photo, points: np.ndarray) -> dict:
+    """How ``photo`` sees polygon ``index``, from ``points`` on it (:func:`polygon_points`)
+    rather than from the photo's pixels, so that a polygon too small for the filter's analysis
+    size is still found.
+
+    Returns:
+        {"state": "back-facing" (the camera is behind its plane) | "outside" (no point of it in
+        the image) | "hidden" (every point in the image is behind another polygon) | "visible",
+        "points": visible points, "angle_deg": median viewing angle of those (visible only)}.
+    """
+    poly = caster.proxy.polygons[index]
+    if float(poly.normal @ (photo.center - poly.centroid)) <= 0:
+        return {"state": "back-facing", "points": 0}
+    pix, depth = photo.project(points)
+    inside = (depth > 0) & photo.in_image(pix)
+    if not inside.any():
+        return {"state": "outside", "points": 0}
+    rays = points[inside] - photo.center
+    dist = np.linalg.norm(rays, axis=1)
+    ids, _ = caster.cast(photo.center, rays / dist[:, None])
+    seen = ids == index  # a ray meets the polygon's plane once: a hit on it is a hit at the point
+    if not seen.any():
+        return {"state": "hidden", "points": 0}
+    cos = -(rays[seen] / dist[seen, None]) @ poly.normal
+    return {"state": "visible", "points": int(seen.sum()),
+            "angle_deg": round(float(np.degrees(np.arccos(np.clip(np.median(cos), -1, 1)))), 2)}
+
+
+def unseen_reason(sight: dict[str, dict], blurry: list[str]) -> str:
+    """Why no photo textures a polygon, from :func:`sight_line` of every photo.
+
+    ``blurry``: photos in which it is visible but that were dropped as blurry.
+    """
+    n = len(sight)
+    count = {state: sum(s["state"] == state for s in sight.values()) for state in ("back-facing", "outside", "hidden")}
+    if blurry:
+        return f"every photo that sees it was dropped as blurry ({', '.join(blurry[:3])}{', ...' if len(blurry) > 3 else ''})"
+    if count["hidden"]:
+        return f"hidden behind other polygons in the {count['hidden']} photo(s) that have it in view"
+    if count["outside"]:
+        return f"outside every photo (in front of {count['outside']} of {n} cameras, in none of their images)"
+    return f"back-facing to every camera (all {n})"
+
+
 def filter_photos(proxy: Proxy, photos: list[Photo], cfg: FilterConfig, progress: bool = True) -> dict:
     """Decide which photos to keep, globally and per polygon; returns the table as a dict."""
     from rich.progress import track
@@ -115,30 +218,42 @@ def filter_photos(proxy: Proxy, photos: list[Photo], cfg: FilterConfig, progress
         elif r.sharpness_rel < cfg.blur_ratio:
             r.kept, r.reason = False, f"blurry (sharpness {r.sharpness_rel:.2f} x median < {cfg.blur_ratio})"
     check_kept(records, proxy, photos[0].image_path.parent if photos else None)
-    per_polygon = {}
-    for poly in proxy.polygons:
-        kept, dropped = [], {}
-        for r in records:
-            seen = (r.polygons or {}).get(poly.id)
-            if seen is None:
-                continue
-            if not r.kept:
-                dropped[r.name] = r.reason
-            elif seen["angle_deg"] > cfg.max_angle_deg:
-                dropped[r.name] = f"inclined ({seen['angle_deg']:.1f} deg > {cfg.max_angle_deg})"
-            else:
-                kept.append(r.name)
-        per_polygon[poly.id] = {"kept": kept, "dropped": dropped}
-    unseen = [pid for pid, d in per_polygon.items() if not d["kept"]]
-    if len(unseen) == len(per_polygon):
-        raise DifftexError(
-            f"{proxy.path}: no polygon keeps a photo after filtering (every view is inclined beyond "
-            f"filter.max_angle_deg = {cfg.max_angle_deg:g} or dropped); nothing to texture"
+    per_polygon = {poly.id: polygon_photos(poly.id, records, cfg) for poly in proxy.polygons}
+    by_name = {r.name: r for r in records}
+    for i, poly in enumerate(proxy.polygons):
+        d = per_polygon[poly.id]
+        if d["kept"]:
+            continue
+        # no sharp photo sees it with min_pixels pixels: look at the polygon itself in every photo
+        points = polygon_points(poly)
+        sight = {ph.name: sight_line(pp, i, ph, points) for ph in photos}
+        usable = {n: s for n, s in sight.items() if s["state"] == "visible" and not _blurry(by_name[n])}
+        if usable:
+            d["kept"] = sorted(usable)
+            d["textured_from_glimpses"] = True
+            d["glimpses"] = {n: {"points": s["points"], "angle_deg": s["angle_deg"]} for n, s in sorted(usable.items())}
+            for n in usable:
+                r = by_name[n]
+                if not r.kept:  # it saw no polygon with min_pixels pixels: kept for this one
+                    r.kept, r.reason = True, ""
+                r.reason = _join(r.reason, f"kept for {poly.id}, which no other photo sees")
+        else:
+            blurry = sorted(n for n, s in sight.items() if s["state"] == "visible")
+            d["untextured_reason"] = unseen_reason(sight, blurry)
+            d["sight"] = {state: sum(s["state"] == state for s in sight.values())
+                          for state in ("back-facing", "outside", "hidden", "visible")}
+    oblique = {pid: d for pid, d in per_polygon.items() if d["textured_from_oblique"]}
+    if oblique:
+        log.warning(
+            "%s: textured from oblique photos only (every photo sees them beyond filter.max_angle_deg = %g): %s",
+            proxy.path, cfg.max_angle_deg,
+            ", ".join(f"{pid} ({min(d['oblique_angles'].values()):.0f} deg)" for pid, d in oblique.items()),
         )
+    unseen = {pid: d["untextured_reason"] for pid, d in per_polygon.items() if not d["kept"]}
     if unseen:
         log.warning(
-            "%s: seen by no kept photo, so untextured (grey): %s (%d of %d polygons)",
-            proxy.path, ", ".join(unseen), len(unseen), len(per_polygon),
+            "%s: no photo sees %d of %d polygons, untextured (grey): %s",
+            proxy.path, len(unseen), len(per_polygon), "; ".join(f"{pid} ({why})" for pid, why in unseen.items()),
         )
     return {
         "config": cfg.__dict__,
@@ -155,9 +270,14 @@ def write_table(result: dict, json_path, csv_path=None) -> None:
 
     write_json(json_path, result)
     if csv_path is not None:
-        rows = ["photo,kept,reason,sharpness,sharpness_rel,polygons_seen"]
+        rows = ["photo,kept,reason,sharpness,sharpness_rel,polygons_seen,candidate_for"]
+        used: dict[str, list[str]] = {}
+        for pid, d in result["polygons"].items():
+            for name in d["kept"]:
+                used.setdefault(name, []).append(pid)
         for r in result["photos"]:
             seen = ";".join(f"{k}:{v['angle_deg']:.1f}deg" for k, v in (r["polygons"] or {}).items())
             reason = r["reason"].replace('"', "'")
-            rows.append(f'{r["name"]},{int(r["kept"])},"{reason}",{r["sharpness"]:.6g},{r["sharpness_rel"]:.3f},"{seen}"')
+            rows.append(f'{r["name"]},{int(r["kept"])},"{reason}",{r["sharpness"]:.6g},{r["sharpness_rel"]:.3f},"{seen}",'
+                        f'"{";".join(used.get(r["name"], []))}"')
         write_text(csv_path, "\n".join(rows) + "\n")

@@ -22,7 +22,7 @@ each seam, regularised towards gain 1; Waechter's global leveling is per vertex,
 gain is its planar-proxy analogue), and a short feathering of the labels across seams.
 Texels that their patch's photo does not see take the best-quality photo that does.
 
-Outputs match the other baselines (texture.png, source.png, coverage.png, report.json).
+Outputs match the other baselines (texture.png, source.png, source.npz, coverage.png, report.json).
 """
 
 from __future__ import annotations

@@ -1,5 +1,6 @@
-"""The per-polygon output files: texture.png (8 or 16 bit), source.png, coverage.png,
-report.json, and composite.npz, the float texture that the texturing stage hands to them.
+"""The per-polygon output files: texture.png (8 or 16 bit), source.png (the texel source map),
+source.npz (the dominant photo per texel, as numbers), coverage.png, report.json, and
+composite.npz, the float texture that the texturing stage hands to them.
 
 No torch here: the workflow's per-polygon ``finish`` rule runs this inside Snakemake itself.
 """
@@ -7,30 +8,70 @@ No torch here: the workflow's per-polygon ``finish`` rule runs this inside Snake
 from __future__ import annotations
 
 import colorsys
-import zlib
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
-
-def photo_colour(name: str) -> tuple[float, float, float]:
-    """A stable, distinct-looking colour per photo name (same photo, same colour in every map)."""
-    h = zlib.crc32(name.encode()) / 2**32
-    s = 0.55 + 0.45 * ((zlib.crc32(name.encode()[::-1]) % 1000) / 1000)
-    return colorsys.hsv_to_rgb(h, s, 0.95)
+FILLED_GREY = 0.5  # source map: texels no photo sees, filled from their neighbours
 
 
-def source_map(dominant: np.ndarray, names: list[str], mask: np.ndarray, filled: np.ndarray | None = None) -> np.ndarray:
+def palette(n: int) -> list[tuple[float, float, float]]:
+    """``n`` distinguishable colours: matplotlib's qualitative ``tab10`` (Tableau 10) without its
+    grey, which would read as a filled texel (FILLED_GREY); then rounds of the same nine hues,
+    alternately lighter and darker, each round further from the base (half-way to white, 40 %
+    darker, three quarters to white, ...), all distinct in 8 bits for the first 90 or so.
+
+    Returns:
+        n (r, g, b) tuples in [0, 1].
+    """
+    from matplotlib import colormaps
+
+    base = [c for c in colormaps["tab10"].colors if not (c[0] == c[1] == c[2])]
+    out = []
+    for i in range(n):
+        h, l, s = colorsys.rgb_to_hls(*base[i % len(base)])
+        rnd = i // len(base)
+        if rnd % 2:  # lighter: l -> 1 - (1 - l) / 2, / 4, ...
+            l = 1 - (1 - l) * 0.5 ** ((rnd + 1) // 2)
+        elif rnd:  # darker: l -> 0.6 l, 0.36 l, ...
+            l = l * 0.6 ** (rnd // 2)
+        out.append(tuple(float(v) for v in colorsys.hls_to_rgb(h, l, s)))
+    return out
+
+
+def source_colours(dominant: np.ndarray, names: list[str]) -> dict[str, tuple[float, float, float]]:
+    """Colour of each photo that is the dominant one of some texel, in photo order.
+
+    Only the photos the map shows get a colour, so a polygon's map uses the palette's most
+    distinct colours first; the legend (report.json's ``source_colours``) names them. The same
+    photo may therefore have another colour in another polygon's map.
+    """
+    present = [int(k) for k in np.unique(dominant[dominant >= 0])]
+    if present and present[-1] >= len(names):
+        raise ValueError(f"dominant photo index {present[-1]} but only {len(names)} photo names")
+    return dict(zip((names[k] for k in present), palette(len(present))))
+
+
+def source_map(dominant: np.ndarray, names: list[str], mask: np.ndarray, filled: np.ndarray | None = None,
+               colours: dict[str, tuple] | None = None) -> np.ndarray:
     """The paper's texel source map: each texel coloured by its dominant photo (Fig. 5).
 
-    ``dominant`` (H, W) is a photo index (-1: none). Outside the polygon black; filled holes grey.
+    Args:
+        dominant: (H, W) photo index into ``names`` (-1: none).
+        mask: (H, W) the polygon's texels; outside them the map is black.
+        filled: (H, W) texels filled from their neighbours, shown grey (FILLED_GREY).
+        colours: photo name -> colour (default: :func:`source_colours`).
+    Returns:
+        (H, W, 3) float32 image.
     """
+    colours = source_colours(dominant, names) if colours is None else colours
     out = np.zeros((*dominant.shape, 3), np.float32)
     for n, name in enumerate(names):
-        out[dominant == n] = photo_colour(name)
+        if name in colours:
+            out[dominant == n] = colours[name]
     if filled is not None:
-        out[filled] = 0.5
+        out[filled] = FILLED_GREY
     out[~mask] = 0.0
     return out
 
@@ -45,17 +86,26 @@ def coverage_image(mask: np.ndarray, seen: np.ndarray) -> np.ndarray:
 
 def write_texture_outputs(out_dir: str | Path, U: np.ndarray, mask: np.ndarray, seen: np.ndarray,
                           dominant: np.ndarray, names: list[str], report: dict, bits: int = 8, exr: bool = False) -> None:
-    """texture.png, source.png, coverage.png, report.json (and texture.exr), each written atomically."""
-    from difftex.io import write_image, write_json
+    """texture.png, source.png, source.npz, coverage.png, report.json (and texture.exr), each
+    written atomically.
+
+    source.npz holds ``dominant`` (H, W) int16, the index into ``photos`` of each texel's
+    dominant photo (-1: none), for tools that need the photo ids (``difftex evaluate``), not the
+    colours of source.png.
+    """
+    from difftex.io import write_image, write_json, write_npz
 
     out_dir = Path(out_dir)
     write_image(out_dir / "texture.png", np.clip(U, 0, 1), bits=bits)
     if exr:
         write_image(out_dir / "texture.exr", U)
-    write_image(out_dir / "source.png", source_map(dominant, names, mask, mask & ~seen))
+    colours = source_colours(dominant, names)
+    write_image(out_dir / "source.png", source_map(dominant, names, mask, mask & ~seen, colours))
+    dom = np.where(mask & seen, dominant, -1)
+    write_npz(out_dir / "source.npz", dominant=dom.astype(np.int16), photos=np.array(names, dtype=str))
     write_image(out_dir / "coverage.png", coverage_image(mask, seen))
     report = dict(report)
-    report["source_colours"] = {n: "#%02x%02x%02x" % tuple(int(round(255 * c)) for c in photo_colour(n)) for n in names}
+    report["source_colours"] = {n: "#%02x%02x%02x" % tuple(int(round(255 * v)) for v in c) for n, c in colours.items()}
     write_json(out_dir / "report.json", report)
 
 
@@ -72,7 +122,7 @@ class OutputConfig:
 
 
 def finish_polygon(composite: str | Path, out_dir: str | Path, cfg: OutputConfig = OutputConfig()) -> dict:
-    """texture.png (cfg.bits), source.png, coverage.png, report.json (and texture.exr) of one
+    """texture.png (cfg.bits), source.png, source.npz, coverage.png, report.json (and texture.exr) of one
     polygon from its composite.npz; returns the report."""
     U, mask, seen, dominant, names, report = read_composite(composite)
     write_texture_outputs(out_dir, U, mask, seen, dominant, names, report, bits=cfg.bits, exr=cfg.exr)

@@ -37,6 +37,7 @@ class PolygonVisibility:
     a_bbox: np.ndarray  # (K, 4) int: x0, y0, x1, y1 (exclusive) of a_k^i in photo pixels
     a_masks: list[np.ndarray]  # K crops (y1-y0, x1-x0) bool of a_k^i
     texel_size: dict | None = None  # difftex.density.TexelSize as a dict: how the texel size was chosen
+    rescued: dict | None = None  # photos kept only as the last source of some texels: name -> {"texels", "why"}
 
     def a_mask_full(self, k: int, width: int, height: int) -> np.ndarray:
         m = np.zeros((height, width), bool)
@@ -155,8 +156,16 @@ def scene_visibility(
     max_photos: int | None = None,
     progress: bool = True,
     top_k: int = 8,
+    fallback: dict[str, dict[str, str]] | None = None,
 ) -> list[PolygonVisibility]:
     """Visibility of every polygon in its candidate photos (photo names per polygon id).
+
+    A photo that sees fewer than ``min_texels`` texels, and one of ``fallback`` (per polygon id:
+    photo name -> why the filter left it out, e.g. inclined), joins only where it is the last
+    source of some texels: dropping it there would lose their colour for good (paper, Sec. 3.4),
+    and the texturing's quality weights and photo drop keep it out of the texels that other
+    photos see. ``PolygonVisibility.rescued`` lists those photos. ``max_photos`` (best Q_a
+    first) is a cap the user set, applied last.
 
     One pass over the photos: each photo's id buffer gives, per polygon it sees, the crop of
     a_k^i and (``density: auto``) the photo's ground sampling distance on a probe grid. Then each
@@ -175,7 +184,8 @@ def scene_visibility(
     index = {p.id: i for i, p in enumerate(proxy.polygons)}
     probes = [uv_frame(p, up, long_side=PROBE_LONG_SIDE) for p in proxy.polygons] if cfg.mode == "auto" else None
     probe_masks = [texel_mask(p, f) for p, f in zip(proxy.polygons, probes)] if probes else None
-    wanted = {pid: set(names) for pid, names in candidates.items()}
+    fallback = fallback or {}
+    wanted = {pid: set(names) | set(fallback.get(pid, ())) for pid, names in candidates.items()}
     parts: list[list[_Sighting]] = [[] for _ in proxy.polygons]
     used = [ph for ph in photos if any(ph.name in s for s in wanted.values())]
     for ph in track(used, description="visibility", disable=not progress, transient=True):
@@ -213,16 +223,24 @@ def scene_visibility(
         frame = uv_frame(poly, up, density=1.0 / size.texel_size) if cfg.mode != "long_side" \
             else uv_frame(poly, up, long_side=int(cfg.long_side))
         tmask = texel_mask(poly, frame)
-        kept = []
+        kept, spare = [], []
+        later = fallback.get(poly.id, {})
         for it in items:
             h, w = it.bbox[3] - it.bbox[1], it.bbox[2] - it.bbox[0]
             crop = np.unpackbits(it.crop, count=h * w).astype(bool).reshape(h, w)
             seen = crop_texel_visibility(frame, by_name[it.name], tmask, it.bbox, crop)
-            if seen.sum() >= min_texels:
+            if it.name in later:
+                spare.append((it, crop, seen, later[it.name]))
+            elif seen.sum() >= min_texels:
                 kept.append((it, crop, seen))
-        if max_photos is not None and len(kept) > max_photos:
+            elif seen.any():
+                spare.append((it, crop, seen, f"sees {int(seen.sum())} texels (< visibility.min_texels = {min_texels})"))
+        kept, rescued = last_sources(kept, spare, tmask)
+        if max_photos is not None and len(kept) > max_photos:  # a cap the user set: it wins
             kept = sorted(kept, key=lambda k: -k[0].mean_cos)[:max_photos]
-            kept = sorted(kept, key=lambda k: k[0].name)
+            rescued = {n: r for n, r in rescued.items() if n in {k[0].name for k in kept}}
+        order = {it.name: n for n, it in enumerate(items)}
+        kept = sorted(kept, key=lambda k: order[k[0].name])
         K = len(kept)
         H, W = frame.shape
         vis = PolygonVisibility(
@@ -231,5 +249,28 @@ def scene_visibility(
             a_bbox=np.asarray([k[0].bbox for k in kept], dtype=np.int64).reshape(K, 4),
             a_masks=[k[1] for k in kept],
         )
-        out.append(dataclasses.replace(vis, texel_size=dataclasses.asdict(size)))
+        out.append(dataclasses.replace(vis, texel_size=dataclasses.asdict(size), rescued=rescued))
     return out
+
+
+def last_sources(kept: list[tuple], spare: list[tuple], mask: np.ndarray) -> tuple[list[tuple], dict]:
+    """``kept`` plus the ``spare`` photos that see texels no photo before them sees.
+
+    Args:
+        kept: (sighting, crop, seen (H, W) bool) of the photos that passed every test.
+        spare: (sighting, crop, seen, why it was left out), tried least oblique first.
+        mask: (H, W) texel mask of the polygon.
+    Returns:
+        (the kept tuples and the rescued ones, {name: {"texels": texels only it sees, "why": why}}).
+    """
+    covered = np.zeros(mask.shape, bool)
+    for k in kept:
+        covered |= k[2]
+    rescued = {}
+    for it, crop, seen, why in sorted(spare, key=lambda s: -s[0].mean_cos):
+        new = seen & mask & ~covered
+        if new.any():
+            kept = [*kept, (it, crop, seen)]
+            covered |= seen
+            rescued[it.name] = {"texels": int(new.sum()), "why": why}
+    return kept, rescued

@@ -351,7 +351,7 @@ def assemble_mem_mb(summary: str | Path, cfg: dict) -> int:
 # Summary and report
 
 
-def _benchmarks(results: Path) -> dict[str, dict]:
+def stage_benchmarks(results: Path) -> dict[str, dict]:
     """{rule: {"jobs": n, "seconds": sum of wall seconds, "max_rss_mb": max}} from Snakemake's
     benchmark files R/benchmarks/<rule>/*.tsv."""
     out: dict[str, dict] = {}
@@ -390,8 +390,11 @@ def run_summary(results: str | Path) -> dict:
         "atlas_pages": [str(model / p["file"]) for p in summary.get("atlas_pages", [])],
         "polygons": summary.get("polygons", []),
         "untextured": summary.get("untextured", []),
+        # model summaries written before these notes have none: every untextured one then reads "no photo sees it"
+        "untextured_reasons": summary.get("untextured_reasons", {}),
+        "textured_from_oblique": summary.get("textured_from_oblique", {}),
         "check": summary.get("check"),
-        "stages": _benchmarks(results),
+        "stages": stage_benchmarks(results),
     }
     metrics = results / "evaluation" / "metrics.json"
     if metrics.is_file():
@@ -402,16 +405,31 @@ def run_summary(results: str | Path) -> dict:
     return out
 
 
+def _polygon_state(p: dict) -> str:
+    """One polygon's line of the summary: coverage and photos, and where they came from."""
+    if not p.get("textured"):
+        return "untextured (grey)"
+    state = f"coverage {100 * p['coverage']:5.1f}%, {p['photos']:3d} photos"
+    if p.get("oblique_angles"):
+        state += f", oblique only ({min(p['oblique_angles'].values()):.0f} deg)"
+    elif p.get("textured_from_glimpses"):
+        state += ", from glimpses (under filter.min_pixels)"
+    if p.get("rescued"):
+        n = len(p["rescued"])
+        state += f", {n} of them only for texels no other photo sees"
+    return state
+
+
 def format_summary(s: dict) -> str:
+    """The end-of-run message: polygons, times, the GLB check, what is untextured and why, files."""
     polys = s["polygons"]
     n_tex = sum(1 for p in polys if p.get("textured"))
     lines = [f"difftex: {n_tex}/{len(polys)} polygons textured"]
     if polys:
         w = max(len(p["id"]) for p in polys)
         for p in polys:
-            state = f"coverage {100 * p['coverage']:5.1f}%, {p['photos']:3d} photos" if p.get("textured") else "untextured (grey)"
             size = "x".join(map(str, p["texture_size"])) if p.get("texture_size") else "-"
-            lines.append(f"  {p['id']:<{w}}  {state}  {size}")
+            lines.append(f"  {p['id']:<{w}}  {_polygon_state(p)}  {size}")
     if s["stages"]:
         total = sum(d["seconds"] for d in s["stages"].values())
         parts = ", ".join(f"{r} {d['seconds']:.0f}s" + (f"/{d['jobs']}" if d["jobs"] > 1 else "") for r, d in s["stages"].items())
@@ -419,8 +437,14 @@ def format_summary(s: dict) -> str:
     chk = s.get("check")
     if chk:
         lines.append(f"GLB reloaded: {chk['glb_polygons']} polygons, max colour difference to the textures {chk['max_color_error']:.3f}")
+    oblique = s.get("textured_from_oblique") or {}
+    if oblique:
+        lines.append("textured from oblique photos only (every photo sees them beyond filter.max_angle_deg): "
+                     + ", ".join(f"{pid} ({min(a.values()):.0f} deg)" if a else pid for pid, a in oblique.items()))
     if s["untextured"]:
-        lines.append(f"no photo sees: {', '.join(s['untextured'])}")
+        reasons = s.get("untextured_reasons") or {}
+        lines.append("untextured (grey), no photo sees them:")
+        lines += [f"  {pid}: {reasons.get(pid, 'no photo sees it')}" for pid in s["untextured"]]
     if s.get("evaluation"):
         lines.append(f"metrics: {s['evaluation']}")
     if s.get("html_report"):

@@ -71,7 +71,8 @@ def make_scene(
     params=None,
     seed=0,
 ) -> Path:
-    """A scene folder with a wall proxy seen by a few cameras (noise images)."""
+    """A scene folder with a wall proxy seen by a few cameras (noise images); ``target``: one
+    point all cameras look at, or one per camera."""
     rng = np.random.default_rng(seed)
     polygons = polygons if polygons is not None else {"front": wall(-2, 2, 0, 2)}
     w, h = size
@@ -80,8 +81,9 @@ def make_scene(
         params = {"PINHOLE": [f, f, w / 2, h / 2], "SIMPLE_RADIAL": [f, w / 2, h / 2, -0.05]}[model]
     (root / "images").mkdir(parents=True, exist_ok=True)
     images = []
+    targets = np.broadcast_to(np.asarray(target, float), (len(centers), 3))
     for i, c in enumerate(centers):
-        R, t = look_at(c, target)
+        R, t = look_at(c, targets[i])
         name = f"img{i:02d}.png"
         write_image(root / "images" / name, rng.random((h, w, 3)).astype(np.float32))
         images.append((i + 1, name, 1, R, t))

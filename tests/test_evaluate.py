@@ -9,9 +9,9 @@ import numpy as np
 import pytest
 
 from difftex.errors import DifftexError
-from difftex.evaluate import (EvaluateConfig, PolygonTexture, check_same_plane, decode_source_map, evaluate_maps,
-                              prepare_holdout, render_proxy, resample_texture)
-from difftex.io import read_image, write_image, write_json
+from difftex.evaluate import (EvaluateConfig, PolygonTexture, check_same_plane, evaluate_maps, prepare_holdout,
+                              render_proxy, resample_texture, view_weights)
+from difftex.io import write_image, write_json
 from difftex.mapping import UVFrame, texel_mask, uv_frame
 from difftex.proxy import Polygon
 from tests.scenes import make_scene, wall
@@ -69,16 +69,22 @@ def test_check_same_plane_rejects_other_planes():
         check_same_plane(f, flipped, "x")
 
 
-def test_source_map_decodes_back_to_photo_indices(tmp_path):
-    from difftex.outputs import photo_colour, source_map
+def test_dominant_photos_come_back_from_source_npz_not_from_colours(tmp_path):
+    """The evaluation reads each texel's dominant photo from source.npz (numbers), whatever
+    colours source.png uses; texels no photo saw, or outside the polygon, have none."""
+    from difftex.outputs import write_texture_outputs
 
     names = ["a.jpg", "b.jpg", "c.jpg"]
-    dom = np.random.default_rng(2).integers(-1, 3, (20, 30))
-    mask = np.ones(dom.shape, bool)
-    write_image(tmp_path / "s.png", source_map(dom, names, mask))
-    colours = {n: "#%02x%02x%02x" % tuple(int(round(255 * c)) for c in photo_colour(n)) for n in names}
-    back = decode_source_map(read_image(tmp_path / "s.png"), colours)
-    np.testing.assert_array_equal(back, dom)
+    frame = uv_frame(poly(), UP, long_side=30)
+    dom = np.random.default_rng(2).integers(-1, 3, frame.shape)
+    mask = texel_mask(poly(), frame)
+    seen = mask & (dom >= 0)
+    write_texture_outputs(tmp_path / "t", np.zeros((*frame.shape, 3), np.float32), mask, seen, dom, names, {"method": "frontal"})
+    pt = PolygonTexture("front", np.zeros((*frame.shape, 3)), frame, mask, {"method": "frontal"}, tmp_path / "t")
+    got_names, w, how = view_weights(pt, tmp_path)
+    assert got_names == names and how == "dominant photo (source.npz)"
+    np.testing.assert_array_equal(w.argmax(0)[seen], dom[seen])
+    assert (w.sum(0)[~seen] == 0).all() and (w.sum(0)[seen] == 1).all()
 
 
 def gt_folder(root: Path, frame: UVFrame, gt: np.ndarray, mask: np.ndarray) -> Path:

@@ -265,7 +265,8 @@ CASES = [
     ("proxy-elsewhere", lambda s: B.transform_proxy(s, lambda V: V + [500.0, 0, 0]), "error", ["proxy.obj", "does not fit"]),
     ("proxy-10x-small", lambda s: B.scale_proxy(s, 0.1), "warning", ["proxy.obj", "far from the proxy"]),
     # what the photos see
-    ("polygon-behind-everything", _inside_wall, "warning", ["proxy.obj", "seen by no kept photo", "hidden (1 of 7 polygons)"]),
+    ("polygon-behind-everything", _inside_wall, "warning",
+     ["proxy.obj", "no photo sees 1 of 7 polygons, untextured (grey): hidden (hidden behind other polygons in the"]),
     ("camera-sees-nothing", lambda s: B.turn_camera_around(s, 4), "warning", ["images", "1 photo sees no proxy polygon"]),
     ("every-photo-filtered-out", _turn_all, "error", ["images", "every photo was filtered out", "frame and units"]),
     ("all-photos-blurry", _blur_all, "ok", []),
@@ -343,11 +344,15 @@ def test_scene_path_with_spaces_and_accents(small_synth_scene, tmp_path, capsys)
     assert read_json(tmp_path / "out dir" / "photos.json")["photos"]
 
 
-def test_every_polygon_without_photos_after_the_angle_filter(small_synth_scene, tmp_path, capsys):
+def test_every_polygon_beyond_the_angle_filter_keeps_its_oblique_photos(small_synth_scene, tmp_path, capsys):
+    """The angle filter never takes a polygon's last photos: with every view beyond the limit,
+    every polygon is textured from its oblique photos, and one warning names them."""
     cfg = tmp_path / "c.yaml"
     cfg.write_text("filter:\n  max_angle_deg: 0.01\n")
     code, err = run_filter(capsys, small_synth_scene, tmp_path / "out", "--config", cfg)
-    assert_error(code, err, "proxy.obj", "no polygon keeps a photo", "max_angle_deg")
+    assert_warning(code, err, "proxy.obj", "textured from oblique photos only", "filter.max_angle_deg = 0.01")
+    polys = read_json(tmp_path / "out" / "photos.json")["polygons"]
+    assert all(d["kept"] and d["textured_from_oblique"] for d in polys.values())
 
 
 @pytest.mark.parametrize(

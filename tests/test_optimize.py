@@ -202,17 +202,6 @@ def test_fill_holes_fills_everything_and_keeps_known_texels():
     assert abs(out[~known].mean() - img[known].mean()) < 0.1  # filled from the neighbours' colours
 
 
-def test_source_map_colours_are_stable_per_photo():
-    from difftex.outputs import photo_colour, source_map
-
-    dom = np.array([[0, 1], [-1, 1]])
-    mask = np.array([[True, True], [True, False]])
-    sm = source_map(dom, ["x.jpg", "y.jpg"], mask)
-    assert np.allclose(sm[0, 0], photo_colour("x.jpg")) and np.allclose(sm[0, 1], photo_colour("y.jpg"))
-    assert np.allclose(sm[1, 1], 0) and np.allclose(sm[1, 0], 0)
-    assert not np.allclose(photo_colour("x.jpg"), photo_colour("y.jpg"))
-
-
 @pytest.mark.slow
 def test_command_chain_on_the_analytic_wall(tmp_path):
     import json

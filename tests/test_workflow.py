@@ -199,6 +199,10 @@ def test_workflow_end_to_end(tiny_scene, tmp_path):
     assert summary["view_check"]["mean_abs_diff"] < 0.25
     texture = np.asarray(scene.geometry[summary["polygons"][0]["id"]].visual.material.baseColorTexture)
     assert texture.std() > 0.01  # not a blank atlas
+    # the HTML report shows the scene's view metrics (not n/a) and every polygon's maps
+    page = (R / "report" / "index.html").read_text()
+    assert f"{metrics['views']['overall']['ssim']:.4f}" in page
+    assert all(f"<h3 id='{pid}'>" in page for pid in proxy.ids)
 
     # a second run has nothing to do
     again = snakemake(work, "-n", *args)
@@ -219,8 +223,9 @@ def test_workflow_end_to_end(tiny_scene, tmp_path):
     assert counts.get("finish", 0) == n_tex and "texture" not in counts
     # ... and an assembly-only change only assembly
     counts = job_counts(snakemake(work, "-n", *args, "assemble={padding: 2}").stdout)
-    # evaluation and the HTML report read the textures; stage_config writes the new assemble file
-    assert set(counts) == {"stage_config", "assemble", "report", "all"}
+    # evaluation reads the textures, not the model; the reports read the model summary (the HTML
+    # report: the untextured polygons' reasons and the model view); stage_config writes the new assemble file
+    assert set(counts) == {"stage_config", "assemble", "report", "html_report", "all"}
 
 
 def test_config_yaml_mirrors_the_stage_dataclasses():

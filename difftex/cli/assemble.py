@@ -66,6 +66,26 @@ def _view_check(scene_dir, proxy, info, glb, out_png) -> dict | None:
             "mean_abs_diff": None if diff is None else round(diff, 4)}
 
 
+def polygon_notes(summary: dict, info: dict) -> None:
+    """Say in the model summary where each polygon's photos came from, and why the untextured
+    ones have none (from the visibility summary's rows, ``info``: id -> row)."""
+    summary["untextured_reasons"] = {}
+    summary["textured_from_oblique"] = {}
+    for row in summary["polygons"]:
+        meta = info.get(row["id"], {})
+        if not row["textured"]:
+            why = meta.get("untextured_reason") or ("no visibility record (not in the visibility summary)" if not meta
+                                                    else "no texture was written for it")
+            row["untextured_reason"] = summary["untextured_reasons"][row["id"]] = why
+            continue
+        if meta.get("textured_from_oblique"):
+            row["oblique_angles"] = summary["textured_from_oblique"][row["id"]] = meta.get("oblique_angles", {})
+        if meta.get("textured_from_glimpses"):
+            row["textured_from_glimpses"] = True
+        if meta.get("rescued"):
+            row["rescued"] = meta["rescued"]
+
+
 def run(args) -> int:
     import time
     from pathlib import Path
@@ -124,6 +144,7 @@ def run(args) -> int:
     out_dir = Path(args.out_dir)
     with console.status(f"packing {len(items)} textures and writing the model"):
         summary = assemble(items, out_dir, cfg, name=args.name, bits=out_cfg.bits)
+    polygon_notes(summary, info)
     if cfg.glb and cfg.verify:
         with console.status("rendering a view of the model"):
             summary["view_check"] = _view_check(scene, proxy, info, out_dir / summary["glb"], out_dir / f"{args.name}_view.png")
@@ -132,8 +153,10 @@ def run(args) -> int:
 
     n_tex = sum(1 for p in summary["polygons"] if p["textured"])
     console.print(f"{n_tex}/{len(items)} polygons textured, {len(summary['atlas_pages'])} atlas page(s)")
-    if summary["untextured"]:
-        console.print(f"untextured (grey): {', '.join(summary['untextured'])}")
+    for pid, angles in summary["textured_from_oblique"].items():
+        console.print(f"textured from oblique photos only: {pid} ({', '.join(f'{n} {a:.0f} deg' for n, a in angles.items())})")
+    for pid, why in summary["untextured_reasons"].items():
+        console.print(f"untextured (grey): {pid}: {why}")
     chk = summary.get("check")
     if chk:
         ok = not chk["missing_polygons"] and chk["max_area_rel_error"] < 1e-4

@@ -11,7 +11,7 @@ def add_arguments(parser) -> None:
 
     add_common(parser)
     parser.add_argument("--method", required=True, choices=["average", "frontal"])
-    parser.add_argument("--out-dir", required=True, help="output folder for texture.png, source.png, coverage.png, report.json")
+    parser.add_argument("--out-dir", required=True, help="output folder for texture.png, source.png, source.npz, coverage.png, report.json")
 
 
 def run(args) -> int:

@@ -10,7 +10,7 @@ def add_arguments(parser) -> None:
     from difftex.cli._polygon import add_common
 
     add_common(parser)
-    parser.add_argument("--out-dir", required=True, help="output folder for texture.png, source.png, coverage.png, report.json")
+    parser.add_argument("--out-dir", required=True, help="output folder for texture.png, source.png, source.npz, coverage.png, report.json")
     parser.add_argument("--patch", type=int, help="patch side in texels (overrides mrf.patch)")
     parser.add_argument("--smoothness", type=float, help="Potts weight (overrides mrf.smoothness)")
 

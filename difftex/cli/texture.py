@@ -13,7 +13,7 @@ def add_arguments(parser) -> None:
     add_common(parser)
     parser.add_argument("--out-dir", required=True,
                         help="folder for weights.npz, stats.json and composite.npz (R/optimized/<polygon>)")
-    parser.add_argument("--png-dir", help="also write texture.png, source.png, coverage.png, report.json here "
+    parser.add_argument("--png-dir", help="also write texture.png, source.png, source.npz, coverage.png, report.json here "
                         "(the workflow's assembly does this)")
     parser.add_argument("--no-progress", action="store_true")
 

@@ -14,6 +14,26 @@ def add_arguments(p) -> None:
     p.add_argument("--quiet", action="store_true")
 
 
+def polygon_notes(filtered: dict, vis) -> dict:
+    """The summary row's notes on where a polygon's photos came from, or why it has none.
+
+    Args:
+        filtered: the filter table's record of the polygon (may be empty).
+        vis: its difftex.visibility.PolygonVisibility.
+    """
+    out: dict = {}
+    for key in ("textured_from_oblique", "oblique_angles", "textured_from_glimpses", "glimpses"):
+        if filtered.get(key):
+            out[key] = filtered[key]
+    if vis.rescued:
+        out["rescued"] = vis.rescued
+    if not vis.photos or vis.coverage == 0:
+        out["untextured_reason"] = filtered.get("untextured_reason") or (
+            f"none of its texels is visible in its {len(filtered.get('kept', []))} photo(s) "
+            "(thinner than a texel, or hidden at full resolution)")
+    return out
+
+
 def run(args) -> int:
     import time
     from pathlib import Path
@@ -28,18 +48,23 @@ def run(args) -> int:
     tex = section(args.config, "texture", TextureConfig)
     vcfg = section(args.config, "visibility", VisibilityConfig)
     scene = load_scene(args.scene)
+    filtered: dict = {}  # the filter's record per polygon
     if args.photos:
         table = read_json(args.photos)
         try:
-            cands = {pid: d["kept"] for pid, d in table["polygons"].items()}
+            filtered = dict(table["polygons"])
+            cands = {pid: d["kept"] for pid, d in filtered.items()}
+            # photos dropped as inclined: back only as the last source of some texels
+            later = {pid: {n: d["dropped"].get(n, "inclined") for n in d.get("inclined", {})} for pid, d in filtered.items()}
         except (KeyError, AttributeError, TypeError):
             raise DifftexError(f"{args.photos}: not a difftex filter table") from None
     else:
         cands = {p.id: [ph.name for ph in scene.photos] for p in scene.proxy.polygons}
+        later = {}
     top_k = int((read_config(args.config).get("optimize") or {}).get("top_k", 8))
     vis = scene_visibility(
         scene.proxy, scene.photos, scene.up, cands, tex,
-        min_texels=vcfg.min_texels, max_photos=vcfg.max_photos, progress=not args.quiet, top_k=top_k,
+        min_texels=vcfg.min_texels, max_photos=vcfg.max_photos, progress=not args.quiet, top_k=top_k, fallback=later,
     )
     out = Path(args.out_dir)
     out.mkdir(parents=True, exist_ok=True)
@@ -52,9 +77,12 @@ def run(args) -> int:
             "width": v.frame.width, "height": v.frame.height, "texels": int(v.texel_mask.sum()),
             "texel_size": v.frame.texel_size, "photo_texel_size": ts.get("photo_texel_size"),
             "texel_size_bound": ts.get("bound"),
+            **polygon_notes(filtered.get(v.polygon_id, {}), v),
         })
         print(f"  {v.polygon_id}: {len(v.photos)} photos, coverage {100 * v.coverage:.1f}%, {v.frame.width}x{v.frame.height} "
-              f"texels of {v.frame.texel_size:.4g} units (set by {ts.get('bound')})")
+              f"texels of {v.frame.texel_size:.4g} units (set by {ts.get('bound')})"
+              + (f"; {rows[-1]['untextured_reason']}" if "untextured_reason" in rows[-1] else "")
+              + (f"; last source of some texels: {', '.join(v.rescued)}" if v.rescued else ""))
     secs = time.perf_counter() - t0
     write_json(out / "summary.json", {"scene": str(scene.root), "polygons": rows, "seconds": round(secs, 2)})
     print(f"{scene.name}: visibility of {len(vis)} polygons in {secs:.1f} s -> {out}")

@@ -1,6 +1,7 @@
 # The textured model: atlas pages, OBJ + MTL + PNG and GLB; every polygon of the proxy is in it,
 # those no photo sees with a grey patch. Then the reports: report.md (summary, stage times) and
-# report/index.html (difftex report: maps, loss curves, metrics).
+# report/index.html (difftex report: what is untextured and why, the model view, metrics, maps with
+# their source legend, texel sizes, loss curves and per-level diagnostics, the photo filter table).
 
 
 rule assemble:
@@ -57,9 +58,11 @@ rule report:
 
 rule html_report:
     input:
-        # textures, optimizer stats and metrics; not the assembled model
         summary=f"{R}/visibility/summary.json",
+        photos=f"{R}/photos.json",
         textures=get_textures,
+        # the untextured polygons' reasons and the model view
+        model=f"{R}/model/summary.json",
         metrics=[f"{R}/evaluation/metrics.json"] if EVALUATE else [],
     output:
         f"{R}/report/index.html",

@@ -46,6 +46,8 @@ rule finish:
     output:
         texture=f"{R}/textures/{{pid}}/texture.png",
         source=f"{R}/textures/{{pid}}/source.png",
+        dominant=f"{R}/textures/{{pid}}/source.npz",
+        coverage=f"{R}/textures/{{pid}}/coverage.png",
         report=f"{R}/textures/{{pid}}/report.json",
     params:
         stage_config=STAGE_TEXT["output"],
