@@ -1,0 +1,119 @@
+"""Photo sampling on its own (difftex.sampling): f_k^i, pyramids, one decode per photo, convergence.
+
+Expectations come from the analytic wall (tests/analytic.py): a pinhole camera frontal to the
+wall maps texels by a known scale, and a rendered photo mapped back gives the wall's pattern.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from difftex.mapping import map_texels
+from difftex.sampling import PhotoSampler, PhotoSet, level_frame, resample_nearest, texel_map
+from tests.analytic import (
+    fast_cfg,
+    gt_texture,
+    make_input,
+    make_photo,
+    optimize,
+    render,
+)
+
+
+def test_texel_map_of_a_frontal_camera_is_a_scaling():
+    ph = make_photo("f", 0.0, dist=6.0, f=150.0)
+    inp = make_input([ph], [render(ph)], long_side=64)
+    tm = texel_map(inp.frame, ph)
+    # a texel of s metres covers s * f / d pixels on each side: the footprint is that everywhere
+    expected = inp.frame.texel_size * 150.0 / 6.0
+    fp = tm.footprint[tm.valid]
+    assert torch.allclose(fp, torch.full_like(fp, expected), rtol=1e-5)
+    # cos is taken towards the camera centre: d / |C - X| at each texel
+    tx, ty = inp.frame.centres()
+    X = inp.frame.texel_to_world(tx, ty)
+    cos = 6.0 / np.linalg.norm(X - ph.center, axis=-1)
+    np.testing.assert_allclose(tm.cos.numpy()[tm.valid.numpy()], cos[tm.valid.numpy()], atol=1e-5)
+    # same pixels as the reference (numpy) mapping
+    ref = map_texels(inp.frame, ph)
+    np.testing.assert_allclose(tm.pix.numpy()[ref.valid], ref.pix[ref.valid], atol=1e-3)
+    assert (tm.valid.numpy() == ref.valid).all()
+
+
+def test_texel_map_region_is_the_same_rectangle_of_the_full_map():
+    ph = make_photo("o", 30.0, dist=6.0, pitch_deg=10.0)
+    inp = make_input([ph], [render(ph)], long_side=64)
+    full = texel_map(inp.frame, ph)
+    part = texel_map(inp.frame, ph, region=(5, 20, 10, 40))
+    torch.testing.assert_close(part.pix, full.pix[5:20, 10:40], equal_nan=True)
+    torch.testing.assert_close(part.footprint, full.footprint[5:20, 10:40])
+
+
+def test_pyramid_sampling_is_exact_at_pixel_centres_and_averages_at_coarse_footprints():
+    rng = np.random.default_rng(0)
+    img = rng.random((64, 96, 3)).astype(np.float32)
+    s = PhotoSampler(img, (0, 0, 96, 64), torch.device("cpu"))
+    ys, xs = np.mgrid[0:64, 0:96] + 0.5
+    pix = torch.from_numpy(np.stack([xs, ys], -1).astype(np.float32))
+    got = s.sample(pix, torch.ones(64, 96)).permute(1, 2, 0).numpy()
+    np.testing.assert_allclose(got, img, atol=2e-3)  # float16 pyramid
+    # footprint 2: level 1, the 2x2 box average, at the centres of 2x2 blocks
+    ys2, xs2 = np.mgrid[0:32, 0:48] * 2.0 + 1.0
+    pix2 = torch.from_numpy(np.stack([xs2, ys2], -1).astype(np.float32))
+    got2 = s.sample(pix2, torch.full((32, 48), 2.0)).permute(1, 2, 0).numpy()
+    box = img.reshape(32, 2, 48, 2, 3).mean((1, 3))
+    np.testing.assert_allclose(got2, box, atol=2e-3)
+
+
+def test_crop_box_must_align_with_the_decode_scale():
+    with pytest.raises(ValueError):
+        PhotoSampler(np.zeros((8, 8, 3), np.float32), (1, 0, 8, 8), torch.device("cpu"), base=1)
+
+
+def test_mapped_photo_reproduces_the_wall():
+    ph = make_photo("f", 0.0)
+    inp = make_input([ph], [render(ph)], long_side=64)
+    ps = PhotoSet.load(inp, "cpu")
+    mp = ps.map(0, inp.frame, inp.texel_mask)
+    got = mp.colour.permute(1, 2, 0).numpy()
+    gt = gt_texture(inp)
+    inner = mp.visible.numpy().copy()
+    inner[:3], inner[-3:], inner[:, :3], inner[:, -3:] = False, False, False, False
+    # checker edges blur by a texel; the median error away from them is small
+    assert np.median(np.abs(got - gt)[inner]) < 0.02
+
+
+def test_resample_nearest_round_trip():
+    ph = make_photo("f", 0.0)
+    inp = make_input([ph], [render(ph)], long_side=64)
+    coarse = level_frame(inp.frame, 16)
+    m = resample_nearest(inp.texel_mask, inp.frame, coarse)
+    assert m.shape == coarse.shape and m.all()
+
+
+def test_each_photo_is_read_once_per_polygon():
+    photos = [make_photo(f"p{i}", yaw) for i, yaw in enumerate((-30.0, 0.0, 25.0))]
+    images = {ph.name: render(ph) for ph in photos}
+    reads: dict[str, int] = {}
+
+    def load(ph):
+        reads[ph.name] = reads.get(ph.name, 0) + 1
+        return images[ph.name]
+
+    inp = make_input(photos, [images[p.name] for p in photos], long_side=64)
+    inp = type(inp)(inp.polygon_id, inp.frame, inp.texel_mask, inp.photos, inp.texel_visible, load)
+    res = optimize(inp, fast_cfg(histogram_matching=True, max_iters_per_level=(40, 30, 20), min_iters_per_level=10))
+    # transfers, every level of the optimization and the final composition: one decode each
+    assert reads == {p.name: 1 for p in photos}
+    assert res.stats["photo_reads"] == 3
+
+
+def test_a_level_stops_early_when_the_photos_agree():
+    # three photos of the same wall, no occluder, no exposure difference: nothing to decide
+    photos = [make_photo(f"p{i}", yaw) for i, yaw in enumerate((-20.0, 0.0, 20.0))]
+    inp = make_input(photos, [render(ph, kind="flat") for ph in photos], long_side=64)
+    res = optimize(inp, fast_cfg(max_iters_per_level=(300, 300, 300), min_iters_per_level=20))
+    levels = res.stats["levels"]
+    assert all(lv["converged"] for lv in levels)
+    assert all(lv["iterations"] < lv["cap"] for lv in levels)
