@@ -245,6 +245,8 @@ def _run_level(lv: Level, li: int, cfg: OptimizeConfig, compute: ComputeConfig, 
     }
     if lv.pixel_sets is not None:
         lvl_stats["render_pixels"] = lv.pixel_sets.n
+        lvl_stats["render_bytes"] = int(sum(t.element_size() * t.numel() for t in vars(lv.pixel_sets).values()
+                                            if isinstance(t, torch.Tensor)))
     return st, lvl_stats
 
 
