@@ -58,7 +58,7 @@ def visibility_file(scene: str, polygon: str, size: int, cache: Path) -> Path:
         return path
     sc = load_scene(scene, check_images=False)
     names = [p.name for p in sc.photos]
-    vis = scene_visibility(sc.proxy, sc.photos, sc.up, {polygon: names}, size, None, progress=False)
+    vis = scene_visibility(sc.proxy, sc.photos, sc.up, {polygon: names}, size, progress=False)
     (v,) = [v for v in vis if v.polygon_id == polygon]
     save_visibility(path, v)
     return path
@@ -95,7 +95,6 @@ def run_one(args) -> dict:
     from difftex.visibility import load_visibility
 
     torch.set_num_threads(args.threads)
-    bandwidth = copy_bandwidth()
     sc = load_scene(args.scene, check_images=False)
     vis = load_visibility(args.vis)
     inp = polygon_input_from_visibility(vis, {p.name: p for p in sc.photos})
@@ -114,6 +113,8 @@ def run_one(args) -> dict:
     t_read = time.perf_counter() - t0
     res = optimize_polygon(photos, cfg, compute)
     total = time.perf_counter() - t0
+    peak_rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    bandwidth = copy_bandwidth(64)  # after the run: its buffers must not count in the peak RSS
     full_cfg = OptimizeConfig()
     levels = []
     est = t_read
@@ -132,7 +133,7 @@ def run_one(args) -> dict:
            "photos": len(inp.photos), "torch": torch.__version__, "python": sys.executable,
            "bandwidth_gbs": round(bandwidth / 1e9, 2),
            "time_s": round(total, 2), "read_photos_s": round(t_read, 2),
-           "est_full_run_s": round(est, 1), "peak_rss_mib": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1),
+           "est_full_run_s": round(est, 1), "peak_rss_mib": round(peak_rss / 1024, 1),
            "rss_before_mib": round(rss0 / 1024, 1), "levels": levels, "coverage": res.stats["coverage"]}
     if "cuda_peak_bytes" in res.stats:
         out["cuda_peak_mib"] = round(res.stats["cuda_peak_bytes"] / 2**20, 1)
@@ -190,7 +191,7 @@ def main() -> int:
 
     write_json(args.out + ".json", info)
     m = info["machine"]
-    from difftex.method.config import OptimizeConfig
+    from difftex.method.config import ComputeConfig
 
     lines = [f"# Optimizer time and memory per polygon ({Path(args.scene).name} / {args.polygon})", "",
              f"Command: `{info['command']}`", "",
@@ -199,7 +200,7 @@ def main() -> int:
              f"Each level ran {args.iters} iterations (0 = config caps). 'full run' = read + setup + first iteration "
              "(which carries torch.compile's cost) + the rest of the default caps (300, 150, 80, 40 iterations per level) "
              "x the median time of the later iterations. `compile`: OptimizeConfig.compile (auto compiles levels with "
-             f"at least {OptimizeConfig().compile_min_slots} K x H x W slot entries); 'compiled' lists the levels that were.", "",
+             f"at least {ComputeConfig().compile_min_slots} K x H x W slot entries); 'compiled' lists the levels that were.", "",
              "Bound: the bytes one iteration must touch (K x H x W x "
              f"{BYTES_PER_SLOT_ITER} B, plus the render pixel sets) over the one-thread copy bandwidth measured in the "
              "same process; 'x bound' is the last level's iteration time in units of it.", "",
