@@ -22,7 +22,7 @@ from difftex.method.elimination import (base_mask, dropped_slot_mask, eliminate_
                                         photos_to_drop, update_activation)
 from difftex.method.levels import Level, build_level, upsample_field
 from difftex.method.gradient import Adam
-from difftex.method.objective import LevelState, compiled_objective, objective, value_and_grad
+from difftex.method.objective import LevelState, compiled_objective, compiled_texel_gradient, objective, value_and_grad
 from difftex.method.render import build_pixel_sets
 from difftex.sampling import MappedPhoto, PhotoSet, level_frame, level_sides, resample_nearest
 
@@ -155,7 +155,7 @@ def _run_level(lv: Level, li: int, cfg: OptimizeConfig, compute: ComputeConfig, 
     if cfg.use_para:
         st.matches = {a: losses.neighbour_match(lv.idx, lv.mask, a, fixed=lv.fixed_slots) for a in (1, 2)}
     adam = Adam(lr=cfg.lr, betas=cfg.betas)
-    fn = (compiled_objective(lv, compute) or objective) if cfg.loss_mode == "render" else None
+    fn = (compiled_objective(lv, compute) or objective) if cfg.loss_mode == "render" else compiled_texel_gradient(lv, compute)
     hist: dict[str, list] = {k: [] for k in LOSS_KEYS}
     n_elim = 0
     dropped_here: list[str] = []
@@ -186,7 +186,7 @@ def _run_level(lv: Level, li: int, cfg: OptimizeConfig, compute: ComputeConfig, 
             reason = f"{type(e).__name__}: {str(e).splitlines()[0][:200]}"
             warnings.warn(f"torch.compile failed ({reason}); running eagerly")
             stats["compile_failed"] = reason
-            fn = objective
+            fn = objective if cfg.loss_mode == "render" else None
             terms, grad = value_and_grad(st, cfg, fn)
         for k in hist:
             hist[k].append(float(terms[k]) if k in terms else 0.0)
