@@ -79,7 +79,7 @@ class TextureConfig:
 
     What sets each polygon's texel size (``mode``): a numeric ``density`` (texels per scene
     unit); else ``long_side`` when it is given; else ``density: auto``, per polygon from its
-    photos' ground sampling distance (difftex.density).
+    photos' ground sampling distance (difftex.geometry.density).
     """
 
     density: str | float | None = "auto"

@@ -50,8 +50,8 @@ def machine() -> dict:
 
 
 def visibility_file(scene: str, polygon: str, size: int, cache: Path) -> Path:
-    from difftex.scene import load_scene
-    from difftex.visibility import save_visibility, scene_visibility
+    from difftex.scene.loading import load_scene
+    from difftex.geometry.visibility import save_visibility, scene_visibility
 
     path = cache / f"{Path(scene).name}_{polygon}_{size}.npz"
     if path.is_file():
@@ -90,9 +90,10 @@ def run_one(args) -> dict:
 
     from difftex.method.config import ComputeConfig, OptimizeConfig
     from difftex.method.loop import optimize_polygon
-    from difftex.sampling import PhotoSet, polygon_input_from_visibility, resample_nearest
-    from difftex.scene import load_scene
-    from difftex.visibility import load_visibility
+    from difftex.sampling.photos import PhotoSet, polygon_input_from_visibility
+    from difftex.sampling.texels import resample_nearest
+    from difftex.scene.loading import load_scene
+    from difftex.geometry.visibility import load_visibility
 
     torch.set_num_threads(args.threads)
     sc = load_scene(args.scene, check_images=False)
@@ -187,7 +188,7 @@ def main() -> int:
             print(f"{r['torch']:14s} {size:5d} {mode:6s} {comp:4s} {r['time_s']:8.1f}s  x bound {r['levels'][-1]['x_bound']:6.1f}  full~{r['est_full_run_s']:8.1f}s  rss {r['peak_rss_mib']:8.1f} MiB", flush=True)
     info = {"command": " ".join(sys.argv), "scene": args.scene, "polygon": args.polygon, "iters_per_level": args.iters,
             "machine": machine(), "results": rows}
-    from difftex.io import write_json, write_text
+    from difftex.scene.files import write_json, write_text
 
     write_json(args.out + ".json", info)
     m = info["machine"]

@@ -63,7 +63,7 @@ def read_benchmarks(results: Path) -> dict[str, dict]:
 
 def polygon_work(results: Path) -> dict:
     """Texels, slots and iterations of the run's texture stage (visibility summary, stats.json)."""
-    from difftex.io import read_json
+    from difftex.scene.files import read_json
 
     vis = read_json(results / "visibility" / "summary.json")["polygons"]
     texels = sum(int(p["texels"]) for p in vis if p.get("photos"))
@@ -95,7 +95,7 @@ def run_workflow(scene: Path, work: Path, preset: str, cores: int) -> dict:
     wall, cpu = time.perf_counter() - t0, children_cpu() - c0
     if r.returncode != 0:
         raise RuntimeError(f"workflow failed on {scene} ({preset}): {(r.stdout + r.stderr)[-1500:]}")
-    from difftex.workflow import scene_name
+    from difftex.workflow.glue import scene_name
 
     results = work / "results" / scene_name(scene)
     stages = read_benchmarks(results)
@@ -120,10 +120,10 @@ def run_texrecon(scene: Path, work: Path, results: Path) -> dict:
 
 def run_average(scene: Path, results: Path) -> dict:
     """The plain per-texel average of every textured polygon at the run's texel sizes, in-process."""
-    from difftex.baselines import baseline_texture
-    from difftex.sampling import polygon_input_from_visibility
-    from difftex.scene import load_scene
-    from difftex.visibility import load_visibility
+    from difftex.evaluation.baselines import baseline_texture
+    from difftex.sampling.photos import polygon_input_from_visibility
+    from difftex.scene.loading import load_scene
+    from difftex.geometry.visibility import load_visibility
 
     t0, c0 = time.perf_counter(), time.process_time()
     sc = load_scene(scene, check_images=False)
@@ -138,9 +138,9 @@ def run_average(scene: Path, results: Path) -> dict:
 
 
 def subset_scene(scene: Path, n: int, out: Path) -> Path:
-    from difftex.camera import load_photos
-    from difftex.evaluate import prepare_holdout
-    from difftex.scene import find_sparse
+    from difftex.scene.camera import load_photos
+    from difftex.evaluation.evaluate import prepare_holdout
+    from difftex.scene.loading import find_sparse
 
     names = [p.name for p in load_photos(find_sparse(scene), scene / "images", check_images=False)]
     step = max(1, len(names) // n)
@@ -203,8 +203,8 @@ def write(stem: Path, rows: list[dict], mach: dict, args) -> None:
                       ])]
     lines.append("| scene | photos | method | wall (s) | CPU (s) | peak RSS (MB) | texels (M) | K x texels (M) | iterations | vs texrecon |")
     lines.append("|---|---|---|---|---|---|---|---|---|---|")
-    from difftex.camera import load_photos
-    from difftex.scene import find_sparse
+    from difftex.scene.camera import load_photos
+    from difftex.scene.loading import find_sparse
 
     for row in rows:
         sc = Path(row["scene"])

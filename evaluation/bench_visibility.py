@@ -52,7 +52,7 @@ def main() -> None:
     ap.add_argument("--long-side", type=int, nargs="+", default=[1024, 2048])
     ap.add_argument("--out", default=str(HERE / "results" / "bench_visibility"))
     args = ap.parse_args()
-    from difftex.scene import load_scene
+    from difftex.scene.loading import load_scene
 
     sc = load_scene(args.scene)
     rows = []
@@ -78,7 +78,7 @@ def main() -> None:
     }
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
-    from difftex.io import write_json, write_text
+    from difftex.scene.files import write_json, write_text
 
     write_json(out.with_suffix(".json"), result)
     m = result["machine"]

@@ -93,7 +93,7 @@ def difftex(*argv: str) -> float:
 
 def run_common(scene: Path, out: Path, cfg: dict, only: list[str] | None = None) -> dict:
     """Filter and visibility once per scene and config (``only``: texture just these polygons)."""
-    from difftex.io import read_json
+    from difftex.scene.files import read_json
 
     c = out / "common"
     c.mkdir(parents=True, exist_ok=True)
@@ -110,7 +110,7 @@ def run_common(scene: Path, out: Path, cfg: dict, only: list[str] | None = None)
 def _write_yaml(path: Path, data: dict) -> None:
     import yaml
 
-    from difftex.io import write_text
+    from difftex.scene.files import write_text
 
     write_text(path, yaml.safe_dump(data, sort_keys=False))
 
@@ -151,7 +151,7 @@ def run_method(method: str, scene: Path, r: Path, common: dict, cfg: dict | None
 
 
 def evaluate(scene: Path, results: Path, lpips: str = "auto", config: Path | None = None) -> dict:
-    from difftex.io import read_json
+    from difftex.scene.files import read_json
 
     out = Path(results) / "evaluation" / "metrics.json"
     extra = ["--config", config] if config else []
@@ -183,7 +183,7 @@ def fmt(v, nd=4) -> str:
 
 
 def write_outputs(stem: Path, md: str, data: dict) -> None:
-    from difftex.io import write_json, write_text
+    from difftex.scene.files import write_json, write_text
 
     write_text(stem.with_suffix(".md"), md)
     write_json(stem.with_suffix(".json"), json.loads(json.dumps(data, default=str)))

@@ -6,7 +6,7 @@
 Per scene and polygon it writes a side-by-side figure
 ``<out>/<scene>/<polygon>.jpg`` = [ground truth |] difftex (texel) | difftex (render) | average |
 frontal | difftex source map, and with ground truth (synthetic scenes: ground_truth/maps) the
-Error 90/95 %, SSIM and PSNR of every method (difftex.metrics, over the ground-truth mask).
+Error 90/95 %, SSIM and PSNR of every method (difftex.evaluation.metrics, over the ground-truth mask).
 Real scenes have no ground truth; they get a no-reference sharpness figure (mean gradient
 magnitude of the texture over the polygon) next to the pictures, which are what to look at.
 Results: ``<out>/results.json`` and ``<out>/results.md`` (with the command and the machine).
@@ -43,9 +43,9 @@ def area_down(x: np.ndarray, f: int) -> np.ndarray:
 
 
 def run_difftex(inp, cfg, device):
-    from difftex.histmatch import polygon_transfers
+    from difftex.compose.histmatch import polygon_transfers
     from difftex.optimize import optimize_polygon
-    from difftex.texture import compose_slots, dominant_from_slots, finish_texture
+    from difftex.compose.composite import compose_slots, dominant_from_slots, finish_texture
 
     t0 = time.perf_counter()
     inp.transfers = None
@@ -72,14 +72,14 @@ def main() -> int:
 
     import torch
 
-    from difftex import metrics
-    from difftex.baselines import baseline_texture
+    from difftex.evaluation import metrics
+    from difftex.evaluation.baselines import baseline_texture
     from difftex.config import section
-    from difftex.io import read_image, write_image, write_json, write_text
+    from difftex.scene.files import read_image, write_image, write_json, write_text
     from difftex.optimize import OptimizeConfig, pick_device, polygon_input_from_visibility
-    from difftex.scene import load_scene
-    from difftex.texture import finish_texture, source_map
-    from difftex.visibility import scene_visibility
+    from difftex.scene.loading import load_scene
+    from difftex.compose.composite import finish_texture, source_map
+    from difftex.geometry.visibility import scene_visibility
 
     sys.path.insert(0, str(Path(__file__).parent))
     from bench_optimize import machine

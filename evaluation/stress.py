@@ -4,7 +4,7 @@
     python evaluation/stress.py --sizes 20,10,5,3 --seed 1 --polygons all
 
 For each size a seeded random subset of the scene's photos is kept (the scene is copied with the
-others removed from its COLMAP model: `difftex.evaluate.prepare_holdout(..., keep=...)`), the
+others removed from its COLMAP model: `difftex.evaluation.evaluate.prepare_holdout(..., keep=...)`), the
 whole pipeline runs on the copy and every method is scored on the ground-truth maps.
 """
 
@@ -35,9 +35,9 @@ def main(argv=None) -> int:
     import numpy as np
     import torch
 
-    from difftex.camera import read_reconstruction
-    from difftex.evaluate import prepare_holdout
-    from difftex.scene import find_sparse
+    from difftex.scene.camera import read_reconstruction
+    from difftex.evaluation.evaluate import prepare_holdout
+    from difftex.scene.loading import find_sparse
     from evaluation.table1 import ensure_synth
 
     torch.set_num_threads(args.threads)

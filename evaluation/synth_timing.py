@@ -48,7 +48,7 @@ def main(argv=None) -> int:
     ap.add_argument("--markdown-only", action="store_true", help="rewrite the markdown from the JSON, generate nothing")
     args = ap.parse_args(argv)
 
-    from difftex.io import write_json, write_text
+    from difftex.scene.files import write_json, write_text
     from difftex.synth import generate, get_preset
 
     cfg = get_preset(args.preset)

@@ -61,7 +61,7 @@ def main(argv=None) -> int:
         rows.append({"method": m, "run": r, "metrics": ev})
         print(f"table1: {m} done in {r['total_s']:.0f} s", flush=True)
     mach = C.machine()
-    from difftex.io import read_json
+    from difftex.scene.files import read_json
 
     synth = read_json(scene / "synth.json")
     sc = synth.get("config", {})
@@ -102,7 +102,7 @@ def main(argv=None) -> int:
     lines.append(f"Per-polygon values: `{Path(args.out).with_suffix('.json').name}`. Whole command: "
                  f"{time.perf_counter() - t_all:.0f} s" + (f" (scene generation {t_synth:.0f} s)" if t_synth else "") + ".")
     try:
-        from difftex.report import comparison_page, write_report
+        from difftex.evaluation.report import comparison_page, write_report
 
         done = [r for r in rows if not r.get("missing")]
         for r in done:

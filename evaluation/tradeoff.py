@@ -27,7 +27,7 @@ def plot(rows: list[dict], out: Path) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from difftex.io import atomic_path
+    from difftex.scene.files import atomic_path
 
     fig, axes = plt.subplots(1, 2, figsize=(10, 4), dpi=100)
     for ax, key, label in ((axes[0], "error95", "Error (95%)  (lower is better)"), (axes[1], "ssim", "SSIM  (higher is better)")):

@@ -12,12 +12,12 @@ from types import SimpleNamespace
 
 import numpy as np
 
-from difftex.camera import Photo
-from difftex.mapping import map_texels, texel_mask, uv_frame
+from difftex.scene.camera import Photo
+from difftex.geometry.frames import map_texels, texel_mask, uv_frame
 from difftex.method.config import ComputeConfig, OptimizeConfig
-from difftex.proxy import Polygon
-from difftex.sampling import PolygonInput
-from difftex.texturing import texture_polygon
+from difftex.scene.proxy import Polygon
+from difftex.sampling.photos import PolygonInput
+from difftex.compose.texturing import texture_polygon
 
 WALL_W, WALL_H = 4.0, 3.0
 UP = np.array([0.0, 0.0, 1.0])
@@ -107,7 +107,7 @@ def gt_texture(inp: PolygonInput) -> np.ndarray:
 
 def photo_masks(inp: PolygonInput):
     """a_k^i for the analytic wall: pixels whose ray hits the wall inside its outline."""
-    from difftex.mapping import pixel_to_texel
+    from difftex.geometry.frames import pixel_to_texel
 
     boxes, crops = [], []
     for ph in inp.photos:
@@ -148,7 +148,7 @@ def write_scene(root, photos, images):
     """The analytic wall as a scene folder: COLMAP text model, PNG photos, proxy.obj."""
     from scipy.spatial.transform import Rotation
 
-    from difftex.io import write_image
+    from difftex.scene.files import write_image
 
     (root / "sparse" / "0").mkdir(parents=True)
     (root / "images").mkdir()

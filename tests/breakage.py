@@ -7,7 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
-TEMP_GLOB = ".*.part*"  # difftex.io.atomic_path's temporary files
+TEMP_GLOB = ".*.part*"  # difftex.scene.files.atomic_path's temporary files
 
 
 def copy_scene(src: Path, dst: Path) -> Path:

@@ -6,7 +6,7 @@ from pathlib import Path
 
 import numpy as np
 
-from difftex.io import write_image
+from difftex.scene.files import write_image
 
 
 def look_at(center, target, up=(0.0, 0.0, 1.0)) -> tuple[np.ndarray, np.ndarray]:

@@ -11,10 +11,10 @@ import pytest
 import torch
 
 from analytic import fast_cfg, gt_texture, make_input, make_photo, render
-from difftex.mapping import texel_to_pixel
+from difftex.geometry.frames import texel_to_pixel
 from difftex.method.config import ComputeConfig
-from difftex.sampling import Correction
-from difftex.texturing import texture_polygon
+from difftex.sampling.photos import Correction
+from difftex.compose.texturing import texture_polygon
 
 torch.set_num_threads(1)
 

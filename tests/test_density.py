@@ -12,9 +12,9 @@ import numpy as np
 import pytest
 
 from difftex.config import TextureConfig
-from difftex.density import BYTES_PER_TEXEL_SLOT, choose_texel_size, photo_texel_size
-from difftex.scene import load_scene
-from difftex.visibility import scene_visibility
+from difftex.geometry.density import BYTES_PER_TEXEL_SLOT, choose_texel_size, photo_texel_size
+from difftex.scene.loading import load_scene
+from difftex.geometry.visibility import scene_visibility
 from tests.scenes import make_scene, wall
 
 SIZE = (320, 240)

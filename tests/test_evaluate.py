@@ -9,11 +9,19 @@ import numpy as np
 import pytest
 
 from difftex.errors import DifftexError
-from difftex.evaluate import (EvaluateConfig, PolygonTexture, check_same_plane, evaluate_maps, prepare_holdout,
-                              render_proxy, resample_texture, view_weights)
-from difftex.io import write_image, write_json
-from difftex.mapping import UVFrame, texel_mask, uv_frame
-from difftex.proxy import Polygon
+from difftex.evaluation.evaluate import (
+    EvaluateConfig,
+    PolygonTexture,
+    check_same_plane,
+    evaluate_maps,
+    prepare_holdout,
+    render_proxy,
+    resample_texture,
+    view_weights,
+)
+from difftex.scene.files import write_image, write_json
+from difftex.geometry.frames import UVFrame, texel_mask, uv_frame
+from difftex.scene.proxy import Polygon
 from tests.scenes import make_scene, wall
 
 UP = np.array([0.0, 0.0, 1.0])
@@ -72,7 +80,7 @@ def test_check_same_plane_rejects_other_planes():
 def test_dominant_photos_come_back_from_source_npz_not_from_colours(tmp_path):
     """The evaluation reads each texel's dominant photo from source.npz (numbers), whatever
     colours source.png uses; texels no photo saw, or outside the polygon, have none."""
-    from difftex.outputs import write_texture_outputs
+    from difftex.compose.outputs import write_texture_outputs
 
     names = ["a.jpg", "b.jpg", "c.jpg"]
     frame = uv_frame(poly(), UP, long_side=30)
@@ -113,7 +121,7 @@ def test_map_metrics_known_answers(tmp_path, offset):
 
 
 def test_map_metrics_lpips_column_says_what_made_it(tmp_path, monkeypatch, caplog):
-    from difftex import metrics
+    from difftex.evaluation import metrics
 
     frame = uv_frame(poly(), UP, long_side=64)
     mask = texel_mask(poly(), frame)
@@ -147,7 +155,7 @@ def test_map_metrics_at_another_resolution_resample_first(tmp_path):
 
 
 def test_render_proxy_reproduces_the_texture_at_each_pixel(tmp_path):
-    from difftex.scene import load_scene
+    from difftex.scene.loading import load_scene
 
     root = make_scene(tmp_path / "s", size=(96, 72))
     sc = load_scene(root)
@@ -168,7 +176,7 @@ def test_render_proxy_reproduces_the_texture_at_each_pixel(tmp_path):
 
 
 def test_prepare_holdout_removes_the_photos_from_the_model(tmp_path):
-    from difftex.scene import load_scene
+    from difftex.scene.loading import load_scene
 
     root = make_scene(tmp_path / "s", centers=((0, -6, 1), (2, -6, 1.5), (-2, -5, 0.5), (1, -7, 1)))
     info = prepare_holdout(root, 1, tmp_path / "copy")
@@ -188,7 +196,7 @@ def test_prepare_holdout_removes_the_photos_from_the_model(tmp_path):
 
 @pytest.mark.skipif(not (SHARED / "lund-door").is_dir(), reason="shared real scenes not present")
 def test_prepare_holdout_on_a_real_scene_keeps_tracks_consistent(tmp_path):
-    from difftex.camera import read_reconstruction
+    from difftex.scene.camera import read_reconstruction
 
     info = prepare_holdout(SHARED / "lund-door", 2, tmp_path / "copy")
     rec = read_reconstruction(tmp_path / "copy" / "sparse" / "0")
@@ -199,8 +207,8 @@ def test_prepare_holdout_on_a_real_scene_keeps_tracks_consistent(tmp_path):
 
 def test_textured_obj_reads_back_into_the_uv_frames(tmp_path):
     """texrecon's output is read back with import_obj; difftex's own assembled OBJ is a known answer."""
-    from difftex.assemble import AssembleConfig, PolygonTexture as AT, assemble
-    from difftex.texrecon import import_obj
+    from difftex.export.assemble import AssembleConfig, PolygonTexture as AT, assemble
+    from difftex.evaluation.peers.texrecon import import_obj
 
     p = poly()
     frame = uv_frame(p, UP, long_side=64)
@@ -213,8 +221,8 @@ def test_textured_obj_reads_back_into_the_uv_frames(tmp_path):
 
 
 def test_texrecon_cam_file_encodes_the_camera(tmp_path):
-    from difftex.scene import load_scene
-    from difftex.texrecon import cam_file_text
+    from difftex.scene.loading import load_scene
+    from difftex.evaluation.peers.texrecon import cam_file_text
 
     ph = load_scene(make_scene(tmp_path / "s", size=(96, 72))).photos[0]
     l1, l2 = [list(map(float, ln.split())) for ln in cam_file_text(ph).splitlines()]

@@ -19,7 +19,7 @@ import numpy as np
 import pytest
 
 from difftex.cli import main
-from difftex.io import read_image, read_json, write_image
+from difftex.scene.files import read_image, read_json, write_image
 from tests import breakage as B
 
 
@@ -396,7 +396,7 @@ def test_full_disk_during_a_write_leaves_nothing(tmp_path, monkeypatch):
     """A writer that fails with ENOSPC half-way: one line naming the final file, the temporary
     file removed, the previous version of the file untouched."""
     from difftex.errors import DifftexError
-    from difftex.io import atomic_path, write_json
+    from difftex.scene.files import atomic_path, write_json
 
     target = tmp_path / "r" / "stats.json"
     write_json(target, {"old": 1})
@@ -412,19 +412,19 @@ def test_full_disk_during_a_write_leaves_nothing(tmp_path, monkeypatch):
 
 def test_cli_turns_os_errors_into_one_line(small_synth_scene, tmp_path, capsys, monkeypatch):
     """An OS error outside the atomic writers (here: reading a photo) is one line naming the file."""
-    import difftex.filtering
+    import difftex.geometry.photo_filter
 
     def fail(path, *a, **k):
         raise PermissionError(errno.EACCES, os.strerror(errno.EACCES), str(path))
 
-    monkeypatch.setattr(difftex.filtering, "decode_photo", fail)
+    monkeypatch.setattr(difftex.geometry.photo_filter, "decode_photo", fail)
     code, err = run_filter(capsys, small_synth_scene, tmp_path)
     assert_error(code, err, "img_0000.png", "Permission denied")
 
 
 @pytest.mark.parametrize("umask, mode", [(0o022, 0o644), (0o002, 0o664), (0o077, 0o600)])
 def test_outputs_follow_the_umask(tmp_path, umask, mode):
-    from difftex.io import write_image as wi, write_json, write_npz
+    from difftex.scene.files import write_image as wi, write_json, write_npz
 
     old = os.umask(umask)
     try:

@@ -6,9 +6,9 @@ import numpy as np
 import pycolmap
 import pytest
 
-from difftex.camera import Photo
-from difftex.mapping import map_texels, pixel_to_texel, texel_mask, texel_to_pixel, uv_frame
-from difftex.proxy import Polygon, load_proxy
+from difftex.scene.camera import Photo
+from difftex.geometry.frames import map_texels, pixel_to_texel, texel_mask, texel_to_pixel, uv_frame
+from difftex.scene.proxy import Polygon, load_proxy
 from tests.scenes import look_at, wall, write_obj
 
 CAMERA_MODELS = [

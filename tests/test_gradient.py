@@ -8,7 +8,7 @@ import dataclasses
 import pytest
 import torch
 
-from difftex import losses
+from difftex.method import losses
 from difftex.method.config import OptimizeConfig
 from difftex.method.gradient import Adam, texel_data, texel_value_and_grad
 from difftex.method.objective import objective

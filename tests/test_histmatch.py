@@ -7,8 +7,10 @@ import pytest
 import torch
 
 from analytic import make_input, make_photo, render
-from difftex import colour, histmatch
-from difftex.sampling import PhotoSet, level_frame, resample_nearest
+from difftex.sampling import colour
+from difftex.compose import histmatch
+from difftex.sampling.photos import PhotoSet
+from difftex.sampling.texels import level_frame, resample_nearest
 
 torch.set_num_threads(1)
 

@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 
 from difftex.cli import main
-from difftex.io import write_image
-from difftex.proxy import load_proxy
+from difftex.scene.files import write_image
+from difftex.scene.proxy import load_proxy
 from tests.scenes import make_scene, wall, write_obj
 
 
@@ -111,7 +111,7 @@ def test_unsupported_proxy_format(scene, capsys):
 
 
 def test_camera_that_sees_nothing_is_dropped_with_its_reason(tmp_path, capsys):
-    from difftex.io import read_json
+    from difftex.scene.files import read_json
 
     root = make_scene(tmp_path / "s", centers=[(0.0, -6.0, 1.0), (0.5, -6.0, 1.0), (0.0, 6.0, 1.0)])
     out = tmp_path / "r" / "photos.json"

@@ -14,9 +14,9 @@ torch.set_num_threads(1)
 
 from analytic import fast_cfg, gt_texture, make_input, make_photo, optimize, render, write_scene
 from difftex.config import FilterConfig
-from difftex.filtering import filter_photos
-from difftex.io import read_image, read_json
-from difftex.scene import load_scene
+from difftex.geometry.photo_filter import filter_photos
+from difftex.scene.files import read_image, read_json
+from difftex.scene.loading import load_scene
 from tests.scenes import make_scene, wall
 
 # ---------------------------------------------------------------------------------------------
@@ -28,7 +28,7 @@ def test_polygon_seen_only_at_85_degrees_is_textured_not_grey(tmp_path):
     keeps the oblique photos, the texture follows the wall's pattern, and the model summary
     and the end-of-run message say it was textured from oblique photos."""
     from difftex.cli import main
-    from difftex.workflow import format_summary, run_summary
+    from difftex.workflow.glue import format_summary, run_summary
 
     photos = [make_photo("a.png", 85.0, dist=6.0), make_photo("b.png", -86.0, dist=6.0),
               make_photo("c.png", 84.0, dist=7.0, pitch_deg=5.0)]
@@ -102,7 +102,7 @@ def test_untextured_polygons_are_named_with_the_reason(tmp_path, caplog):
 def test_blurry_photos_are_the_reason_only_when_every_photo_of_it_is_blurry(tmp_path):
     from scipy.ndimage import gaussian_filter
 
-    from difftex.io import write_image
+    from difftex.scene.files import write_image
 
     # three cameras see the front wall, the fourth (to be blurred) only the side wall
     root = make_scene(tmp_path / "s", polygons={"front": wall(-2, 2, 0, 2), "side": wall(8, 9, 0, 2)},
@@ -140,7 +140,7 @@ def _sighting(name, cos):
 
 
 def test_last_sources_rescue_only_photos_that_add_texels():
-    from difftex.visibility import last_sources
+    from difftex.geometry.visibility import last_sources
 
     mask = np.ones((4, 6), bool)
     left = np.zeros_like(mask)
@@ -165,7 +165,7 @@ def test_inclined_photo_returns_for_the_texels_only_it_sees(tmp_path):
     """A frontal close-up sees the left part of the wall; an oblique photo sees all of it. The
     filter drops the oblique one (inclined), the visibility stage takes it back for the rest."""
     from difftex.config import TextureConfig
-    from difftex.visibility import scene_visibility
+    from difftex.geometry.visibility import scene_visibility
 
     root = make_scene(tmp_path / "s", centers=[(-1.2, -1.5, 1.0), (8.0, -1.0, 1.0)], target=(-1.2, 0.0, 1.0))
     sc = load_scene(root)
@@ -185,7 +185,7 @@ def test_inclined_photo_returns_for_the_texels_only_it_sees(tmp_path):
 
 def test_min_texels_does_not_take_a_polygons_only_photos(tmp_path):
     from difftex.config import TextureConfig
-    from difftex.visibility import scene_visibility
+    from difftex.geometry.visibility import scene_visibility
 
     root = make_scene(tmp_path / "s")
     sc = load_scene(root)
@@ -239,7 +239,7 @@ def test_photo_drop_keeps_the_texels_only_the_dropped_photo_sees():
 
 def test_model_summary_and_end_message_name_the_untextured_with_their_reason():
     from difftex.cli.assemble import polygon_notes
-    from difftex.workflow import format_summary
+    from difftex.workflow.glue import format_summary
 
     rows = [{"id": "front", "textured": True, "coverage": 1.0, "photos": 3, "texture_size": [64, 32]},
             {"id": "side", "textured": True, "coverage": 0.8, "photos": 1, "texture_size": [16, 32]},

@@ -1,4 +1,4 @@
-"""Known-answer tests for difftex.metrics, and its metrics against piq / scikit-image / the reference
+"""Known-answer tests for difftex.evaluation.metrics, and its metrics against piq / scikit-image / the reference
 LPIPS packages on the same image pairs."""
 
 from __future__ import annotations
@@ -11,7 +11,7 @@ import pytest
 import torch
 from scipy import ndimage
 
-from difftex import metrics
+from difftex.evaluation import metrics
 from difftex.errors import DifftexError
 
 

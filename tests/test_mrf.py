@@ -11,11 +11,11 @@ import torch
 
 torch.set_num_threads(1)
 
-from difftex.camera import Photo
-from difftex.mapping import map_texels, texel_mask, uv_frame
-from difftex.mrf import MRFConfig, energy, level_gains, mrf_texture, patch_sums, run_polygon, solve_labels
-from difftex.sampling import PolygonInput
-from difftex.proxy import Polygon
+from difftex.scene.camera import Photo
+from difftex.geometry.frames import map_texels, texel_mask, uv_frame
+from difftex.evaluation.mrf import MRFConfig, energy, level_gains, mrf_texture, patch_sums, run_polygon, solve_labels
+from difftex.sampling.photos import PolygonInput
+from difftex.scene.proxy import Polygon
 
 WALL_W, WALL_H = 4.0, 3.0
 UP = np.array([0.0, 0.0, 1.0])
@@ -189,7 +189,7 @@ def test_config_rejects_bad_values():
 
 
 def test_consistency_penalty_flags_the_odd_photo_out():
-    from difftex.mrf import consistency_penalty
+    from difftex.evaluation.mrf import consistency_penalty
 
     means = np.full((4, 2, 2, 3), 0.5)
     means[2, 0, 0] = [0.1, 0.6, 0.1]  # an occluder (a green tree) in photo 2, patch (0, 0)

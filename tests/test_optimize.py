@@ -14,10 +14,10 @@ torch.set_num_threads(1)  # the CI machine has 2 shared cores; intra-op threads 
 
 from analytic import (UP, fast_cfg, gt_texture, make_input, make_photo, occluded_region, optimize, paint_occluder,
                       photo_masks, render, wall, write_scene)
-from difftex.mapping import map_texels, sample_photo
+from difftex.geometry.frames import map_texels, sample_photo
 from difftex.method.config import OptimizeConfig
 from difftex.method.loop import photo_weight
-from difftex.sampling import level_sides
+from difftex.sampling.texels import level_sides
 
 # ------------------------------------------------------------------------------------------
 
@@ -47,7 +47,7 @@ def test_single_frontal_photo_gives_the_rectified_photo(mode):
     # 128 texels over 4 m: a texel (3.1 cm) is smaller than a pixel (4 cm), so level 0 is sampled
     inp = make_input([ph], [img], long_side=128)
     if mode == "render":
-        from difftex.visibility import id_buffer  # noqa: F401  (only the masks are needed)
+        from difftex.geometry.visibility import id_buffer  # noqa: F401  (only the masks are needed)
 
         inp.a_bbox, inp.a_masks = photo_masks(inp)
     res = optimize(inp, fast_cfg(loss_mode=mode))
@@ -190,7 +190,7 @@ def test_cuda_matches_cpu():
 
 
 def test_fill_holes_fills_everything_and_keeps_known_texels():
-    from difftex.texture import fill_holes
+    from difftex.compose.composite import fill_holes
 
     rng = np.random.default_rng(0)
     img = rng.random((40, 50, 3)).astype(np.float32)
@@ -207,7 +207,7 @@ def test_command_chain_on_the_analytic_wall(tmp_path):
     import json
 
     from difftex.cli import main
-    from difftex.io import read_image
+    from difftex.scene.files import read_image
 
     photos = [make_photo("a.png", -15.0), make_photo("b.png", 5.0), make_photo("c.png", 25.0)]
     imgs = [render(ph) for ph in photos]
@@ -229,7 +229,7 @@ def test_command_chain_on_the_analytic_wall(tmp_path):
     assert report["coverage"] == 1.0 and report["histogram_matching"]
     tex = read_image(R / "tex" / "texture.png")
     avg = read_image(R / "avg" / "texture.png")
-    from difftex.mapping import uv_frame
+    from difftex.geometry.frames import uv_frame
 
     frame = uv_frame(wall(), UP, long_side=64)
     inp = make_input(photos, imgs, long_side=64)

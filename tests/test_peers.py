@@ -15,8 +15,8 @@ import numpy as np
 import pytest
 
 from difftex.errors import DifftexError
-from difftex.mapping import texel_mask, uv_frame
-from difftex.proxy import Polygon
+from difftex.geometry.frames import texel_mask, uv_frame
+from difftex.scene.proxy import Polygon
 from tests.scenes import look_at, make_scene, wall, write_colmap_text, write_obj
 
 REPO = Path(__file__).resolve().parents[1]
@@ -25,7 +25,7 @@ UP = np.array([0.0, 0.0, 1.0])
 
 
 def load_photo(tmp_path, model="SIMPLE_RADIAL", params=None, size=(160, 120)):
-    from difftex.scene import load_scene
+    from difftex.scene.loading import load_scene
 
     return load_scene(make_scene(tmp_path / "s", size=size, model=model, params=params)).photos[0]
 
@@ -48,7 +48,7 @@ def points_in_view(photo, n=200, seed=0) -> np.ndarray:
     ("OPENCV", [150.0, 148.0, 83.0, 57.0, -0.1, 0.02, 0.001, -0.002]),
 ])
 def test_ideal_camera_sees_each_point_where_the_photo_does(tmp_path, model, params):
-    from difftex.pinhole import ideal_camera, to_source_pixels
+    from difftex.geometry.pinhole import ideal_camera, to_source_pixels
 
     ph = load_photo(tmp_path, model, params)
     cam = ideal_camera(ph)
@@ -69,7 +69,7 @@ def test_ideal_camera_sees_each_point_where_the_photo_does(tmp_path, model, para
 
 
 def test_resampled_photo_shows_the_photo_content_at_the_same_rays(tmp_path):
-    from difftex.pinhole import ideal_camera, resample, to_source_pixels
+    from difftex.geometry.pinhole import ideal_camera, resample, to_source_pixels
 
     ph = load_photo(tmp_path, "SIMPLE_RADIAL", [150.0, 95.0, 50.0, -0.1])
 
@@ -132,9 +132,9 @@ def mve_project(cam_text: str, X: np.ndarray, width: int, height: int) -> np.nda
 @pytest.mark.parametrize("size,params", [((160, 120), [150.0, 95.0, 50.0, -0.1]),  # landscape
                                          ((90, 140), [120.0, 40.0, 80.0, 0.05])])  # portrait
 def test_bundler_and_texrecon_cameras_project_like_difftex(tmp_path, size, params):
-    from difftex.meshlab import bundler_text
-    from difftex.pinhole import ideal_camera, to_source_pixels
-    from difftex.texrecon import cam_file_text
+    from difftex.evaluation.peers.meshlab import bundler_text
+    from difftex.geometry.pinhole import ideal_camera, to_source_pixels
+    from difftex.evaluation.peers.texrecon import cam_file_text
 
     ph = load_photo(tmp_path, "SIMPLE_RADIAL", params, size=size)
     cam = ideal_camera(ph)
@@ -150,9 +150,9 @@ def test_bundler_and_texrecon_cameras_project_like_difftex(tmp_path, size, param
 @pytest.mark.skipif(not (SHARED / "herzjesu-p8").is_dir(), reason="shared real scenes not present")
 def test_bundler_export_of_a_real_camera_with_off_centre_principal_point():
     """herzjesu-p8: fx != fy and the principal point 30 px off-centre, so the crop matters."""
-    from difftex.meshlab import bundler_text
-    from difftex.pinhole import ideal_camera, to_source_pixels
-    from difftex.scene import load_scene
+    from difftex.evaluation.peers.meshlab import bundler_text
+    from difftex.geometry.pinhole import ideal_camera, to_source_pixels
+    from difftex.scene.loading import load_scene
 
     sc = load_scene(SHARED / "herzjesu-p8", check_images=False)
     ph = sc.photos[3]
@@ -183,8 +183,8 @@ def u_with_hole() -> Polygon:
 def test_proxy_mesh_covers_exactly_the_polygon_with_no_flipped_triangle(max_edge):
     import shapely
 
-    from difftex.meshing import longest_edge, proxy_mesh
-    from difftex.proxy import Proxy
+    from difftex.geometry.meshing import longest_edge, proxy_mesh
+    from difftex.scene.proxy import Proxy
 
     poly = u_with_hole()
     mesh = proxy_mesh(Proxy([poly], Path("u.obj")), max_edge)
@@ -210,8 +210,8 @@ def test_proxy_mesh_covers_exactly_the_polygon_with_no_flipped_triangle(max_edge
 
 
 def test_proxy_mesh_refuses_an_absurd_edge_length():
-    from difftex.meshing import proxy_mesh
-    from difftex.proxy import Proxy
+    from difftex.geometry.meshing import proxy_mesh
+    from difftex.scene.proxy import Proxy
 
     with pytest.raises(DifftexError, match="edge length"):
         proxy_mesh(Proxy([u_with_hole()], Path("u.obj")), 1e-4)
@@ -220,9 +220,9 @@ def test_proxy_mesh_refuses_an_absurd_edge_length():
 
 
 def test_rasterized_mesh_reaches_every_texel_of_the_polygon():
-    from difftex.meshing import proxy_mesh
-    from difftex.objimport import polygon_face_map
-    from difftex.proxy import Proxy
+    from difftex.geometry.meshing import proxy_mesh
+    from difftex.evaluation.peers.objimport import polygon_face_map
+    from difftex.scene.proxy import Proxy
 
     poly = u_with_hole()
     mesh = proxy_mesh(Proxy([poly], Path("u.obj")), 0.3)
@@ -243,8 +243,8 @@ def test_rasterized_mesh_reaches_every_texel_of_the_polygon():
 def test_import_weights_the_atlas_by_its_coverage(tmp_path):
     """Half of the atlas is black (MeshLab's 'no photo'): those texels are uncovered, and the
     covered ones next to them keep their colour (no bleeding of black through bilinear lookups)."""
-    from difftex.io import write_image
-    from difftex.objimport import import_obj
+    from difftex.scene.files import write_image
+    from difftex.evaluation.peers.objimport import import_obj
 
     p = Polygon("front", wall(-2, 2, 0, 2))
     frame = uv_frame(p, UP, long_side=64)
@@ -278,8 +278,8 @@ def pattern(x, z):
 
 def rendered_scene(root: Path) -> Path:
     """A 4 x 2 wall at y = 0 with :func:`pattern`, seen by four cameras, one distorted and off-centre."""
-    from difftex.camera import load_photos
-    from difftex.io import write_image
+    from difftex.scene.camera import load_photos
+    from difftex.scene.files import write_image
 
     centers = [(0.0, -6.0, 1.0), (2.0, -5.5, 1.5), (-2.0, -5.0, 0.5), (0.5, -4.5, 1.2)]
     images = []
@@ -311,8 +311,8 @@ def run_and_compare(tmp_path, method):
     import json
 
     from difftex.cli import main
-    from difftex.io import read_image
-    from difftex.visibility import load_visibility
+    from difftex.scene.files import read_image
+    from difftex.geometry.visibility import load_visibility
 
     scene = rendered_scene(tmp_path / "scene")
     cfg = tmp_path / "cfg.yaml"
@@ -367,16 +367,16 @@ def check_texture(peer, avg, truth, mask):
 
 
 @pytest.mark.slow
-@pytest.mark.skipif(__import__("difftex.meshlab", fromlist=["x"]).unavailable_reason() != "",
-                    reason="MeshLab unavailable: " + __import__("difftex.meshlab", fromlist=["x"]).unavailable_reason())
+@pytest.mark.skipif(__import__("difftex.evaluation.peers.meshlab", fromlist=["x"]).unavailable_reason() != "",
+                    reason="MeshLab unavailable: " + __import__("difftex.evaluation.peers.meshlab", fromlist=["x"]).unavailable_reason())
 @pytest.mark.parametrize("method", ["meshlab-blend", "meshlab-face"])
 def test_meshlab_end_to_end_matches_the_photos(tmp_path, method):
     check_texture(*run_and_compare(tmp_path, method))
 
 
 @pytest.mark.slow
-@pytest.mark.skipif(not __import__("difftex.texrecon", fromlist=["x"]).available(),
-                    reason=__import__("difftex.texrecon", fromlist=["x"]).unavailable_reason() or "texrecon unavailable")
+@pytest.mark.skipif(not __import__("difftex.evaluation.peers.texrecon", fromlist=["x"]).available(),
+                    reason=__import__("difftex.evaluation.peers.texrecon", fromlist=["x"]).unavailable_reason() or "texrecon unavailable")
 def test_texrecon_end_to_end_matches_the_photos(tmp_path):
     check_texture(*run_and_compare(tmp_path, "texrecon"))
 

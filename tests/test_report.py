@@ -12,9 +12,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from difftex.io import read_image, write_image, write_json
-from difftex.outputs import FILLED_GREY, palette, source_map, write_texture_outputs
-from difftex.report import comparison_page, markdown_table_html, write_report
+from difftex.scene.files import read_image, write_image, write_json
+from difftex.compose.outputs import FILLED_GREY, palette, source_map, write_texture_outputs
+from difftex.evaluation.report import comparison_page, markdown_table_html, write_report
 
 CHROMIUM = Path("/usr/bin/chromium")
 

@@ -9,7 +9,7 @@ from pathlib import Path
 
 import pytest
 
-from difftex import runguard, runlog
+from difftex.workflow import runguard, runlog
 
 
 def test_second_guard_in_the_same_folder_is_refused(tmp_path, monkeypatch, capsys):

@@ -15,7 +15,7 @@ import pytest
 
 pytest.importorskip("mitsuba")
 
-from difftex.io import read_image  # noqa: E402
+from difftex.scene.files import read_image  # noqa: E402
 from difftex.synth import generate, get_preset  # noqa: E402
 
 CLEAN = dict(views=6, held_out_views=1, width=240, height=180, gt_long_side=384, points3d=40, occluders=False,
@@ -132,8 +132,8 @@ def test_ground_truth_map_matches_frontal_photos(clean_scene):
     """
     from scipy import ndimage
 
-    from difftex.mapping import UVFrame
-    from difftex.proxy import load_proxy
+    from difftex.geometry.frames import UVFrame
+    from difftex.scene.proxy import load_proxy
     from difftex.synth.pipeline import position_image
 
     root = clean_scene
@@ -185,8 +185,8 @@ def test_ground_truth_map_matches_frontal_photos(clean_scene):
 
 def test_frames_match_difftex_uv_frames(tiny_scene):
     """The written frames are the ones difftex computes from the scene (same up, same frame)."""
-    from difftex.mapping import UVFrame, uv_frame
-    from difftex.scene import load_scene
+    from difftex.geometry.frames import UVFrame, uv_frame
+    from difftex.scene.loading import load_scene
 
     scene = load_scene(tiny_scene)
     assert len(scene.photos) == get_preset("tiny").views and len(scene.proxy.polygons) >= 6
@@ -224,7 +224,7 @@ def test_layout_and_pictures(tiny_scene):
 def test_polygon_ids_agree_with_rendered_geometry(tiny_scene):
     """The id image says which proxy polygon a held-out pixel sees; Mitsuba's surface point there
     (occluder-free) must lie on that polygon's plane, up to the relief depth."""
-    from difftex.proxy import load_proxy
+    from difftex.scene.proxy import load_proxy
     from difftex.synth.pipeline import position_image
 
     man = _manifest(tiny_scene)

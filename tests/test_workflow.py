@@ -13,7 +13,7 @@ from pathlib import Path
 
 import pytest
 
-from difftex import workflow as wf
+from difftex.workflow import glue as wf
 from difftex.errors import DifftexError
 
 REPO = Path(__file__).resolve().parents[1]
@@ -162,8 +162,8 @@ def test_workflow_end_to_end(tiny_scene, tmp_path):
     import numpy as np
     import trimesh
 
-    from difftex.io import read_json
-    from difftex.proxy import load_proxy
+    from difftex.scene.files import read_json
+    from difftex.scene.proxy import load_proxy
 
     work = tmp_path / "work"
     # smaller than the fast preset: the test checks the plumbing, not the texture quality
@@ -235,12 +235,12 @@ def test_config_yaml_mirrors_the_stage_dataclasses():
 
     import yaml
 
-    from difftex.assemble import AssembleConfig
+    from difftex.export.assemble import AssembleConfig
     from difftex.config import FilterConfig, TextureConfig, VisibilityConfig
 
-    from difftex.evaluate import EvaluateConfig
+    from difftex.evaluation.evaluate import EvaluateConfig
     from difftex.method.config import ComputeConfig, OptimizeConfig
-    from difftex.outputs import OutputConfig
+    from difftex.compose.outputs import OutputConfig
 
     classes = {
         "texture": TextureConfig,

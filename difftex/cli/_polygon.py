@@ -23,9 +23,9 @@ def load(args):
 
     from difftex.config import section
     from difftex.method.config import ComputeConfig, OptimizeConfig
-    from difftex.sampling import polygon_input_from_visibility
-    from difftex.scene import load_scene
-    from difftex.visibility import load_visibility
+    from difftex.sampling.photos import polygon_input_from_visibility
+    from difftex.scene.loading import load_scene
+    from difftex.geometry.visibility import load_visibility
 
     if args.threads and args.threads > 0:
         torch.set_num_threads(args.threads)

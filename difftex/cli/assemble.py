@@ -25,7 +25,7 @@ def _read_frame_and_mask(path):
     import numpy as np
 
     from difftex.errors import DifftexError
-    from difftex.mapping import UVFrame
+    from difftex.geometry.frames import UVFrame
 
     try:
         with np.load(path, allow_pickle=False) as d:
@@ -44,11 +44,11 @@ def _view_check(scene_dir, proxy, info, glb, out_png) -> dict | None:
 
     import numpy as np
 
-    from difftex.assemble import render_view
-    from difftex.camera import load_photos
-    from difftex.io import read_image, write_image
-    from difftex.mapping import sample_photo
-    from difftex.scene import find_sparse
+    from difftex.export.assemble import render_view
+    from difftex.scene.camera import load_photos
+    from difftex.scene.files import read_image, write_image
+    from difftex.geometry.frames import sample_photo
+    from difftex.scene.loading import find_sparse
 
     counts = Counter(name for row in info.values() for name in row.get("photos", []))
     if not counts:
@@ -94,13 +94,13 @@ def run(args) -> int:
     from rich.console import Console
     from rich.progress import track
 
-    from difftex.assemble import AssembleConfig, PolygonTexture, assemble
+    from difftex.export.assemble import AssembleConfig, PolygonTexture, assemble
     from difftex.config import section
     from difftex.errors import DifftexError
-    from difftex.io import read_image, read_json, write_json
-    from difftex.proxy import load_proxy
-    from difftex.outputs import OutputConfig
-    from difftex.scene import find_proxy
+    from difftex.scene.files import read_image, read_json, write_json
+    from difftex.scene.proxy import load_proxy
+    from difftex.compose.outputs import OutputConfig
+    from difftex.scene.loading import find_proxy
 
     t0 = time.time()
     console = Console(stderr=True)

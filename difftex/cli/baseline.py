@@ -17,10 +17,10 @@ def add_arguments(parser) -> None:
 def run(args) -> int:
     import time
 
-    from difftex.baselines import baseline_texture
+    from difftex.evaluation.baselines import baseline_texture
     from difftex.cli._polygon import load
-    from difftex.outputs import write_texture_outputs
-    from difftex.texture import finish_texture
+    from difftex.compose.outputs import write_texture_outputs
+    from difftex.compose.composite import finish_texture
 
     t0 = time.perf_counter()
     _, compute, inp = load(args)

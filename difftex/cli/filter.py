@@ -17,8 +17,8 @@ def run(args) -> int:
     from pathlib import Path
 
     from difftex.config import FilterConfig, section
-    from difftex.filtering import filter_photos, write_table
-    from difftex.scene import load_scene
+    from difftex.geometry.photo_filter import filter_photos, write_table
+    from difftex.scene.loading import load_scene
 
     cfg = section(args.config, "filter", FilterConfig)
     scene = load_scene(args.scene)

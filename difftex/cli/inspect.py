@@ -19,10 +19,10 @@ def run(args) -> int:
 
     import numpy as np
 
-    from difftex.io import read_image, write_image
-    from difftex.mapping import uv_frame
-    from difftex.overlay import proxy_overlay
-    from difftex.scene import load_scene
+    from difftex.scene.files import read_image, write_image
+    from difftex.geometry.frames import uv_frame
+    from difftex.export.overlay import proxy_overlay
+    from difftex.scene.loading import load_scene
 
     t0 = time.perf_counter()
     scene = load_scene(args.scene)

@@ -20,7 +20,7 @@ def run(args) -> int:
 
     from difftex.cli._polygon import load
     from difftex.config import section
-    from difftex.mrf import MRFConfig, run_polygon
+    from difftex.evaluation.mrf import MRFConfig, run_polygon
 
     _, compute, inp = load(args)
     mcfg = section(args.config, "mrf", MRFConfig)

@@ -7,7 +7,7 @@ HELP = "texture a scene with a peer program (texrecon, MeshLab per-face or per-t
 
 
 def add_arguments(p) -> None:
-    from difftex.peer import PEERS
+    from difftex.evaluation.peers.run import PEERS
 
     p.add_argument("--method", required=True, choices=PEERS)
     p.add_argument("--scene", required=True, help="scene folder (images/, sparse/0/, proxy)")
@@ -29,7 +29,7 @@ def add_arguments(p) -> None:
 def run(args) -> int:
     from difftex.config import TextureConfig, section
     from difftex.errors import DifftexError
-    from difftex.peer import PeerConfig, run_peer
+    from difftex.evaluation.peers.run import PeerConfig, run_peer
 
     tex = section(args.config, "texture", TextureConfig)
     long_side, density = tex.long_side, tex.density  # density wins when set, as in difftex visibility

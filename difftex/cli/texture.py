@@ -20,8 +20,8 @@ def add_arguments(parser) -> None:
 
 def run(args) -> int:
     from difftex.cli._polygon import load
-    from difftex.outputs import write_texture_outputs
-    from difftex.texturing import texture_polygon, write_polygon
+    from difftex.compose.outputs import write_texture_outputs
+    from difftex.compose.texturing import texture_polygon, write_polygon
 
     cfg, compute, inp = load(args)
     tp = texture_polygon(inp, cfg, compute, progress=not args.no_progress)

@@ -19,7 +19,7 @@ def polygon_notes(filtered: dict, vis) -> dict:
 
     Args:
         filtered: the filter table's record of the polygon (may be empty).
-        vis: its difftex.visibility.PolygonVisibility.
+        vis: its difftex.geometry.visibility.PolygonVisibility.
     """
     out: dict = {}
     for key in ("textured_from_oblique", "oblique_angles", "textured_from_glimpses", "glimpses"):
@@ -40,9 +40,9 @@ def run(args) -> int:
 
     from difftex.errors import DifftexError
     from difftex.config import TextureConfig, VisibilityConfig, read_config, section
-    from difftex.io import read_json, write_json
-    from difftex.scene import load_scene
-    from difftex.visibility import save_visibility, scene_visibility
+    from difftex.scene.files import read_json, write_json
+    from difftex.scene.loading import load_scene
+    from difftex.geometry.visibility import save_visibility, scene_visibility
 
     t0 = time.perf_counter()
     tex = section(args.config, "texture", TextureConfig)

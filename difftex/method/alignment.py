@@ -9,7 +9,7 @@ each level are optimized, every candidate photo's mapping is corrected in its ow
 six parameters (translation d, affine part M normalised to the polygon's extent s in the photo)
 found by Gauss-Newton (Lucas-Kanade) against the consensus texture: the previous level's
 optimized texture, or at the first level the per-texel median of the photos. The photo is
-sampled through the same trilinear pyramid sampling as everywhere (difftex.sampling); its
+sampled through the same trilinear pyramid sampling as everywhere (difftex.sampling.photos); its
 gradient by central differences. A robust (Cauchy) weight ignores occluded texels, and a
 Gaussian prior of ``align_prior_px`` keeps corrections small where the texture says little
 (flat walls). The corrections accumulate from coarse to fine levels.
@@ -28,9 +28,10 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from difftex.colour import apply_transfer_torch
-from difftex.mapping import UVFrame
-from difftex.sampling import Correction, PhotoSet, resample_nearest, texel_map
+from difftex.sampling.colour import apply_transfer_torch
+from difftex.geometry.frames import UVFrame
+from difftex.sampling.photos import Correction, PhotoSet
+from difftex.sampling.texels import resample_nearest, texel_map
 
 MAX_POINTS = 65536  # texels per photo and Gauss-Newton step (a strided subset above it)
 

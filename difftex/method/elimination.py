@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import torch
 
-from difftex import losses
+from difftex.method import losses
 from difftex.method.config import OptimizeConfig
 from difftex.method.levels import Level
 

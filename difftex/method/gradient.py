@@ -16,8 +16,8 @@ from dataclasses import dataclass
 
 import torch
 
-from difftex import losses
-from difftex.losses import NeighbourMatch, crop_pair, para_edge_cost, smooth_abs
+from difftex.method import losses
+from difftex.method.losses import NeighbourMatch, crop_pair, para_edge_cost, smooth_abs
 
 
 @dataclass

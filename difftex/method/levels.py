@@ -16,10 +16,11 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from difftex import losses
-from difftex.mapping import UVFrame
+from difftex.method import losses
+from difftex.geometry.frames import UVFrame
 from difftex.method.config import OptimizeConfig
-from difftex.sampling import MappedPhoto, PhotoSet, Region, resample_nearest
+from difftex.sampling.photos import MappedPhoto, PhotoSet
+from difftex.sampling.texels import Region, resample_nearest
 
 MAP_CACHE_BYTES = 1 << 30  # mapped photos held at once while a level is built
 

@@ -15,16 +15,23 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from difftex import losses
+from difftex.method import losses
 from difftex.method import alignment, diagnostics
 from difftex.method.config import ComputeConfig, OptimizeConfig
-from difftex.method.elimination import (base_mask, dropped_slot_mask, eliminate_pixels, photo_zero_share,
-                                        photos_to_drop, update_activation)
+from difftex.method.elimination import (
+    base_mask,
+    dropped_slot_mask,
+    eliminate_pixels,
+    photo_zero_share,
+    photos_to_drop,
+    update_activation,
+)
 from difftex.method.levels import Level, build_level, upsample_field
 from difftex.method.gradient import Adam
 from difftex.method.objective import LevelState, compiled_objective, objective, value_and_grad
 from difftex.method.render import build_pixel_sets
-from difftex.sampling import MappedPhoto, PhotoSet, level_frame, level_sides, resample_nearest
+from difftex.sampling.photos import MappedPhoto, PhotoSet
+from difftex.sampling.texels import level_frame, level_sides, resample_nearest
 
 LOSS_KEYS = ("total", "render", "ghost", "persp", "para")
 

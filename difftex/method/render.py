@@ -13,12 +13,12 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from difftex import losses
-from difftex.colour import apply_transfer_torch
+from difftex.method import losses
+from difftex.sampling.colour import apply_transfer_torch
 from difftex.errors import DifftexError
-from difftex.mapping import pixel_to_texel
+from difftex.geometry.frames import pixel_to_texel
 from difftex.method.levels import Level
-from difftex.sampling import PhotoSet
+from difftex.sampling.photos import PhotoSet
 
 
 def render_support(lv: Level) -> torch.Tensor:

@@ -57,8 +57,8 @@ def run_scene(cfg: SynthConfig, spec: BuildingSpec, out: Path, seed: int, buildi
     import mitsuba
     from tqdm import tqdm
 
-    from difftex.io import write_image, write_json
-    from difftex.proxy import Polygon, write_proxy_obj
+    from difftex.scene.files import write_image, write_json
+    from difftex.scene.proxy import Polygon, write_proxy_obj
     from difftex.synth import cameras as cams
     from difftex.synth import render as rd
 
@@ -122,7 +122,7 @@ def run_scene(cfg: SynthConfig, spec: BuildingSpec, out: Path, seed: int, buildi
     gscene = rd.build_scene(variant, model, ground, ground_size, lighting, occluders=False)
     # The frame must be the one difftex will compute: it takes 'up' from the written cameras (~+z;
     # the exact vector matters for flat roofs, whose e_v comes from up's tiny horizontal part).
-    from difftex.camera import load_photos, scene_up
+    from difftex.scene.camera import load_photos, scene_up
 
     up = scene_up(load_photos(out / "sparse" / "0", out / "images", check_images=False))
     frames = _render_gt_maps(cfg, building, model, polygons, gscene, variant, gt, bar, up)
@@ -186,8 +186,8 @@ def run_scene(cfg: SynthConfig, spec: BuildingSpec, out: Path, seed: int, buildi
 
 
 def _render_gt_maps(cfg, building, model, polygons, gscene, variant, gt: Path, bar, up) -> dict:
-    from difftex.io import write_image, write_json
-    from difftex.mapping import texel_mask, uv_frame
+    from difftex.scene.files import write_image, write_json
+    from difftex.geometry.frames import texel_mask, uv_frame
     from difftex.synth import render as rd
 
     frames = {}

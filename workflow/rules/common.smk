@@ -11,8 +11,8 @@ sys.path.insert(0, str(Path(workflow.basedir)))
 # works without activating the environment (and cluster jobs use the same environment).
 shell.prefix(f"set -euo pipefail; export PATH={shlex.quote(str(Path(sys.executable).parent))}:$PATH; ")
 
-import difftex.workflow as wf
-from difftex import runguard, runlog
+import difftex.workflow.glue as wf
+from difftex.workflow import runguard, runlog
 from difftex.errors import DifftexError
 
 
@@ -50,7 +50,7 @@ except DifftexError as exc:
 
 RUN = config["run"]
 # One real run per working directory; a run killed earlier leaves stale locks that this one
-# clears (difftex/runguard.py). Called as an input function, when the kind of run is known.
+# clears (difftex/workflow/runguard.py). Called as an input function, when the kind of run is known.
 RUN_GUARD = runguard.RunGuard(R)
 
 
