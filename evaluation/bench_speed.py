@@ -139,7 +139,7 @@ def run_average(scene: Path, results: Path) -> dict:
 
 def subset_scene(scene: Path, n: int, out: Path) -> Path:
     from difftex.scene.camera import load_photos
-    from difftex.evaluation.evaluate import prepare_holdout
+    from difftex.evaluation.holdout import prepare_holdout
     from difftex.scene.loading import find_sparse
 
     names = [p.name for p in load_photos(find_sparse(scene), scene / "images", check_images=False)]

@@ -4,7 +4,7 @@
     python evaluation/stress.py --sizes 20,10,5,3 --seed 1 --polygons all
 
 For each size a seeded random subset of the scene's photos is kept (the scene is copied with the
-others removed from its COLMAP model: `difftex.evaluation.evaluate.prepare_holdout(..., keep=...)`), the
+others removed from its COLMAP model: `difftex.evaluation.holdout.prepare_holdout(..., keep=...)`), the
 whole pipeline runs on the copy and every method is scored on the ground-truth maps.
 """
 
@@ -36,7 +36,7 @@ def main(argv=None) -> int:
     import torch
 
     from difftex.scene.camera import read_reconstruction
-    from difftex.evaluation.evaluate import prepare_holdout
+    from difftex.evaluation.holdout import prepare_holdout
     from difftex.scene.loading import find_sparse
     from evaluation.table1 import ensure_synth
 

@@ -5,7 +5,7 @@
 
 The paper's scheme: per scene, some photos are held out (``--holdout N``: N photos spread evenly
 over the sorted names, or ``--holdout-names a.jpg,b.jpg``), the scene is copied without them
-(`difftex.evaluation.evaluate.prepare_holdout`: images symlinked, COLMAP model rewritten), every method
+(`difftex.evaluation.holdout.prepare_holdout`: images symlinked, COLMAP model rewritten), every method
 textures the proxy from the remaining photos, and the textured proxy is rendered into each
 held-out camera and compared with the held-out photo on the proxy's pixels. Q_front / Q_vc are
 computed on the texture maps from the view directions of the pixels that coloured each texel.
@@ -41,7 +41,7 @@ def main(argv=None) -> int:
 
     import torch
 
-    from difftex.evaluation.evaluate import prepare_holdout
+    from difftex.evaluation.holdout import prepare_holdout
     from difftex.evaluation.report import comparison_page, write_report
 
     torch.set_num_threads(args.threads)

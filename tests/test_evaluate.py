@@ -9,12 +9,12 @@ import numpy as np
 import pytest
 
 from difftex.errors import DifftexError
+from difftex.evaluation.holdout import prepare_holdout
 from difftex.evaluation.evaluate import (
     EvaluateConfig,
     PolygonTexture,
     check_same_plane,
     evaluate_maps,
-    prepare_holdout,
     render_proxy,
     resample_texture,
     view_weights,

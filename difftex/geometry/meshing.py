@@ -22,7 +22,7 @@ from pathlib import Path
 import numpy as np
 
 from difftex.errors import DifftexError
-from difftex.scene.proxy import Polygon, Proxy
+from difftex.scene.proxy import Proxy, triangulate
 
 # A polygon is split at most this many times (4^8 = 65536 triangles per ear-clipped triangle).
 MAX_LEVELS = 8
@@ -46,17 +46,6 @@ class ProxyMesh:
     def corners(self) -> np.ndarray:
         """(F, 3, 3) corner positions."""
         return self.vertices[self.faces]
-
-
-def ear_clip(polygon: Polygon) -> tuple[np.ndarray, np.ndarray]:
-    """(vertices (n, 3), triangles (m, 3)) of a planar polygon with holes, by ear clipping.
-
-    Triangles are counter-clockwise seen from outside and exactly cover the outer boundary minus
-    the holes.
-    """
-    from difftex.scene.proxy import triangulate
-
-    return triangulate(polygon)
 
 
 def subdivide(V: np.ndarray, F: np.ndarray, levels: int) -> tuple[np.ndarray, np.ndarray]:
@@ -126,7 +115,7 @@ def proxy_mesh(proxy: Proxy, max_edge: float) -> ProxyMesh:
         raise DifftexError(f"mesh edge bound must be > 0, got {max_edge}")
     Vs, Fs, P, n = [], [], [], 0
     for i, poly in enumerate(proxy.polygons):
-        V, F = ear_clip(poly)
+        V, F = triangulate(poly)
         levels = max(0, ceil(log2(longest_edge(V, F) / max_edge))) if longest_edge(V, F) > max_edge else 0
         if levels > MAX_LEVELS:
             raise DifftexError(f"{proxy.path}: polygon '{poly.id}' would need {4 ** levels} triangles per ear at "

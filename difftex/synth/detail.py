@@ -12,6 +12,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from difftex.scene.planar import triangulate_rings
 from difftex.synth.buildings import Building, Face
 from difftex.synth.facades import Bitmap, Layout
 
@@ -76,17 +77,6 @@ class _Soup:
                     np.concatenate(self.uv) if self.uv else None, **mat)
 
 
-def _triangulate(outer2d: np.ndarray, holes2d: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
-    # mapbox_earcut handles holes robustly; shapely's triangulation would need constrained Delaunay.
-    import mapbox_earcut as earcut
-
-    rings = [outer2d] + holes2d
-    verts = np.concatenate(rings).astype(np.float64)
-    ends = np.cumsum([len(r) for r in rings]).astype(np.uint32)
-    tris = np.asarray(earcut.triangulate_float64(verts, ends), np.int64).reshape(-1, 3)
-    return verts, tris
-
-
 def build_detail(building: Building, layouts: dict[str, Layout], bitmaps: dict[str, Bitmap],
                  relief: float, rng: np.random.Generator, occluders: bool, occluder_count: int) -> DetailedModel:
     model = DetailedModel()
@@ -101,7 +91,8 @@ def build_detail(building: Building, layouts: dict[str, Layout], bitmaps: dict[s
             for u0, v0, u1, v1 in lay.openings():
                 openings.append((u0, max(v0, 0.02), u1, v1))
         holes = [np.array([[u0, v0], [u0, v1], [u1, v1], [u1, v0]]) for u0, v0, u1, v1 in openings]  # clockwise
-        verts2, tris = _triangulate(p2, holes)
+        verts2 = np.concatenate([p2, *holes]).astype(np.float64)
+        tris = triangulate_rings([p2, *holes])
         soup.add(face.to3d(verts2), tris, bm.uv(verts2))
         prot = 0.0
         for u0, v0, u1, v1 in openings:

@@ -9,6 +9,7 @@ from pathlib import Path
 
 import numpy as np
 
+from difftex.scene.planar import triangulate_rings
 from difftex.synth.presets import BuildingSpec, SynthConfig
 
 EXPOSURE = 1.0  # linear scale of the reference exposure (ground truth); photos vary around it
@@ -212,8 +213,6 @@ def _render_gt_maps(cfg, building, model, polygons, gscene, variant, gt: Path, b
 
 def polygon_id_image(polygons, R, t, intr) -> np.ndarray:
     """Per pixel: 1 + index of the first proxy polygon its ray hits, 0 for none (numpy ray casting)."""
-    from difftex.synth.detail import _triangulate
-
     cam = intr.pycolmap()
     H, W = intr.height, intr.width
     yy, xx = np.mgrid[0:H, 0:W].astype(np.float64) + 0.5
@@ -224,7 +223,8 @@ def polygon_id_image(polygons, R, t, intr) -> np.ndarray:
     ids = np.zeros(len(d), np.uint16)
     for k, poly in enumerate(polygons):
         o, b1, b2 = poly.plane_basis()
-        v2, tris = _triangulate(poly.to_plane(poly.outer), [])
+        v2 = poly.to_plane(poly.outer).astype(np.float64)
+        tris = triangulate_rings([v2])
         V = o + v2[:, :1] * b1 + v2[:, 1:2] * b2
         for tri in tris:
             p0, p1, p2 = V[tri]
