@@ -23,7 +23,9 @@ def from_dict(cls: type[T], data: dict[str, Any] | None, where: str = "") -> T:
     names = {f.name for f in dataclasses.fields(cls)}
     unknown = sorted(set(data) - names)
     if unknown:
-        raise DifftexError(f"{where or cls.__name__}: unknown key(s) {', '.join(unknown)} (known: {', '.join(sorted(names))})")
+        raise DifftexError(
+            f"{where or cls.__name__}: unknown key(s) {', '.join(unknown)} (known: {', '.join(sorted(names))})"
+        )
     for f in dataclasses.fields(cls):
         if f.name in data:
             problem = _type_problem(data[f.name], f.default)
@@ -113,7 +115,7 @@ class TextureConfig:
 
     @property
     def mode(self) -> str:
-        """"density", "long_side" or "auto": what sets each polygon's texel size."""
+        """ "density", "long_side" or "auto": what sets each polygon's texel size."""
         if self.density is not None and self.density != "auto":
             return "density"
         return "long_side" if self.long_side is not None else "auto"

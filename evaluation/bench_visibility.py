@@ -19,7 +19,6 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from evaluation import common as C  # noqa: E402
 
-
 HERE = Path(__file__).resolve().parent
 
 CHILD = r"""
@@ -73,7 +72,12 @@ def main() -> None:
         "command": "python evaluation/bench_visibility.py " + " ".join(sys.argv[1:]),
         "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
         "machine": machine(),
-        "scene": {"name": sc.name, "photos": len(sc.photos), "polygons": len(sc.proxy), "megapixels": round(pixels / 1e6, 1)},
+        "scene": {
+            "name": sc.name,
+            "photos": len(sc.photos),
+            "polygons": len(sc.proxy),
+            "megapixels": round(pixels / 1e6, 1),
+        },
         "runs": rows,
     }
     out = Path(args.out)
@@ -85,14 +89,18 @@ def main() -> None:
     lines = [
         f"# Visibility benchmark: {sc.name}",
         "",
-        f"`{result['command']}` on {result['date']}; {m['cpu']}, {m['cores']} cores, {m['ram_gib']} GiB, torch {m['torch']}.",
+        f"`{result['command']}` on {result['date']}; {m['cpu']}, {m['cores']} cores, {m['ram_gib']} GiB, torch "
+        f"{m['torch']}.",
         f"Scene: {len(sc.photos)} photos ({result['scene']['megapixels']} MP in all), {len(sc.proxy)} polygons.",
         "",
         "| stage | texture long side | time (s) | peak RSS (MiB) | mask files (MiB) |",
         "|---|---|---|---|---|",
     ]
     for r in rows:
-        lines.append(f"| {r['stage']} | {r['long_side'] or '-'} | {r['seconds']:.1f} | {r['peak_rss_mib']:.0f} | {r.get('files_mib', 0):.2f} |")
+        lines.append(
+            f"| {r['stage']} | {r['long_side'] or '-'} | {r['seconds']:.1f} | {r['peak_rss_mib']:.0f} | "
+            f"{r.get('files_mib', 0):.2f} |"
+        )
     write_text(out.with_suffix(".md"), "\n".join(lines) + "\n")
     print("\n".join(lines))
 

@@ -49,10 +49,19 @@ def run_peer(method: str, scene: Path, r: Path, common: dict, **cfg) -> dict:
     rec = run(method, scene, r, PeerConfig(**cfg), visibility=common["visibility"],
               polygons=[row["id"] for row in common["polygons"]],
               photos_table=Path(common["config"]).parent / "photos.json")
-    return {"method": method, "results": str(r), "total_s": time.perf_counter() - t0,
-            "prepare_s": rec["prepare"]["wall_s"], "peer_s": rec["peer"]["wall_s"], "import_s": rec["import"]["wall_s"],
-            "prepare_cpu_s": rec["prepare"]["cpu_s"], "peer_cpu_s": rec["peer"]["cpu_s"],
-            "import_cpu_s": rec["import"]["cpu_s"], "peer_peak_rss_mib": rec["peer"]["peak_rss_mib"], "peer_record": rec}
+    return {
+        "method": method,
+        "results": str(r),
+        "total_s": time.perf_counter() - t0,
+        "prepare_s": rec["prepare"]["wall_s"],
+        "peer_s": rec["peer"]["wall_s"],
+        "import_s": rec["import"]["wall_s"],
+        "prepare_cpu_s": rec["prepare"]["cpu_s"],
+        "peer_cpu_s": rec["peer"]["cpu_s"],
+        "import_cpu_s": rec["import"]["cpu_s"],
+        "peer_peak_rss_mib": rec["peer"]["peak_rss_mib"],
+        "peer_record": rec,
+    }
 
 
 def missing_line(label: str, reason: str, columns: int, first: list[str] | None = None) -> str:
@@ -67,6 +76,9 @@ def timing_note(rows: list[dict]) -> str | None:
     if not runs:
         return None
     parts = [f"{LABELS[r['method']]} {r['prepare_s']:.0f} + {r['peer_s']:.0f} + {r['import_s']:.0f} s" for r in runs]
-    return ("Peers' time = difftex's preparation (photos resampled as centred pinhole cameras, proxy meshed) + the "
-            "program + import into the UV frames (wall seconds; CPU and peak memory per phase in the JSON): "
-            + ", ".join(parts) + ".")
+    return (
+        "Peers' time = difftex's preparation (photos resampled as centred pinhole cameras, proxy meshed) + the "
+        "program + import into the UV frames (wall seconds; CPU and peak memory per phase in the JSON): "
+        + ", ".join(parts)
+        + "."
+    )

@@ -10,11 +10,12 @@ import numpy as np
 import pytest
 import torch
 
-from analytic import fast_cfg, gt_texture, make_input, make_photo, render
+from difftex.compose.texturing import texture_polygon
 from difftex.geometry.frames import texel_to_pixel
 from difftex.method.config import ComputeConfig
 from difftex.sampling.photos import Correction
-from difftex.compose.texturing import texture_polygon
+
+from analytic import fast_cfg, gt_texture, make_input, make_photo, render
 
 torch.set_num_threads(1)
 
@@ -32,12 +33,18 @@ def rotated(ph, ax: float, ay: float):
 @pytest.fixture(scope="module")
 def scene():
     f = 300.0
-    true = [make_photo(n, y, pitch_deg=p, size=(320, 240), f=f)
-            for n, y, p in zip(NAMES, [-12.0, 12.0, -4.0, 4.0], [6.0, 6.0, -6.0, -6.0])]
+    true = [
+        make_photo(n, y, pitch_deg=p, size=(320, 240), f=f)
+        for n, y, p in zip(NAMES, [-12.0, 12.0, -4.0, 4.0], [6.0, 6.0, -6.0, -6.0])
+    ]
     imgs = [render(ph) for ph in true]
     # about 2.5 px right, 2.5 px left, 2 px down, 2 px up
-    given = [rotated(true[0], 0, 2.5 / f), rotated(true[1], 0, -2.5 / f), rotated(true[2], 2.0 / f, 0),
-             rotated(true[3], -2.0 / f, 0)]
+    given = [
+        rotated(true[0], 0, 2.5 / f),
+        rotated(true[1], 0, -2.5 / f),
+        rotated(true[2], 2.0 / f, 0),
+        rotated(true[3], -2.0 / f, 0),
+    ]
     return true, given, imgs
 
 
@@ -55,7 +62,9 @@ def reprojection_error(inp, given, true, correction: dict | None) -> float:
     pg, _ = texel_to_pixel(inp.frame, given, tx + 0.5, ty + 0.5)
     pt, _ = texel_to_pixel(inp.frame, true, tx + 0.5, ty + 0.5)
     if correction is not None:
-        c = Correction(torch.tensor(correction["params"], dtype=torch.float64), tuple(correction["centre"]), correction["scale"])
+        c = Correction(
+            torch.tensor(correction["params"], dtype=torch.float64), tuple(correction["centre"]), correction["scale"]
+        )
         pg = c.apply(torch.from_numpy(pg)).numpy()
     return float(np.linalg.norm(pg - pt, axis=1).mean())
 

@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from difftex.export.assemble import AssembleConfig, PolygonTexture, assemble, dilate, pack, sample_atlas, triangulate
 from difftex.errors import DifftexError
+from difftex.export.assemble import AssembleConfig, PolygonTexture, assemble, dilate, pack, sample_atlas, triangulate
 from difftex.geometry.frames import texel_mask, uv_frame
 from difftex.scene.proxy import Polygon
 
@@ -140,7 +140,12 @@ def test_mirrored_texture_is_detected(tmp_path):
 
     items, _ = _items(np.random.default_rng(3), long_side=64)
     assemble(items, tmp_path, AssembleConfig(padding=2))
-    flipped = [PolygonTexture(it.polygon, it.frame, it.texture[:, ::-1].copy(), it.mask[:, ::-1].copy(), 1.0, 2) if it.textured else it for it in items]
+    flipped = [
+        PolygonTexture(it.polygon, it.frame, it.texture[:, ::-1].copy(), it.mask[:, ::-1].copy(), 1.0, 2)
+        if it.textured
+        else it
+        for it in items
+    ]
     assert verify_glb(tmp_path / "model.glb", flipped)["max_color_error"] > 0.1
 
 

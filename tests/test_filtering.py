@@ -9,6 +9,7 @@ from difftex.config import FilterConfig
 from difftex.geometry.photo_filter import filter_photos, sharpness
 from difftex.scene.files import write_image
 from difftex.scene.loading import load_scene
+
 from tests.scenes import make_scene
 
 

@@ -10,14 +10,27 @@ import numpy as np
 import pytest
 import torch
 
-torch.set_num_threads(1)  # the CI machine has 2 shared cores; intra-op threads only contend
-
-from analytic import (UP, fast_cfg, gt_texture, make_input, make_photo, occluded_region, optimize, paint_occluder,
-                      photo_masks, render, wall, write_scene)
 from difftex.geometry.frames import map_texels, sample_photo
 from difftex.method.config import OptimizeConfig
 from difftex.method.loop import photo_weight
 from difftex.sampling.texels import level_sides
+
+from analytic import (
+    UP,
+    fast_cfg,
+    gt_texture,
+    make_input,
+    make_photo,
+    occluded_region,
+    optimize,
+    paint_occluder,
+    photo_masks,
+    render,
+    wall,
+    write_scene,
+)
+
+torch.set_num_threads(1)  # the CI machine has 2 shared cores; intra-op threads only contend
 
 # ------------------------------------------------------------------------------------------
 
@@ -215,16 +228,27 @@ def test_command_chain_on_the_analytic_wall(tmp_path):
     scene = tmp_path / "scene"
     write_scene(scene, photos, imgs)
     cfg = tmp_path / "cfg.yaml"
-    cfg.write_text("texture:\n  long_side: 64\noptimize:\n  long_side_start: 32\n  max_iters_per_level: [100, 60]\n"
-                   "compute:\n  device: cpu\n")
+    cfg.write_text(
+        "texture:\n  long_side: 64\noptimize:\n  long_side_start: 32\n  max_iters_per_level: [100, 60]\n"
+        "compute:\n  device: cpu\n"
+    )
     R = tmp_path / "R"
-    assert main(["visibility", "--scene", str(scene), "--config", str(cfg), "--out-dir", str(R / "visibility"), "--quiet"]) == 0
+    assert (
+        main(["visibility", "--scene", str(scene), "--config", str(cfg), "--out-dir", str(R / "visibility"), "--quiet"])
+        == 0
+    )
     vis = str(R / "visibility" / "wall.npz")
     common = ["--scene", str(scene), "--visibility", vis, "--config", str(cfg), "--threads", "1"]
     assert main(["texture", *common, "--out-dir", str(R / "opt"), "--png-dir", str(R / "tex"), "--no-progress"]) == 0
     assert main(["baseline", *common, "--method", "average", "--out-dir", str(R / "avg")]) == 0
     stats = json.loads((R / "opt" / "stats.json").read_text())
-    assert len(stats["levels"]) == 2 and set(stats["levels"][0]["loss"]) >= {"render", "ghost", "persp", "para", "total"}
+    assert len(stats["levels"]) == 2 and set(stats["levels"][0]["loss"]) >= {
+        "render",
+        "ghost",
+        "persp",
+        "para",
+        "total",
+    }
     report = json.loads((R / "tex" / "report.json").read_text())
     assert report["coverage"] == 1.0 and report["histogram_matching"]
     tex = read_image(R / "tex" / "texture.png")

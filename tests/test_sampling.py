@@ -13,6 +13,7 @@ import torch
 from difftex.geometry.frames import map_texels
 from difftex.sampling.photos import PhotoSampler, PhotoSet
 from difftex.sampling.texels import level_frame, resample_nearest, texel_map
+
 from tests.analytic import (
     fast_cfg,
     gt_texture,

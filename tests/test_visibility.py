@@ -5,8 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from difftex.scene.loading import load_scene
 from difftex.geometry.visibility import id_buffer, load_visibility, save_visibility, scene_visibility
+from difftex.scene.loading import load_scene
+
 from tests.scenes import make_scene, wall
 
 

@@ -13,8 +13,8 @@ from pathlib import Path
 
 import pytest
 
-from difftex.workflow import glue as wf
 from difftex.errors import DifftexError
+from difftex.workflow import glue as wf
 
 REPO = Path(__file__).resolve().parents[1]
 SNAKEFILE = REPO / "Snakefile"
@@ -167,8 +167,11 @@ def test_workflow_end_to_end(tiny_scene, tmp_path):
 
     work = tmp_path / "work"
     # smaller than the fast preset: the test checks the plumbing, not the texture quality
-    small = ("texture={long_side: 128}", "optimize={long_side_start: 64, max_iters_per_level: [15, 8]}",
-             "evaluate={lpips: none, render_long_side: 256}")
+    small = (
+        "texture={long_side: 128}",
+        "optimize={long_side_start: 64, max_iters_per_level: [15, 8]}",
+        "evaluate={lpips: none, render_long_side: 256}",
+    )
     args = ("--cores", "2", "--config", f"scene={tiny_scene}", "preset=fast", *small)
     r = snakemake(work, *args)
     assert r.returncode == 0, r.stdout[-3000:] + r.stderr[-3000:]
@@ -235,12 +238,11 @@ def test_config_yaml_mirrors_the_stage_dataclasses():
 
     import yaml
 
-    from difftex.export.assemble import AssembleConfig
-    from difftex.config import FilterConfig, TextureConfig, VisibilityConfig
-
-    from difftex.evaluation.evaluate import EvaluateConfig
-    from difftex.method.config import ComputeConfig, OptimizeConfig
     from difftex.compose.outputs import OutputConfig
+    from difftex.config import FilterConfig, TextureConfig, VisibilityConfig
+    from difftex.evaluation.evaluate import EvaluateConfig
+    from difftex.export.assemble import AssembleConfig
+    from difftex.method.config import ComputeConfig, OptimizeConfig
 
     classes = {
         "texture": TextureConfig,

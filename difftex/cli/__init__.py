@@ -94,14 +94,19 @@ def main(argv: list[str] | None = None) -> int:
         print(ERROR_PREFIX + os_error_message(exc), file=sys.stderr)
         return 2
     except MemoryError:
-        print(ERROR_PREFIX + f"{args.command}: out of memory (give the job more memory: run.base_mem_mb)", file=sys.stderr)
+        print(
+            ERROR_PREFIX + f"{args.command}: out of memory (give the job more memory: run.base_mem_mb)", file=sys.stderr
+        )
         return 2
     except KeyboardInterrupt:
         print("difftex: interrupted", file=sys.stderr)
         return 130
     except Exception as exc:  # noqa: BLE001 -- a bug: keep its traceback, but end in the one line
         traceback.print_exc()
-        print(ERROR_PREFIX + one_line(f"{args.command}: internal error {type(exc).__name__}: {exc} (traceback above)"), file=sys.stderr)
+        print(
+            ERROR_PREFIX + one_line(f"{args.command}: internal error {type(exc).__name__}: {exc} (traceback above)"),
+            file=sys.stderr,
+        )
         return 3
     finally:
         logging.getLogger("difftex").removeHandler(handler)

@@ -9,7 +9,7 @@ any per-photo weight field (a baseline's). The method composes from its own slot
 
 from __future__ import annotations
 
-from typing import Callable
+from collections.abc import Callable
 
 import numpy as np
 import torch
@@ -18,8 +18,9 @@ import torch.nn.functional as F
 from difftex.sampling.photos import MappedPhoto, PhotoSet
 
 
-def compose_from_photos(photos: PhotoSet, weight_of: Callable[[int, MappedPhoto], torch.Tensor | None],
-                        transfers: list | None = None) -> tuple[np.ndarray, np.ndarray]:
+def compose_from_photos(
+    photos: PhotoSet, weight_of: Callable[[int, MappedPhoto], torch.Tensor | None], transfers: list | None = None
+) -> tuple[np.ndarray, np.ndarray]:
     """(U (H, W, 3), weight sum (H, W)) at the target frame; ``weight_of(n, mapped)`` gives photo n's (H, W) weights."""
     inp, device = photos.inp, photos.device
     H, W = inp.frame.shape

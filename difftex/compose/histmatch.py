@@ -24,7 +24,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from difftex.sampling.colour import QUANTILES, N_KNOTS, identity_transfer, rgb_to_hsv
+from difftex.sampling.colour import N_KNOTS, QUANTILES, identity_transfer, rgb_to_hsv
 
 MEDIAN_BLOCK_VALUES = 1 << 24  # floats per block of the per-texel median (64 MB)
 
@@ -50,9 +50,14 @@ def _shares_enough(overlap: int, seen: int, min_overlap: int) -> bool:
     return overlap >= max(min_overlap, 0.05 * seen)
 
 
-def transfers_from_mapped(colours: dict[int, torch.Tensor], visible: dict[int, torch.Tensor],
-                          frontality: dict[int, torch.Tensor], reference: str = "best",
-                          channels: str = "sv", min_overlap: int = 64) -> tuple[dict[int, np.ndarray], int | None]:
+def transfers_from_mapped(
+    colours: dict[int, torch.Tensor],
+    visible: dict[int, torch.Tensor],
+    frontality: dict[int, torch.Tensor],
+    reference: str = "best",
+    channels: str = "sv",
+    min_overlap: int = 64,
+) -> tuple[dict[int, np.ndarray], int | None]:
     """Transfers per photo from their mapped colours (3, h, w) and visibility (h, w) at one level.
 
     Returns ({photo: (3, 2, N_KNOTS)}, reference photo, or None for median and pooled).
@@ -89,8 +94,9 @@ def transfers_from_mapped(colours: dict[int, torch.Tensor], visible: dict[int, t
     return out, None
 
 
-def _median_transfers(hsv: dict[int, np.ndarray], vis: dict[int, np.ndarray], chan_ids: list[int],
-                      min_overlap: int) -> dict[int, np.ndarray]:
+def _median_transfers(
+    hsv: dict[int, np.ndarray], vis: dict[int, np.ndarray], chan_ids: list[int], min_overlap: int
+) -> dict[int, np.ndarray]:
     """Match every photo to the per-texel median of all photos (the consensus image).
 
     The median over the photos that see a texel ignores a minority of outliers (an occluder in
@@ -128,8 +134,9 @@ def _median_transfers(hsv: dict[int, np.ndarray], vis: dict[int, np.ndarray], ch
     return out
 
 
-def mapped_transfers(mapped: dict, n_photos: int, reference: str = "median", channels: str = "sv",
-                     names: list[str] | None = None) -> tuple[list, str | None]:
+def mapped_transfers(
+    mapped: dict, n_photos: int, reference: str = "median", channels: str = "sv", names: list[str] | None = None
+) -> tuple[list, str | None]:
     """Transfers of every candidate from its raw mapped photo at one (coarse) level.
 
     Args:

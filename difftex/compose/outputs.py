@@ -30,13 +30,13 @@ def palette(n: int) -> list[tuple[float, float, float]]:
     base = [c for c in colormaps["tab10"].colors if not (c[0] == c[1] == c[2])]
     out = []
     for i in range(n):
-        h, l, s = colorsys.rgb_to_hls(*base[i % len(base)])
+        h, light, s = colorsys.rgb_to_hls(*base[i % len(base)])
         rnd = i // len(base)
         if rnd % 2:  # lighter: l -> 1 - (1 - l) / 2, / 4, ...
-            l = 1 - (1 - l) * 0.5 ** ((rnd + 1) // 2)
+            light = 1 - (1 - light) * 0.5 ** ((rnd + 1) // 2)
         elif rnd:  # darker: l -> 0.6 l, 0.36 l, ...
-            l = l * 0.6 ** (rnd // 2)
-        out.append(tuple(float(v) for v in colorsys.hls_to_rgb(h, l, s)))
+            light = light * 0.6 ** (rnd // 2)
+        out.append(tuple(float(v) for v in colorsys.hls_to_rgb(h, light, s)))
     return out
 
 
@@ -84,8 +84,17 @@ def coverage_image(mask: np.ndarray, seen: np.ndarray) -> np.ndarray:
     return img
 
 
-def write_texture_outputs(out_dir: str | Path, U: np.ndarray, mask: np.ndarray, seen: np.ndarray,
-                          dominant: np.ndarray, names: list[str], report: dict, bits: int = 8, exr: bool = False) -> None:
+def write_texture_outputs(
+    out_dir: str | Path,
+    U: np.ndarray,
+    mask: np.ndarray,
+    seen: np.ndarray,
+    dominant: np.ndarray,
+    names: list[str],
+    report: dict,
+    bits: int = 8,
+    exr: bool = False,
+) -> None:
     """texture.png, source.png, source.npz, coverage.png, report.json (and texture.exr), each
     written atomically.
 
@@ -105,7 +114,9 @@ def write_texture_outputs(out_dir: str | Path, U: np.ndarray, mask: np.ndarray, 
     write_npz(out_dir / "source.npz", dominant=dom.astype(np.int16), photos=np.array(names, dtype=str))
     write_image(out_dir / "coverage.png", coverage_image(mask, seen))
     report = dict(report)
-    report["source_colours"] = {n: "#%02x%02x%02x" % tuple(int(round(255 * v)) for v in c) for n, c in colours.items()}
+    report["source_colours"] = {
+        n: "#{:02x}{:02x}{:02x}".format(*(int(round(255 * v)) for v in c)) for n, c in colours.items()
+    }
     write_json(out_dir / "report.json", report)
 
 
@@ -129,8 +140,15 @@ def finish_polygon(composite: str | Path, out_dir: str | Path, cfg: OutputConfig
     return report
 
 
-def write_composite(path: str | Path, U: np.ndarray, mask: np.ndarray, seen: np.ndarray, dominant: np.ndarray,
-                    names: list[str], report: dict) -> None:
+def write_composite(
+    path: str | Path,
+    U: np.ndarray,
+    mask: np.ndarray,
+    seen: np.ndarray,
+    dominant: np.ndarray,
+    names: list[str],
+    report: dict,
+) -> None:
     """A polygon's composed texture in float (half precision), before quantisation to a PNG.
 
     The texturing stage writes it; assembly turns it into the per-polygon PNGs and the atlas at
@@ -140,9 +158,16 @@ def write_composite(path: str | Path, U: np.ndarray, mask: np.ndarray, seen: np.
 
     from difftex.scene.files import write_npz
 
-    write_npz(path, texture=np.asarray(U, np.float16), mask=np.packbits(mask.ravel()), seen=np.packbits(seen.ravel()),
-              shape=np.array(seen.shape),
-              dominant=dominant.astype(np.int32), photos=np.array(names, dtype=str), report=np.array(json.dumps(report)))
+    write_npz(
+        path,
+        texture=np.asarray(U, np.float16),
+        mask=np.packbits(mask.ravel()),
+        seen=np.packbits(seen.ravel()),
+        shape=np.array(seen.shape),
+        dominant=dominant.astype(np.int32),
+        photos=np.array(names, dtype=str),
+        report=np.array(json.dumps(report)),
+    )
 
 
 def read_composite(path: str | Path) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, list[str], dict]:
@@ -157,9 +182,13 @@ def read_composite(path: str | Path) -> tuple[np.ndarray, np.ndarray, np.ndarray
         H, W = (int(v) for v in d["shape"])
         seen = np.unpackbits(d["seen"], count=H * W).astype(bool).reshape(H, W)
         mask = np.unpackbits(d["mask"], count=H * W).astype(bool).reshape(H, W)
-        return (d["texture"].astype(np.float32), mask, seen, d["dominant"].astype(np.int64), [str(x) for x in d["photos"]],
-                json.loads(str(d["report"])))
+        return (
+            d["texture"].astype(np.float32),
+            mask,
+            seen,
+            d["dominant"].astype(np.int64),
+            [str(x) for x in d["photos"]],
+            json.loads(str(d["report"])),
+        )
     except (KeyError, ValueError) as exc:
         raise DifftexError(f"{path}: not a difftex composite texture ({exc})") from None
-
-

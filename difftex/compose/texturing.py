@@ -15,13 +15,13 @@ from pathlib import Path
 
 import numpy as np
 
+from difftex.compose.composite import dominant_from_slots, finish_texture
 from difftex.compose.histmatch import mapped_transfers
+from difftex.compose.outputs import write_composite
 from difftex.method.config import ComputeConfig, OptimizeConfig
 from difftex.method.loop import optimize_polygon
 from difftex.sampling.photos import PhotoSet, PolygonInput, pick_device, with_transfer
 from difftex.sampling.texels import level_frame, level_sides, resample_nearest
-from difftex.compose.outputs import write_composite
-from difftex.compose.composite import dominant_from_slots, finish_texture
 
 
 @dataclass
@@ -39,8 +39,9 @@ class TexturedPolygon:
     report: dict = field(default_factory=dict)  # fill and summary figures
 
 
-def texture_polygon(inp: PolygonInput, cfg: OptimizeConfig, compute: ComputeConfig = ComputeConfig(),
-                    progress: bool = False) -> TexturedPolygon:
+def texture_polygon(
+    inp: PolygonInput, cfg: OptimizeConfig, compute: ComputeConfig = ComputeConfig(), progress: bool = False
+) -> TexturedPolygon:
     """Texture one polygon: transfers, optimization and composition from one decode per photo."""
     t0 = time.perf_counter()
     device = pick_device(compute.device)
@@ -52,31 +53,51 @@ def texture_polygon(inp: PolygonInput, cfg: OptimizeConfig, compute: ComputeConf
     raw = {n: photos.map(n, match_frame, mask) for n in sorted(photos.samplers)}
     transfers, ref = None, None
     if cfg.histogram_matching:
-        transfers, ref = mapped_transfers(raw, len(inp.photos), cfg.histmatch_reference, cfg.histmatch_channels,
-                                          names=[p.name for p in inp.photos])
+        transfers, ref = mapped_transfers(
+            raw, len(inp.photos), cfg.histmatch_reference, cfg.histmatch_channels, names=[p.name for p in inp.photos]
+        )
     first = None
     if match_frame.shape == level_frame(inp.frame, sides[0]).shape:
-        first = {n: (with_transfer(mp, transfers[n] if transfers else None) if mp is not None else None)
-                 for n, mp in raw.items()}
+        first = {
+            n: (with_transfer(mp, transfers[n] if transfers else None) if mp is not None else None)
+            for n, mp in raw.items()
+        }
     t_match = time.perf_counter() - t0 - t_read
     res = optimize_polygon(photos, cfg, compute, transfers, first=first, progress=progress)
     wsum = res.W.sum(0)
     U, fill = finish_texture(res.U, wsum, inp.texel_mask)
     seen = (wsum > 0) & inp.texel_mask
     stats = dict(res.stats)
-    stats.update({
-        "histmatch": transfers is not None, "histmatch_reference": ref,
-        "histmatch_mode": cfg.histmatch_reference if cfg.histogram_matching else None,
-        "photos_seeing": [inp.photos[n].name for n in sorted(photos.samplers)],
-        "photo_reads": photos.reads, "decode_scale": {inp.photos[n].name: s for n, s in photos.decode_scale.items()},
-        "photo_bytes": photos.nbytes(), "time_read_photos_s": t_read, "time_histmatch_s": t_match,
-        "corrections": {inp.photos[n].name: {"params": c.params.tolist(), "centre": list(c.centre), "scale": c.scale}
-                        for n, c in photos.corrections.items()},
-        "time_stage_s": time.perf_counter() - t0,
-    })
+    stats.update(
+        {
+            "histmatch": transfers is not None,
+            "histmatch_reference": ref,
+            "histmatch_mode": cfg.histmatch_reference if cfg.histogram_matching else None,
+            "photos_seeing": [inp.photos[n].name for n in sorted(photos.samplers)],
+            "photo_reads": photos.reads,
+            "decode_scale": {inp.photos[n].name: s for n, s in photos.decode_scale.items()},
+            "photo_bytes": photos.nbytes(),
+            "time_read_photos_s": t_read,
+            "time_histmatch_s": t_match,
+            "corrections": {
+                inp.photos[n].name: {"params": c.params.tolist(), "centre": list(c.centre), "scale": c.scale}
+                for n, c in photos.corrections.items()
+            },
+            "time_stage_s": time.perf_counter() - t0,
+        }
+    )
     report = {"polygon_id": inp.polygon_id, "method": "difftex", "histogram_matching": transfers is not None, **fill}
-    return TexturedPolygon(inp=inp, texture=U, seen=seen, dominant=dominant_from_slots(res.idx, res.W), idx=res.idx,
-                           W=res.W, transfers=transfers, stats=stats, report=report)
+    return TexturedPolygon(
+        inp=inp,
+        texture=U,
+        seen=seen,
+        dominant=dominant_from_slots(res.idx, res.W),
+        idx=res.idx,
+        W=res.W,
+        transfers=transfers,
+        stats=stats,
+        report=report,
+    )
 
 
 def write_polygon(tp: TexturedPolygon, optimized_dir: str | Path) -> None:
@@ -92,13 +113,33 @@ def write_polygon(tp: TexturedPolygon, optimized_dir: str | Path) -> None:
     names = [p.name for p in inp.photos]
     extra = {}
     if tp.transfers is not None:
-        arr = np.stack([t if t is not None else identity_transfer() for t in tp.transfers]) if names \
+        arr = (
+            np.stack([t if t is not None else identity_transfer() for t in tp.transfers])
+            if names
             else np.zeros((0, 3, 2, N_KNOTS), np.float32)
-        extra = {"transfers": arr.astype(np.float32), "has_transfer": np.array([t is not None for t in tp.transfers], bool)}
-    write_npz(Path(optimized_dir) / "weights.npz", polygon_id=np.array(inp.polygon_id), photos=np.array(names, dtype=str),
-              frame=np.array(json.dumps(inp.frame.to_dict())), shape=np.array([H, W]),
-              texel_mask=np.packbits(inp.texel_mask.ravel()), idx=tp.idx.astype(np.int16), W=tp.W.astype(np.float16),
-              **extra)
+        )
+        extra = {
+            "transfers": arr.astype(np.float32),
+            "has_transfer": np.array([t is not None for t in tp.transfers], bool),
+        }
+    write_npz(
+        Path(optimized_dir) / "weights.npz",
+        polygon_id=np.array(inp.polygon_id),
+        photos=np.array(names, dtype=str),
+        frame=np.array(json.dumps(inp.frame.to_dict())),
+        shape=np.array([H, W]),
+        texel_mask=np.packbits(inp.texel_mask.ravel()),
+        idx=tp.idx.astype(np.int16),
+        W=tp.W.astype(np.float16),
+        **extra,
+    )
     write_json(Path(optimized_dir) / "stats.json", tp.stats)
-    write_composite(Path(optimized_dir) / "composite.npz", tp.texture, inp.texel_mask, tp.seen, tp.dominant, names,
-                    dict(tp.report, optimize=tp.stats))
+    write_composite(
+        Path(optimized_dir) / "composite.npz",
+        tp.texture,
+        inp.texel_mask,
+        tp.seen,
+        tp.dominant,
+        names,
+        dict(tp.report, optimize=tp.stats),
+    )

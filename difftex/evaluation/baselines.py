@@ -12,10 +12,10 @@ from __future__ import annotations
 import numpy as np
 import torch
 
+from difftex.compose.composite import compose_from_photos
 from difftex.errors import DifftexError
 from difftex.sampling.photos import PhotoSet, PolygonInput, pick_device
 from difftex.sampling.texels import level_frame, resample_nearest
-from difftex.compose.composite import compose_from_photos
 
 METHODS = ("average", "frontal")
 
@@ -53,7 +53,12 @@ def baseline_texture(inp: PolygonInput, method: str, device="cpu") -> tuple[np.n
             return mp.visible.float()
 
         U, wsum = compose_from_photos(photos, weight_of)
-        return U, wsum, best.numpy(), {"method": "average", "photos": [inp.photos[n].name for n in sorted(photos.samplers)]}
+        return (
+            U,
+            wsum,
+            best.numpy(),
+            {"method": "average", "photos": [inp.photos[n].name for n in sorted(photos.samplers)]},
+        )
     order = frontality_ranking(photos)
     taken = torch.zeros(H, W, dtype=torch.bool, device=device)
     dominant = torch.full((H, W), -1, dtype=torch.long, device=device)

@@ -8,12 +8,13 @@ Two schemes, both reading only a results folder ``R`` (``R/textures/<pid>/textur
   at any resolution, or in a frame whose axes differ, lands on the right ground-truth texels;
   the frames' planes must agree (checked) and then Error 90/95, SSIM, PSNR and LPIPS are
   computed on the ground-truth texel mask (the paper resamples every method to the GT size).
-- **Held-out photos** (real scenes): the scene was copied by :func:`difftex.evaluation.holdout.prepare_holdout` with some
-  photos removed from its COLMAP model (``holdout.json`` in the copy names them and the
-  original scene); the textured proxy is rendered into each held-out camera (an id buffer says
-  which polygon a pixel sees, the pixel's ray meets that polygon's plane at a texel, the texture
-  is sampled bilinearly there) and compared with the photo on the proxy's pixels. Synthetic
-  scenes get the same with their occluder-free ``ground_truth/views``.
+- **Held-out photos** (real scenes): the scene was copied by
+  :func:`difftex.evaluation.holdout.prepare_holdout` with some photos removed from its COLMAP
+  model (``holdout.json`` in the copy names them and the original scene); the textured proxy is
+  rendered into each held-out camera (an id buffer says which polygon a pixel sees, the pixel's
+  ray meets that polygon's plane at a texel, the texture is sampled bilinearly there) and
+  compared with the photo on the proxy's pixels. Synthetic scenes get the same with their
+  occluder-free ``ground_truth/views``.
 
 Q_front / Q_vc (perspective quality) need per-texel view directions of the source pixels:
 difftex's optimized blend weights (``R/optimized/<pid>/weights.npz``), the equal weights of the
@@ -79,8 +80,8 @@ def visibility_dir(results: Path) -> Path:
 
 def load_textures(results: str | Path) -> dict[str, PolygonTexture]:
     """Every polygon texture of a results folder with its UV frame (from the visibility file)."""
-    from difftex.scene.files import read_image, read_json
     from difftex.geometry.visibility import load_visibility
+    from difftex.scene.files import read_image, read_json
 
     results = Path(results)
     tdir = results / "textures"
@@ -95,8 +96,10 @@ def load_textures(results: str | Path) -> dict[str, PolygonTexture]:
         vis = load_visibility(vpath)
         tex = read_image(sub / "texture.png")
         if tex.shape[:2] != vis.frame.shape:
-            raise DifftexError(f"{sub / 'texture.png'}: {tex.shape[1]}x{tex.shape[0]} texels, its frame says "
-                               f"{vis.frame.width}x{vis.frame.height}")
+            raise DifftexError(
+                f"{sub / 'texture.png'}: {tex.shape[1]}x{tex.shape[0]} texels, its frame says "
+                f"{vis.frame.width}x{vis.frame.height}"
+            )
         rep = read_json(sub / "report.json") if (sub / "report.json").is_file() else {}
         out[sub.name] = PolygonTexture(sub.name, tex, vis.frame, vis.texel_mask, rep, sub)
     if not out:
@@ -112,18 +115,24 @@ def check_same_plane(a: UVFrame, b: UVFrame, what: str, tol: float = 1e-3) -> No
     """Raise unless the two frames lie on the same plane with the same outward normal."""
     scale = max(a.width * a.texel_size, a.height * a.texel_size, 1e-9)
     if float(a.normal @ b.normal) < 1 - 1e-4:
-        raise DifftexError(f"{what}: ground-truth frame normal {np.round(b.normal, 4).tolist()} differs from "
-                           f"difftex's {np.round(a.normal, 4).tolist()}")
+        raise DifftexError(
+            f"{what}: ground-truth frame normal {np.round(b.normal, 4).tolist()} differs from "
+            f"difftex's {np.round(a.normal, 4).tolist()}"
+        )
     if abs(float((b.origin - a.origin) @ a.normal)) > tol * scale:
-        raise DifftexError(f"{what}: ground-truth frame is off difftex's plane by "
-                           f"{abs(float((b.origin - a.origin) @ a.normal)):.4g} scene units")
+        raise DifftexError(
+            f"{what}: ground-truth frame is off difftex's plane by "
+            f"{abs(float((b.origin - a.origin) @ a.normal)):.4g} scene units"
+        )
 
 
 def frame_offsets(a: UVFrame, b: UVFrame) -> dict:
     """How frame b differs from a (axes and origin), for the evaluation record."""
-    return {"axes_dot": [float(a.e_u @ b.e_u), float(a.e_v @ b.e_v)],
-            "origin_offset_texels": float(np.linalg.norm(b.origin - a.origin) / b.texel_size),
-            "texel_size_ratio": float(b.texel_size / a.texel_size)}
+    return {
+        "axes_dot": [float(a.e_u @ b.e_u), float(a.e_v @ b.e_v)],
+        "origin_offset_texels": float(np.linalg.norm(b.origin - a.origin) / b.texel_size),
+        "texel_size_ratio": float(b.texel_size / a.texel_size),
+    }
 
 
 def resample_texture(tex: np.ndarray, src: UVFrame, dst: UVFrame) -> np.ndarray:
@@ -159,8 +168,8 @@ def resample_texture(tex: np.ndarray, src: UVFrame, dst: UVFrame) -> np.ndarray:
 
 def view_weights(pt: PolygonTexture, results: Path) -> tuple[list[str], np.ndarray, str]:
     """(photo names, per-photo weights (K, H, W), how) of the pixels that coloured each texel."""
-    from difftex.scene.files import read_npz
     from difftex.geometry.visibility import load_visibility
+    from difftex.scene.files import read_npz
 
     method = pt.report.get("method", "")
     wpath = results / "optimized" / pt.polygon_id / "weights.npz"
@@ -169,7 +178,11 @@ def view_weights(pt: PolygonTexture, results: Path) -> tuple[list[str], np.ndarr
         names = [str(x) for x in wz["photos"]]
         idx, W = wz["idx"].astype(np.int64), wz["W"].astype(np.float32)
         if idx.shape[1:] == pt.frame.shape:
-            dense = np.stack([(W * (idx == n)).sum(0) for n in range(len(names))]) if names else np.zeros((0, *pt.frame.shape))
+            dense = (
+                np.stack([(W * (idx == n)).sum(0) for n in range(len(names))])
+                if names
+                else np.zeros((0, *pt.frame.shape))
+            )
             return names, dense, "blend weights"
     if method == "average":
         vis = load_visibility(visibility_dir(results) / f"{pt.polygon_id}.npz")
@@ -183,7 +196,9 @@ def view_weights(pt: PolygonTexture, results: Path) -> tuple[list[str], np.ndarr
     except KeyError as exc:
         raise DifftexError(f"{src}: not a difftex source file (no {exc})") from None
     if dom.shape != pt.frame.shape:
-        raise DifftexError(f"{src}: {dom.shape[1]}x{dom.shape[0]} texels, its frame says {pt.frame.width}x{pt.frame.height}")
+        raise DifftexError(
+            f"{src}: {dom.shape[1]}x{dom.shape[0]} texels, its frame says {pt.frame.width}x{pt.frame.height}"
+        )
     w = (dom[None] == np.arange(len(names))[:, None, None]).astype(np.float32)  # (K, H, W), K may be 0
     return names, w, "dominant photo (source.npz)" if names else "none"
 
@@ -202,8 +217,12 @@ def perspective_quality(pt: PolygonTexture, results: Path, centres: dict[str, np
     pts = pt.frame.texel_to_world(tx, ty)
     dirs = metrics.view_directions(pts, np.stack([centres[names[i]] for i in keep]), w, mode="blend")
     cov = (w.sum(0) > 0) & pt.mask
-    return {"q_front": metrics.q_front(dirs, pt.frame.normal, cov), "q_vc": metrics.q_vc(dirs, cov),
-            "q_texels": int(cov.sum()), "q_source": how}
+    return {
+        "q_front": metrics.q_front(dirs, pt.frame.normal, cov),
+        "q_vc": metrics.q_vc(dirs, cov),
+        "q_texels": int(cov.sum()),
+        "q_source": how,
+    }
 
 
 # --------------------------------------------------------------------------------------------
@@ -226,8 +245,13 @@ def _lpips_plan(cfg: EvaluateConfig) -> tuple[str | None, str | None]:
     return cfg.lpips, None
 
 
-def evaluate_maps(scene: Path, textures: dict[str, PolygonTexture], cfg: EvaluateConfig,
-                  error_dir: Path | None = None, progress: bool = True) -> dict:
+def evaluate_maps(
+    scene: Path,
+    textures: dict[str, PolygonTexture],
+    cfg: EvaluateConfig,
+    error_dir: Path | None = None,
+    progress: bool = True,
+) -> dict:
     """Table 1 metrics per polygon and pooled over the building."""
     from difftex.evaluation import metrics
     from difftex.scene.files import read_image, read_json, write_image
@@ -244,10 +268,16 @@ def evaluate_maps(scene: Path, textures: dict[str, PolygonTexture], cfg: Evaluat
         ref = read_image(gt / "maps" / f"{pid}.png")
         gmask = read_image(gt / "masks" / f"{pid}.png")[..., 0] > 0.5
         if ref.shape[:2] != gframe.shape:
-            raise DifftexError(f"{gt / 'maps' / (pid + '.png')}: size differs from its frame {gframe.width}x{gframe.height}")
+            raise DifftexError(
+                f"{gt / 'maps' / (pid + '.png')}: size differs from its frame {gframe.width}x{gframe.height}"
+            )
         img = resample_texture(pt.texture, pt.frame, gframe)
-        row = {"polygon_id": pid, "texels": int(gmask.sum()), "coverage": pt.report.get("coverage"),
-               "frame": frame_offsets(pt.frame, gframe)}
+        row = {
+            "polygon_id": pid,
+            "texels": int(gmask.sum()),
+            "coverage": pt.report.get("coverage"),
+            "frame": frame_offsets(pt.frame, gframe),
+        }
         e = metrics.texel_error(img, ref)
         errs.append(e[gmask])
         sq += float(((img - ref)[gmask] ** 2).sum())
@@ -274,11 +304,18 @@ def evaluate_maps(scene: Path, textures: dict[str, PolygonTexture], cfg: Evaluat
         return sum(v * n for v, n in vals) / sum(n for _, n in vals) if vals else None
 
     mse = sq / max(3 * n_tex, 1)
-    overall = {"error90": float(np.percentile(allerr, 90)), "error95": float(np.percentile(allerr, 95)),
-               "ssim": wmean("ssim"), "lpips": wmean("lpips"), "psnr": metrics.psnr_from_mse(mse),
-               "lpips_variant": lp_label or "unavailable: no polygon has 32x32 ground-truth texels",
-               "texels": int(tot), "polygons": len(rows),
-               "aggregation": "Error percentiles over all ground-truth texels of all polygons; SSIM/LPIPS texel-weighted means of the per-polygon values"}
+    overall = {
+        "error90": float(np.percentile(allerr, 90)),
+        "error95": float(np.percentile(allerr, 95)),
+        "ssim": wmean("ssim"),
+        "lpips": wmean("lpips"),
+        "psnr": metrics.psnr_from_mse(mse),
+        "lpips_variant": lp_label or "unavailable: no polygon has 32x32 ground-truth texels",
+        "texels": int(tot),
+        "polygons": len(rows),
+        "aggregation": "Error percentiles over all ground-truth texels of all polygons; SSIM/LPIPS texel-weighted "
+        "means of the per-polygon values",
+    }
     return {"overall": overall, "polygons": rows}
 
 
@@ -300,7 +337,9 @@ def scaled_photo(photo, long_side: int):
     return dataclasses.replace(photo, camera=cam, width=int(cam.width), height=int(cam.height)), s
 
 
-def render_proxy(photo, proxy, textures: dict[str, PolygonTexture], prepared=None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def render_proxy(
+    photo, proxy, textures: dict[str, PolygonTexture], prepared=None
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(image (H, W, 3), polygon index per pixel (-1 none), textured (H, W) bool) in ``photo``'s camera."""
     from difftex.geometry.frames import pixel_to_texel, sample_photo
     from difftex.geometry.visibility import id_buffer
@@ -336,14 +375,20 @@ def downscale_image(img: np.ndarray, size: tuple[int, int]) -> np.ndarray:
     return t[0].permute(1, 2, 0).numpy()
 
 
-def evaluate_views(photos: list, proxy, textures: dict[str, PolygonTexture], cfg: EvaluateConfig,
-                   out_dir: Path | None = None, progress: bool = True) -> dict:
+def evaluate_views(
+    photos: list,
+    proxy,
+    textures: dict[str, PolygonTexture],
+    cfg: EvaluateConfig,
+    out_dir: Path | None = None,
+    progress: bool = True,
+) -> dict:
     """SSIM / LPIPS / PSNR of the textured proxy rendered into each (held-out) photo, on proxy pixels."""
     from rich.progress import track
 
     from difftex.evaluation import metrics
-    from difftex.scene.files import read_image, write_image
     from difftex.geometry.visibility import prepare
+    from difftex.scene.files import read_image, write_image
 
     pp = prepare(proxy)
     rows = []
@@ -356,8 +401,12 @@ def evaluate_views(photos: list, proxy, textures: dict[str, PolygonTexture], cfg
         # above 1 are clipped as the texture's were.
         ref = np.clip(ref, 0.0, 1.0)
         mask = textured
-        row = {"photo": ph.name, "size": [sp.width, sp.height], "proxy_pixels": int((ids >= 0).sum()),
-               "compared_pixels": int(mask.sum())}
+        row = {
+            "photo": ph.name,
+            "size": [sp.width, sp.height],
+            "proxy_pixels": int((ids >= 0).sum()),
+            "compared_pixels": int(mask.sum()),
+        }
         if mask.sum() < 64:
             row["skipped"] = "the textured proxy covers fewer than 64 pixels"
             rows.append(row)
@@ -383,10 +432,15 @@ def evaluate_views(photos: list, proxy, textures: dict[str, PolygonTexture], cfg
         vals = [(r[key], r["compared_pixels"]) for r in scored if r.get(key) is not None]
         return sum(v * n for v, n in vals) / sum(n for _, n in vals) if vals else None
 
-    overall = {"ssim": wmean("ssim"), "lpips": wmean("lpips"), "psnr": wmean("psnr"), "views": len(scored),
-               "lpips_variant": lp_label or "unavailable: no held-out view was scored",
-               "render_long_side": cfg.render_long_side,
-               "aggregation": "pixel-weighted means over the held-out views of the per-view values"}
+    overall = {
+        "ssim": wmean("ssim"),
+        "lpips": wmean("lpips"),
+        "psnr": wmean("psnr"),
+        "views": len(scored),
+        "lpips_variant": lp_label or "unavailable: no held-out view was scored",
+        "render_long_side": cfg.render_long_side,
+        "aggregation": "pixel-weighted means over the held-out views of the per-view values",
+    }
     return {"overall": overall, "views": rows}
 
 
@@ -398,8 +452,13 @@ def evaluate_views(photos: list, proxy, textures: dict[str, PolygonTexture], cfg
 # Everything for one results folder
 
 
-def evaluate_results(scene: str | Path, results: str | Path, cfg: EvaluateConfig = EvaluateConfig(),
-                     out_dir: str | Path | None = None, progress: bool = True) -> dict:
+def evaluate_results(
+    scene: str | Path,
+    results: str | Path,
+    cfg: EvaluateConfig = EvaluateConfig(),
+    out_dir: str | Path | None = None,
+    progress: bool = True,
+) -> dict:
     """All applicable metrics of one results folder; images (error maps, renders) under ``out_dir``."""
     from difftex.scene.camera import load_photos
     from difftex.scene.files import read_json
@@ -411,9 +470,14 @@ def evaluate_results(scene: str | Path, results: str | Path, cfg: EvaluateConfig
     textures = load_textures(results)
     sc = load_scene(scene, check_images=False)
     methods = sorted({pt.report.get("method", "?") for pt in textures.values()})
-    res: dict = {"scene": str(scene), "results": str(results), "method": methods[0] if len(methods) == 1 else methods,
-                 "config": cfg.__dict__, "textured_polygons": len(textures),
-                 "proxy_polygons": len(sc.proxy.polygons)}
+    res: dict = {
+        "scene": str(scene),
+        "results": str(results),
+        "method": methods[0] if len(methods) == 1 else methods,
+        "config": cfg.__dict__,
+        "textured_polygons": len(textures),
+        "proxy_polygons": len(sc.proxy.polygons),
+    }
     # Perspective quality: over the photos the scene copy had (they are the only possible sources).
     centres = {p.name: p.center for p in sc.photos}
     qrows = {}
@@ -424,9 +488,12 @@ def evaluate_results(scene: str | Path, results: str | Path, cfg: EvaluateConfig
     if qrows:
         n = {pid: q["q_texels"] for pid, q in qrows.items()}
         tot = sum(n.values())
-        res["perspective"] = {"q_front": sum(q["q_front"] * n[p] for p, q in qrows.items()) / tot,
-                              "q_vc": sum(q["q_vc"] * n[p] for p, q in qrows.items()) / tot,
-                              "polygons": qrows, "aggregation": "texel-weighted mean over polygons"}
+        res["perspective"] = {
+            "q_front": sum(q["q_front"] * n[p] for p, q in qrows.items()) / tot,
+            "q_vc": sum(q["q_vc"] * n[p] for p, q in qrows.items()) / tot,
+            "polygons": qrows,
+            "aggregation": "texel-weighted mean over polygons",
+        }
     if (scene / "ground_truth" / "frames").is_dir():
         res["maps"] = evaluate_maps(scene, textures, cfg, out_dir / "error_maps" if out_dir else None, progress)
     if cfg.views:
@@ -435,12 +502,16 @@ def evaluate_results(scene: str | Path, results: str | Path, cfg: EvaluateConfig
             info = read_json(hold)
             orig = load_scene(info["original_scene"], check_images=False)
             photos = [p for p in orig.photos if p.name in set(info["held_out"])]
-            res["views"] = evaluate_views(photos, sc.proxy, textures, cfg, out_dir / "views" if out_dir else None, progress)
+            res["views"] = evaluate_views(
+                photos, sc.proxy, textures, cfg, out_dir / "views" if out_dir else None, progress
+            )
             res["views"]["held_out"] = info["held_out"]
         elif (scene / "ground_truth" / "views" / "sparse" / "0").is_dir():
             vdir = scene / "ground_truth" / "views"
             photos = load_photos(vdir / "sparse" / "0", vdir / "images")
-            res["views"] = evaluate_views(photos, sc.proxy, textures, cfg, out_dir / "views" if out_dir else None, progress)
+            res["views"] = evaluate_views(
+                photos, sc.proxy, textures, cfg, out_dir / "views" if out_dir else None, progress
+            )
     res["time_s"] = time.perf_counter() - t0
     return res
 
@@ -449,13 +520,17 @@ def summary_line(res: dict) -> str:
     parts = [f"{res['textured_polygons']}/{res['proxy_polygons']} polygons textured"]
     if "maps" in res:
         o = res["maps"]["overall"]
-        parts.append(f"maps: E90 {o['error90']:.4f} E95 {o['error95']:.4f} SSIM {o['ssim']:.4f} "
-                     f"LPIPS {o['lpips'] if o['lpips'] is None else round(o['lpips'], 4)} ({o['lpips_variant']})")
+        parts.append(
+            f"maps: E90 {o['error90']:.4f} E95 {o['error95']:.4f} SSIM {o['ssim']:.4f} "
+            f"LPIPS {o['lpips'] if o['lpips'] is None else round(o['lpips'], 4)} ({o['lpips_variant']})"
+        )
     if "views" in res:
         o = res["views"]["overall"]
         if o["ssim"] is not None:
-            parts.append(f"views ({o['views']}): SSIM {o['ssim']:.4f} PSNR {o['psnr']:.2f} "
-                         f"LPIPS {o['lpips'] if o['lpips'] is None else round(o['lpips'], 4)}")
+            parts.append(
+                f"views ({o['views']}): SSIM {o['ssim']:.4f} PSNR {o['psnr']:.2f} "
+                f"LPIPS {o['lpips'] if o['lpips'] is None else round(o['lpips'], 4)}"
+            )
     if "perspective" in res:
         parts.append(f"Q_front {res['perspective']['q_front']:.4f} Q_vc {res['perspective']['q_vc']:.4f}")
     return "; ".join(parts)

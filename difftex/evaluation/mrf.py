@@ -56,7 +56,7 @@ class MRFConfig:
             raise ValueError("patch and max_cycles must be >= 1, smoothness and feather >= 0")
 
     @classmethod
-    def from_dict(cls, data: dict | None, where: str = "mrf") -> "MRFConfig":
+    def from_dict(cls, data: dict | None, where: str = "mrf") -> MRFConfig:
         from difftex.config import from_dict
 
         return from_dict(cls, data, where=where)
@@ -105,7 +105,9 @@ def _gauss(x: torch.Tensor, sigma: float) -> torch.Tensor:
     return y[0]
 
 
-def level_gains(pairs: dict[tuple[int, int], tuple[np.ndarray, np.ndarray, int]], labels: list[int], prior: float) -> dict[int, np.ndarray]:
+def level_gains(
+    pairs: dict[tuple[int, int], tuple[np.ndarray, np.ndarray, int]], labels: list[int], prior: float
+) -> dict[int, np.ndarray]:
     """Per-photo RGB gains g minimising sum_ab w_ab (log g_a + log m_a - log g_b - log m_b)^2 + prior * sum log^2 g."""
     if not pairs:
         return {n: np.ones(3) for n in labels}
@@ -145,13 +147,17 @@ def consistency_penalty(means: np.ndarray, ok: np.ndarray, sigma: float, steps: 
     for _ in range(steps):
         d2 = ((means - mode[None]) ** 2).sum(-1)
         w = np.exp(-0.5 * d2 / sigma**2) * okf
-        mode = np.where((w.sum(0) > 1e-9)[..., None], (w[..., None] * means).sum(0) / np.maximum(w.sum(0), 1e-9)[..., None], mode)
+        mode = np.where(
+            (w.sum(0) > 1e-9)[..., None], (w[..., None] * means).sum(0) / np.maximum(w.sum(0), 1e-9)[..., None], mode
+        )
     d2 = ((means - mode[None]) ** 2).sum(-1)
     pen = np.minimum(1.0, d2 / sigma**2)
     return np.where(ok & (cnt >= 3)[None], pen, 0.0)
 
 
-def mrf_texture(inp: PolygonInput, cfg: MRFConfig = MRFConfig(), device="cpu") -> tuple[np.ndarray, np.ndarray, np.ndarray, dict]:
+def mrf_texture(
+    inp: PolygonInput, cfg: MRFConfig = MRFConfig(), device="cpu"
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, dict]:
     """(U (H, W, 3), weight sum (H, W), dominant photo (H, W), info), like baselines.baseline_texture."""
     t0 = time.perf_counter()
     device = pick_device(device)
@@ -171,8 +177,12 @@ def mrf_texture(inp: PolygonInput, cfg: MRFConfig = MRFConfig(), device="cpu") -
         return mp
 
     if not labels:
-        return (np.zeros((H, W, 3), np.float32), np.zeros((H, W), np.float32), np.full((H, W), -1),
-                {"method": "mrf", "labels": 0})
+        return (
+            np.zeros((H, W, 3), np.float32),
+            np.zeros((H, W), np.float32),
+            np.full((H, W), -1),
+            {"method": "mrf", "labels": 0},
+        )
     # Pass 1: view quality per texel and photo, patch mean colours -> patch data costs.
     qual = np.zeros((len(labels), H, W), np.float32)
     vis = np.zeros((len(labels), H, W), bool)
@@ -221,9 +231,12 @@ def mrf_texture(inp: PolygonInput, cfg: MRFConfig = MRFConfig(), device="cpu") -
     if cfg.leveling and len(labels) > 1:
         r = cfg.leveling_band
         onehot = torch.from_numpy(np.stack([(lab_tex == i) & mask for i in range(len(labels))]).astype(np.float32))
-        dil = (F.max_pool2d(onehot[None], 2 * r + 1, stride=1, padding=r)[0] > 0).numpy() if r > 0 else onehot.numpy() > 0
-        pair_ids = [(a, b) for a in range(len(labels)) for b in range(a + 1, len(labels))
-                    if (dil[a] & dil[b] & mask).any()]
+        dil = (
+            (F.max_pool2d(onehot[None], 2 * r + 1, stride=1, padding=r)[0] > 0).numpy() if r > 0 else onehot.numpy() > 0
+        )
+        pair_ids = [
+            (a, b) for a in range(len(labels)) for b in range(a + 1, len(labels)) if (dil[a] & dil[b] & mask).any()
+        ]
         bands = {(a, b): dil[a] & dil[b] & vis[a] & vis[b] for a, b in pair_ids}
         bands = {k: v for k, v in bands.items() if v.sum() >= 16}
         sums: dict[tuple[int, int], dict[int, np.ndarray]] = {k: {} for k in bands}
@@ -237,8 +250,10 @@ def mrf_texture(inp: PolygonInput, cfg: MRFConfig = MRFConfig(), device="cpu") -
                     sums[k][i] = col[:, band].mean(1)
         pairs = {k: (sums[k][k[0]], sums[k][k[1]], int(bands[k].sum())) for k in bands}
         gains = level_gains(pairs, list(range(len(labels))), cfg.leveling_prior)
-        pairs_info = [{"photos": [inp.photos[labels[a]].name, inp.photos[labels[b]].name], "band_texels": w}
-                      for (a, b), (_, _, w) in pairs.items()]
+        pairs_info = [
+            {"photos": [inp.photos[labels[a]].name, inp.photos[labels[b]].name], "band_texels": w}
+            for (a, b), (_, _, w) in pairs.items()
+        ]
     # Pass 3: composition with feathered labels and gains.
     acc = torch.zeros(3, H, W, device=device)
     wsum = torch.zeros(H, W, device=device)
@@ -257,26 +272,39 @@ def mrf_texture(inp: PolygonInput, cfg: MRFConfig = MRFConfig(), device="cpu") -
     dominant = np.where(lab_tex >= 0, np.asarray(labels)[np.clip(lab_tex, 0, None)], -1)
     dominant = np.where(mask, dominant, -1)
     n_seams = int((lab[1:] != lab[:-1]).sum() + (lab[:, 1:] != lab[:, :-1]).sum())
-    info = {"method": "mrf", "config": cfg.__dict__, "patches": list(lab.shape), "labels": len(labels),
-            "photos_used": sorted({inp.photos[labels[i]].name for i in np.unique(lab_tex[lab_tex >= 0])}),
-            "seam_edges": n_seams, "consistency_outliers": outliers, "energy": energy(unary, lab, cfg.smoothness * P),
-            "energy_unary_only": energy(unary, np.argmin(unary, -1), cfg.smoothness * P),
-            "gains": {inp.photos[labels[i]].name: [round(float(x), 4) for x in g] for i, g in gains.items()},
-            "leveling_pairs": pairs_info, "time_solve_s": t_solve, "time_s": time.perf_counter() - t0}
+    info = {
+        "method": "mrf",
+        "config": cfg.__dict__,
+        "patches": list(lab.shape),
+        "labels": len(labels),
+        "photos_used": sorted({inp.photos[labels[i]].name for i in np.unique(lab_tex[lab_tex >= 0])}),
+        "seam_edges": n_seams,
+        "consistency_outliers": outliers,
+        "energy": energy(unary, lab, cfg.smoothness * P),
+        "energy_unary_only": energy(unary, np.argmin(unary, -1), cfg.smoothness * P),
+        "gains": {inp.photos[labels[i]].name: [round(float(x), 4) for x in g] for i, g in gains.items()},
+        "leveling_pairs": pairs_info,
+        "time_solve_s": t_solve,
+        "time_s": time.perf_counter() - t0,
+    }
     return U.permute(1, 2, 0).cpu().numpy(), wsum.cpu().numpy(), dominant, info
 
 
 def run_polygon(inp: PolygonInput, out_dir, cfg: MRFConfig = MRFConfig(), device="cpu") -> dict:
     """Texture one polygon and write the baseline outputs; returns the report."""
-    from difftex.compose.outputs import write_texture_outputs
     from difftex.compose.composite import finish_texture
+    from difftex.compose.outputs import write_texture_outputs
 
     t0 = time.perf_counter()
     U, wsum, dominant, info = mrf_texture(inp, cfg, device)
     U, fill = finish_texture(U, wsum, inp.texel_mask)
     seen = (wsum > 0) & inp.texel_mask
-    report = {"polygon_id": inp.polygon_id, **info, **fill, "histogram_matching": False,
-              "time_s": time.perf_counter() - t0}
+    report = {
+        "polygon_id": inp.polygon_id,
+        **info,
+        **fill,
+        "histogram_matching": False,
+        "time_s": time.perf_counter() - t0,
+    }
     write_texture_outputs(out_dir, U, inp.texel_mask, seen, dominant, [p.name for p in inp.photos], report)
     return report
-

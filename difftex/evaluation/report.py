@@ -12,24 +12,12 @@ shows "n/a" (the optimizer's stats.json gains diagnostics over time).
 
 from __future__ import annotations
 
-import html
-import os
 from pathlib import Path
 
 import numpy as np
 
-from difftex.scene.files import read_json, write_text
-
-CSS = """body{font-family:sans-serif;font-size:15px;margin:1.5em;max-width:1500px;color:#222}
-h2{border-bottom:2px solid #ccc;margin-top:1.6em}h3{margin:1.2em 0 .3em}
-table{border-collapse:collapse;margin:.5em 0}td,th{border:1px solid #bbb;padding:3px 7px;text-align:right;vertical-align:top}
-th{background:#eee}td:first-child,th:first-child{text-align:left}td.l{text-align:left}
-img{image-rendering:pixelated;max-width:420px;max-height:360px;border:1px solid #ccc;margin:2px}
-img.map{max-width:none;max-height:none}img.wide{image-rendering:auto;max-width:100%;max-height:none}
-figure{display:inline-block;margin:4px 10px 4px 0;vertical-align:top}figcaption{font-size:85%;text-align:center;max-width:420px}
-.small{font-size:88%;color:#444}.warn{color:#a40}.sw{display:inline-block;width:1.1em;height:1.1em;border:1px solid #555;
-vertical-align:middle;margin:0 .3em 0 .8em}.legend{line-height:1.9}
-.row{display:flex;gap:1.2em;align-items:flex-start;flex-wrap:wrap}"""
+from difftex.evaluation.html import CSS, _esc, _fig, _html, _num, _read, _table
+from difftex.scene.files import write_text
 
 BOUND = {  # difftex.geometry.density.TexelSize.bound: what set a polygon's texel size
     "photos": "photos",
@@ -41,72 +29,23 @@ BOUND = {  # difftex.geometry.density.TexelSize.bound: what set a polygon's texe
 }
 LOSS_COLOURS = (("total", "k"), ("render", "C0"), ("ghost", "C3"), ("persp", "C1"), ("para", "C2"))
 # per-level keys the diagnostics table shows in its own columns, or not at all
-_LEVEL_SHOWN = {"level", "shape", "long_side", "candidates", "iterations", "cap", "converged", "final", "loss",
-                "weight_change", "eliminated_pixels", "dropped_photos", "active_slots_mean", "time_s", "v_tilde"}
-
-
-def _esc(x) -> str:
-    return html.escape(str(x))
-
-
-def _rel(target: Path, start: Path) -> str:
-    return html.escape(os.path.relpath(target, start).replace(os.sep, "/"))
-
-
-MAP_BOX = (420, 360)  # maps are shown scaled to fit this box (width, height), small ones enlarged
-
-
-def _fig(path: Path, base: Path, caption: str, cls: str = "") -> str:
-    """A linked picture with its caption; a texel map ("map") is scaled to fit MAP_BOX, so that a
-    64-texel map is as readable as a 2048-texel one."""
-    if not path.is_file():
-        return ""
-    size = ""
-    if cls == "map":
-        from difftex.scene.files import image_size
-
-        try:
-            w, h = image_size(path)
-            k = min(MAP_BOX[0] / w, MAP_BOX[1] / h)
-            size = f' width="{max(1, round(w * k))}" height="{max(1, round(h * k))}"'
-        except Exception:  # noqa: BLE001 -- an unreadable picture is shown as the browser can
-            size = ""
-    c = f' class="{cls}"' if cls else ""
-    return (f'<figure><a href="{_rel(path, base)}"><img{c}{size} src="{_rel(path, base)}" alt="{_esc(caption)}"></a>'
-            f"<figcaption>{_esc(caption)}</figcaption></figure>")
-
-
-def _num(v, fmt: str = ".4g") -> str:
-    if v is None:
-        return "n/a"
-    if isinstance(v, bool):
-        return "yes" if v else "no"
-    if isinstance(v, float):
-        return format(v, fmt)
-    if isinstance(v, (list, tuple)):
-        return _esc(", ".join(str(x) for x in v)) if v else "-"
-    return _esc(v)
-
-
-def _table(header: list[str], rows: list[list], fmt: str = ".4g") -> str:
-    h = "".join(f"<th>{_esc(x)}</th>" for x in header)
-    body = "".join("<tr>" + "".join(c[1] if isinstance(c, tuple) and c[0] == "html" else f"<td>{_num(c, fmt)}</td>"
-                                    for c in r) + "</tr>" for r in rows)
-    return f"<table><tr>{h}</tr>{body}</table>"
-
-
-def _html(text: str, cls: str = "l") -> tuple:
-    """A table cell holding ready-made HTML (``_table`` escapes everything else)."""
-    return ("html", f"<td class={cls}>{text}</td>")
-
-
-def _read(path: Path) -> dict:
-    """A JSON file as a dict, {} when it is missing or not a dict."""
-    try:
-        data = read_json(path) if path.is_file() else {}
-    except Exception:  # noqa: BLE001 -- a report shows what it can; a broken file is reported as absent
-        return {}
-    return data if isinstance(data, dict) else {}
+_LEVEL_SHOWN = {
+    "level",
+    "shape",
+    "long_side",
+    "candidates",
+    "iterations",
+    "cap",
+    "converged",
+    "final",
+    "loss",
+    "weight_change",
+    "eliminated_pixels",
+    "dropped_photos",
+    "active_slots_mean",
+    "time_s",
+    "v_tilde",
+}
 
 
 def loss_curve(stats: dict, out: Path, title: str = "") -> Path | None:
@@ -172,8 +111,11 @@ def _legend(colours: dict, tdir: Path) -> str:
             shares = {n: c / max(counts.sum(), 1) for n, c in zip(names, counts)}
         except (OSError, KeyError, ValueError):
             shares = {}
-    items = [f"<span class=sw style='background:{_esc(c)}'></span>{_esc(n)}"
-             + (f" <span class=small>{_share(shares[n])}</span>" if n in shares else "") for n, c in colours.items()]
+    items = [
+        f"<span class=sw style='background:{_esc(c)}'></span>{_esc(n)}"
+        + (f" <span class=small>{_share(shares[n])}</span>" if n in shares else "")
+        for n, c in colours.items()
+    ]
     return f"<p class='small legend'>Source map: {' '.join(items)}</p>" if items else ""
 
 
@@ -185,25 +127,46 @@ def _level_table(stats: dict) -> str:
         return ""
 
     def last(v):
-        return v[-1] if isinstance(v, list) and v and not isinstance(v[-1], (list, dict)) else (None if isinstance(v, list) else v)
+        return (
+            v[-1]
+            if isinstance(v, list) and v and not isinstance(v[-1], (list, dict))
+            else (None if isinstance(v, list) else v)
+        )
 
     def size(lv):
         shape = lv.get("shape")
         return f"{shape[1]}x{shape[0]}" if isinstance(shape, list) and len(shape) == 2 else None
 
-    rows = [("map (texels)", size), ("candidate photos", lambda lv: lv.get("candidates")),
-            ("iterations / cap", lambda lv: f"{lv['iterations']} / {lv.get('cap', 'n/a')}" if "iterations" in lv else None),
-            ("converged", lambda lv: lv.get("converged"))]
+    rows = [
+        ("map (texels)", size),
+        ("candidate photos", lambda lv: lv.get("candidates")),
+        ("iterations / cap", lambda lv: f"{lv['iterations']} / {lv.get('cap', 'n/a')}" if "iterations" in lv else None),
+        ("converged", lambda lv: lv.get("converged")),
+    ]
     rows += [(f"final loss: {k}", lambda lv, k=k: (lv.get("final") or {}).get(k)) for k, _ in LOSS_COLOURS]
-    rows += [("weight change (last check)", lambda lv: last(lv.get("weight_change"))),
-             ("eliminated pixels", lambda lv: lv.get("eliminated_pixels")),
-             ("active slots per texel", lambda lv: lv.get("active_slots_mean")),
-             ("photos dropped", lambda lv: lv.get("dropped_photos")), ("time (s)", lambda lv: lv.get("time_s"))]
-    extra = sorted({k for lv in levels for k, v in lv.items() if k not in _LEVEL_SHOWN
-                    and (isinstance(v, (int, float, str, bool)) or (isinstance(v, list) and v and isinstance(v[-1], (int, float))))})
+    rows += [
+        ("weight change (last check)", lambda lv: last(lv.get("weight_change"))),
+        ("eliminated pixels", lambda lv: lv.get("eliminated_pixels")),
+        ("active slots per texel", lambda lv: lv.get("active_slots_mean")),
+        ("photos dropped", lambda lv: lv.get("dropped_photos")),
+        ("time (s)", lambda lv: lv.get("time_s")),
+    ]
+    extra = sorted(
+        {
+            k
+            for lv in levels
+            for k, v in lv.items()
+            if k not in _LEVEL_SHOWN
+            and (
+                isinstance(v, (int, float, str, bool))
+                or (isinstance(v, list) and v and isinstance(v[-1], (int, float)))
+            )
+        }
+    )
     rows += [(k, lambda lv, k=k: last(lv.get(k))) for k in extra]
-    return ("<p class=small>Optimizer diagnostics per level (coarse to fine):</p>"
-            + _table(["level"] + [str(i) for i in range(len(levels))], [[name] + [get(lv) for lv in levels] for name, get in rows]))
+    return "<p class=small>Optimizer diagnostics per level (coarse to fine):</p>" + _table(
+        ["level"] + [str(i) for i in range(len(levels))], [[name] + [get(lv) for lv in levels] for name, get in rows]
+    )
 
 
 def _polygon_rows(pids, vis, model, reports, stats, metrics) -> tuple[list[str], list[list]]:
@@ -211,8 +174,19 @@ def _polygon_rows(pids, vis, model, reports, stats, metrics) -> tuple[list[str],
     maps = {r.get("polygon_id"): r for r in (metrics.get("maps") or {}).get("polygons", []) if isinstance(r, dict)}
     persp = (metrics.get("perspective") or {}).get("polygons") or {}
     mrows = {r.get("id"): r for r in model.get("polygons", []) if isinstance(r, dict)}
-    head = ["polygon", "photos", "coverage", "map (texels)", "texel size (scene units)", "set by", "photos' texel size",
-            "iterations", "photos dropped", "time (s)", "notes"]
+    head = [
+        "polygon",
+        "photos",
+        "coverage",
+        "map (texels)",
+        "texel size (scene units)",
+        "set by",
+        "photos' texel size",
+        "iterations",
+        "photos dropped",
+        "time (s)",
+        "notes",
+    ]
     with_maps, with_q = bool(maps), bool(persp)
     if with_maps:
         head += ["Error 90%", "Error 95%", "SSIM", "LPIPS"]
@@ -230,18 +204,31 @@ def _polygon_rows(pids, vis, model, reports, stats, metrics) -> tuple[list[str],
         if v.get("textured_from_oblique"):
             ang = v.get("oblique_angles") or {}
             lo, hi = (f"{min(ang.values()):.0f}", f"{max(ang.values()):.0f}") if ang else ("", "")
-            notes.append("oblique photos only" + (f" ({lo} deg)" if lo == hi and ang else f" ({lo}-{hi} deg)" if ang else ""))
+            notes.append(
+                "oblique photos only" + (f" ({lo} deg)" if lo == hi and ang else f" ({lo}-{hi} deg)" if ang else "")
+            )
         if v.get("textured_from_glimpses"):
             notes.append("from glimpses (under filter.min_pixels)")
         for name, r in (v.get("rescued") or {}).items():
             n = r.get("texels")
-            notes.append(f"{_esc(name)} kept for the {n} texel{'' if n == 1 else 's'} only it sees ({_esc(r.get('why'))})")
+            notes.append(
+                f"{_esc(name)} kept for the {n} texel{'' if n == 1 else 's'} only it sees ({_esc(r.get('why'))})"
+            )
         t = rep.get("time_s") if rep.get("time_s") is not None else st.get("time_stage_s", st.get("time_total_s"))
         cov = rep.get("coverage", v.get("coverage"))
-        row = [pid, len(v.get("photos", [])) if v else None, cov, size, v.get("texel_size"),
-               _html(_esc(BOUND.get(v.get("texel_size_bound"), v.get("texel_size_bound") or "n/a"))),
-               v.get("photo_texel_size"), "+".join(str(i) for i in its) if its else None,
-               len(st.get("dropped") or []) if st else None, t, _html("<br>".join(notes))]
+        row = [
+            pid,
+            len(v.get("photos", [])) if v else None,
+            cov,
+            size,
+            v.get("texel_size"),
+            _html(_esc(BOUND.get(v.get("texel_size_bound"), v.get("texel_size_bound") or "n/a"))),
+            v.get("photo_texel_size"),
+            "+".join(str(i) for i in its) if its else None,
+            len(st.get("dropped") or []) if st else None,
+            t,
+            _html("<br>".join(notes)),
+        ]
         if with_maps:
             mp = maps.get(pid, {})
             row += [mp.get("error90"), mp.get("error95"), mp.get("ssim"), mp.get("lpips")]
@@ -253,32 +240,55 @@ def _polygon_rows(pids, vis, model, reports, stats, metrics) -> tuple[list[str],
 
 def _metrics_section(metrics: dict) -> list[str]:
     if not metrics:
-        return ["<h2>Metrics</h2><p class=small>No evaluation in this results folder (run.evaluate: false, or the "
-                "evaluate job has not run).</p>"]
+        return [
+            "<h2>Metrics</h2><p class=small>No evaluation in this results folder (run.evaluate: false, or the "
+            "evaluate job has not run).</p>"
+        ]
     parts = ["<h2>Metrics</h2>"]
     if "maps" in metrics:
         o = (metrics["maps"] or {}).get("overall") or {}
-        parts.append("<h3>Against the ground-truth maps (synthetic scene)</h3>" + _table(
-            ["texels", "Error 90%", "Error 95%", "SSIM", "LPIPS", "PSNR (dB)"],
-            [[o.get("texels"), o.get("error90"), o.get("error95"), o.get("ssim"), o.get("lpips"), o.get("psnr")]], ".4f")
-            + f"<p class=small>Error: RGB distance per texel in [0, sqrt 3]; LPIPS: {_esc(o.get('lpips_variant', 'n/a'))}.</p>")
+        parts.append(
+            "<h3>Against the ground-truth maps (synthetic scene)</h3>"
+            + _table(
+                ["texels", "Error 90%", "Error 95%", "SSIM", "LPIPS", "PSNR (dB)"],
+                [[o.get("texels"), o.get("error90"), o.get("error95"), o.get("ssim"), o.get("lpips"), o.get("psnr")]],
+                ".4f",
+            )
+            + "<p class=small>Error: RGB distance per texel in [0, sqrt 3]; LPIPS: "
+            f"{_esc(o.get('lpips_variant', 'n/a'))}.</p>"
+        )
     views = metrics.get("views") or {}
     if views:
         o = views.get("overall") or {}
-        rows = [[r.get("photo"), r.get("compared_pixels"), r.get("ssim"), r.get("lpips"), r.get("psnr"), r.get("skipped")]
-                for r in views.get("views", []) if isinstance(r, dict)]
-        rows.append([_html("<b>all (pixel-weighted)</b>"), sum(r[1] or 0 for r in rows), o.get("ssim"), o.get("lpips"),
-                     o.get("psnr"), None])
+        rows = [
+            [r.get("photo"), r.get("compared_pixels"), r.get("ssim"), r.get("lpips"), r.get("psnr"), r.get("skipped")]
+            for r in views.get("views", [])
+            if isinstance(r, dict)
+        ]
+        rows.append(
+            [
+                _html("<b>all (pixel-weighted)</b>"),
+                sum(r[1] or 0 for r in rows),
+                o.get("ssim"),
+                o.get("lpips"),
+                o.get("psnr"),
+                None,
+            ]
+        )
         held = views.get("held_out")
         what = f"held-out photos ({_esc(', '.join(held))})" if held else "the scene's ground-truth views"
-        parts.append(f"<h3>Rendered into {what}</h3>"
-                     + _table(["view", "compared pixels", "SSIM", "LPIPS", "PSNR (dB)", "skipped"], rows, ".4f")
-                     + f"<p class=small>The textured proxy rendered into each camera and compared with the photo on the "
-                       f"proxy's pixels; LPIPS: {_esc(o.get('lpips_variant', 'n/a'))}.</p>")
+        parts.append(
+            f"<h3>Rendered into {what}</h3>"
+            + _table(["view", "compared pixels", "SSIM", "LPIPS", "PSNR (dB)", "skipped"], rows, ".4f")
+            + f"<p class=small>The textured proxy rendered into each camera and compared with the photo on the "
+            f"proxy's pixels; LPIPS: {_esc(o.get('lpips_variant', 'n/a'))}.</p>"
+        )
     if "perspective" in metrics:
         p = metrics["perspective"] or {}
-        parts.append(f"<p>Perspective quality (texel-weighted over polygons): Q_front {_num(p.get('q_front'), '.4f')}, "
-                     f"Q_vc {_num(p.get('q_vc'), '.4f')} (1 = every texel from a head-on, consistent view).</p>")
+        parts.append(
+            f"<p>Perspective quality (texel-weighted over polygons): Q_front {_num(p.get('q_front'), '.4f')}, "
+            f"Q_vc {_num(p.get('q_vc'), '.4f')} (1 = every texel from a head-on, consistent view).</p>"
+        )
     return parts
 
 
@@ -299,13 +309,27 @@ def _photos_section(photos: dict, vis: dict) -> list[str]:
     rows = []
     for r in recs:
         seen = ", ".join(f"{k} {v.get('angle_deg', 0):.0f}&deg;" for k, v in (r.get("polygons") or {}).items())
-        rows.append([r.get("name"), r.get("kept"), _html(_esc(r.get("reason") or "")), r.get("sharpness_rel"),
-                     _html(seen), _html(_esc(", ".join(used.get(r.get("name"), []))) or "-")])
-    return ["<h2>Photo filter</h2>",
-            f"<p class=small>Photos are dropped when they see no polygon or are blurry (sharpness below "
-            f"{_num(cfg.get('blur_ratio'))} x the median); per polygon, views beyond {_num(cfg.get('max_angle_deg'))}&deg; "
-            "are left out unless they are its only photos (or the only ones of some of its texels).</p>",
-            _table(["photo", "kept", "reason", "sharpness (x median)", "polygons seen (viewing angle)", "used for"], rows, ".2f")]
+        rows.append(
+            [
+                r.get("name"),
+                r.get("kept"),
+                _html(_esc(r.get("reason") or "")),
+                r.get("sharpness_rel"),
+                _html(seen),
+                _html(_esc(", ".join(used.get(r.get("name"), []))) or "-"),
+            ]
+        )
+    return [
+        "<h2>Photo filter</h2>",
+        f"<p class=small>Photos are dropped when they see no polygon or are blurry (sharpness below "
+        f"{_num(cfg.get('blur_ratio'))} x the median); per polygon, views beyond {_num(cfg.get('max_angle_deg'))}&deg; "
+        "are left out unless they are its only photos (or the only ones of some of its texels).</p>",
+        _table(
+            ["photo", "kept", "reason", "sharpness (x median)", "polygons seen (viewing angle)", "used for"],
+            rows,
+            ".2f",
+        ),
+    ]
 
 
 def write_report(results: str | Path, out: str | Path | None = None, scene: str | Path | None = None) -> Path:
@@ -315,7 +339,9 @@ def write_report(results: str | Path, out: str | Path | None = None, scene: str 
     base = out.parent
     base.mkdir(parents=True, exist_ok=True)
     tdir = results / "textures"
-    from difftex.evaluation.evaluate import visibility_dir  # R/visibility, or the shared one an evaluation's method folder names
+    from difftex.evaluation.evaluate import (
+        visibility_dir,  # R/visibility, or the shared one an evaluation's method folder names
+    )
 
     vis_rows = [r for r in _read(visibility_dir(results) / "summary.json").get("polygons", []) if isinstance(r, dict)]
     vis = {str(r.get("id")): r for r in vis_rows}
@@ -327,65 +353,106 @@ def write_report(results: str | Path, out: str | Path | None = None, scene: str 
     reports = {pid: _read(tdir / pid / "report.json") for pid in pids}
     stats = {pid: _read(results / "optimized" / pid / "stats.json") for pid in pids}
     methods = sorted({r.get("method") for r in reports.values() if r.get("method")})
-    parts = [f"<!doctype html><html><head><meta charset='utf-8'><title>difftex report: {_esc(results.name)}</title>"
-             f"<style>{CSS}</style></head><body><h1>difftex report: {_esc(results.name)}</h1>",
-             f"<p>Results folder <code>{_esc(results)}</code>; method <b>{_esc(', '.join(methods) or 'n/a')}</b>; "
-             f"<b>{len(textured)} of {len(pids)}</b> polygons textured.</p>"]
+    parts = [
+        f"<!doctype html><html><head><meta charset='utf-8'><title>difftex report: {_esc(results.name)}</title>"
+        f"<style>{CSS}</style></head><body><h1>difftex report: {_esc(results.name)}</h1>",
+        f"<p>Results folder <code>{_esc(results)}</code>; method <b>{_esc(', '.join(methods) or 'n/a')}</b>; "
+        f"<b>{len(textured)} of {len(pids)}</b> polygons textured.</p>",
+    ]
     # --- what is not textured, and what only poorly
-    untextured = model.get("untextured_reasons") or {pid: r.get("untextured_reason") or "no photo sees it"
-                                                     for pid, r in vis.items() if pid not in textured}
+    untextured = model.get("untextured_reasons") or {
+        pid: r.get("untextured_reason") or "no photo sees it" for pid, r in vis.items() if pid not in textured
+    }
     if untextured:
-        parts.append("<h2>Untextured polygons (grey in the model)</h2><ul>"
-                     + "".join(f"<li><b>{_esc(p)}</b>: {_esc(w)}</li>" for p, w in untextured.items()) + "</ul>")
+        parts.append(
+            "<h2>Untextured polygons (grey in the model)</h2><ul>"
+            + "".join(f"<li><b>{_esc(p)}</b>: {_esc(w)}</li>" for p, w in untextured.items())
+            + "</ul>"
+        )
     oblique = {pid: r.get("oblique_angles") or {} for pid, r in vis.items() if r.get("textured_from_oblique")}
     if oblique:
-        parts.append("<p class=warn>Textured from oblique photos only (every photo sees them beyond filter.max_angle_deg; "
-                     "expect stretched detail): " + ", ".join(
-                         f"<b>{_esc(p)}</b>" + (f" ({min(a.values()):.0f}&deg;)" if a else "") for p, a in oblique.items()) + "</p>")
+        parts.append(
+            "<p class=warn>Textured from oblique photos only (every photo sees them beyond filter.max_angle_deg; "
+            "expect stretched detail): "
+            + ", ".join(
+                f"<b>{_esc(p)}</b>" + (f" ({min(a.values()):.0f}&deg;)" if a else "") for p, a in oblique.items()
+            )
+            + "</p>"
+        )
     # --- the model
     view = model.get("view_check") or {}
     mv = results / "model" / str(view.get("image") or "model_view.png")
     if mv.is_file():
-        parts.append("<h2>Model</h2>" + _fig(mv, base, f"left: photo {view.get('photo', '')}; right: the textured model "
-                                             f"rendered from its camera (mean colour difference {_num(view.get('mean_abs_diff'))})",
-                                             "wide"))
+        parts.append(
+            "<h2>Model</h2>"
+            + _fig(
+                mv,
+                base,
+                f"left: photo {view.get('photo', '')}; right: the textured model "
+                f"rendered from its camera (mean colour difference {_num(view.get('mean_abs_diff'))})",
+                "wide",
+            )
+        )
     parts += _metrics_section(metrics)
     # --- polygons
     if pids:
         head, rows = _polygon_rows(pids, vis, model, reports, stats, metrics)
-        parts.append("<h2>Polygons</h2>" + _table(head, rows)
-                     + "<p class=small>Texel size: the side of a texel on the building, in the scene's units (those of "
-                       "the COLMAP model). Set by: <i>photos</i>, the detail the photos resolve there (photos' texel size, "
-                       "their ground sampling distance) divided by texture.density_scale; or a cap or floor of the "
-                       "texture section (max_long_side, max_mb of memory, min_long_side), or a fixed density or "
-                       "long_side. Iterations: per level, coarse to fine.</p>")
+        parts.append(
+            "<h2>Polygons</h2>"
+            + _table(head, rows)
+            + "<p class=small>Texel size: the side of a texel on the building, in the scene's units (those of "
+            "the COLMAP model). Set by: <i>photos</i>, the detail the photos resolve there (photos' texel size, "
+            "their ground sampling distance) divided by texture.density_scale; or a cap or floor of the "
+            "texture section (max_long_side, max_mb of memory, min_long_side), or a fixed density or "
+            "long_side. Iterations: per level, coarse to fine.</p>"
+        )
     scene = Path(scene) if scene else (Path(metrics["scene"]) if metrics.get("scene") else None)
     for pid in [p for p in pids if p in textured]:
-        figs = [_fig(tdir / pid / "texture.png", base, "texture", "map"),
-                _fig(tdir / pid / "source.png", base, "texel source map: dominant photo per texel (grey: filled)", "map"),
-                _fig(tdir / pid / "coverage.png", base, "coverage (white: seen by a photo, grey: filled)", "map"),
-                _fig(results / "evaluation" / "error_maps" / f"{pid}.png", base, "error x3 against the ground truth", "map")]
+        figs = [
+            _fig(tdir / pid / "texture.png", base, "texture", "map"),
+            _fig(tdir / pid / "source.png", base, "texel source map: dominant photo per texel (grey: filled)", "map"),
+            _fig(tdir / pid / "coverage.png", base, "coverage (white: seen by a photo, grey: filled)", "map"),
+            _fig(
+                results / "evaluation" / "error_maps" / f"{pid}.png", base, "error x3 against the ground truth", "map"
+            ),
+        ]
         if scene is not None:
             figs.append(_fig(scene / "ground_truth" / "maps" / f"{pid}.png", base, "ground truth", "map"))
         st = stats.get(pid) or {}
         curve = loss_curve(st, base / f"loss_{pid}.png", f"{pid}: loss per iteration") if st else None
         v = vis.get(pid, {})
         n_cand = len(v.get("photos", []))
-        facts = [f"{n_cand} candidate photo{'' if n_cand == 1 else 's'}" if v else "",
-                 "oblique photos only: " + ", ".join(f"{n} {a:.0f} deg" for n, a in (v.get("oblique_angles") or {}).items())
-                 if v.get("textured_from_oblique") else "",
-                 f"{len(st.get('used_photos') or [])} used" if st.get("used_photos") is not None else "",
-                 "dropped: " + ", ".join(f"{d.get('photo')} (level {d.get('level')}, iteration {d.get('iteration')})"
-                                         for d in st.get("dropped") or [] if isinstance(d, dict)) if st.get("dropped") else "",
-                 f"converged: {'/'.join(_num(lv.get('converged')) for lv in st.get('levels') or [] if isinstance(lv, dict))}"
-                 if st.get("levels") else "",
-                 f"device {st['device']}" if st.get("device") else ""]
-        parts.append(f"<h3 id='{_esc(pid)}'>{_esc(pid)}</h3>{''.join(f for f in figs if f)}"
-                     + _legend(reports.get(pid, {}).get("source_colours") or {}, tdir / pid)
-                     + (f"<p class=small>{_esc('; '.join(f for f in facts if f))}</p>" if any(facts) else "")
-                     + "<div class=row>"
-                     + (_fig(curve, base, "loss terms per iteration (log scale); dashed lines: next level", "wide") if curve else "")
-                     + f"<div>{_level_table(st)}</div></div>")
+        facts = [
+            f"{n_cand} candidate photo{'' if n_cand == 1 else 's'}" if v else "",
+            "oblique photos only: " + ", ".join(f"{n} {a:.0f} deg" for n, a in (v.get("oblique_angles") or {}).items())
+            if v.get("textured_from_oblique")
+            else "",
+            f"{len(st.get('used_photos') or [])} used" if st.get("used_photos") is not None else "",
+            "dropped: "
+            + ", ".join(
+                f"{d.get('photo')} (level {d.get('level')}, iteration {d.get('iteration')})"
+                for d in st.get("dropped") or []
+                if isinstance(d, dict)
+            )
+            if st.get("dropped")
+            else "",
+            f"converged: {'/'.join(_num(lv.get('converged')) for lv in st.get('levels') or [] if isinstance(lv, dict))}"
+            if st.get("levels")
+            else "",
+            f"device {st['device']}" if st.get("device") else "",
+        ]
+        parts.append(
+            f"<h3 id='{_esc(pid)}'>{_esc(pid)}</h3>{''.join(f for f in figs if f)}"
+            + _legend(reports.get(pid, {}).get("source_colours") or {}, tdir / pid)
+            + (f"<p class=small>{_esc('; '.join(f for f in facts if f))}</p>" if any(facts) else "")
+            + "<div class=row>"
+            + (
+                _fig(curve, base, "loss terms per iteration (log scale); dashed lines: next level", "wide")
+                if curve
+                else ""
+            )
+            + f"<div>{_level_table(st)}</div></div>"
+        )
     parts += _photos_section(photos, vis)
     # --- held-out views
     vdir = results / "evaluation" / "views"
@@ -393,68 +460,25 @@ def write_report(results: str | Path, out: str | Path | None = None, scene: str 
         parts.append("<h2>Held-out views (render | photo | error x3)</h2>")
         for r in (metrics.get("views") or {}).get("views", []):
             stem = Path(str(r.get("photo"))).stem
-            parts.append(f"<div><b>{_esc(r.get('photo'))}</b> SSIM {_num(r.get('ssim'), '.4f')} LPIPS "
-                         f"{_num(r.get('lpips'), '.4f')} PSNR {_num(r.get('psnr'), '.2f')}<br>"
-                         + _fig(vdir / f"{stem}_render.png", base, "render") + _fig(vdir / f"{stem}_photo.png", base, "photo")
-                         + _fig(vdir / f"{stem}_error.png", base, "error") + "</div>")
+            parts.append(
+                f"<div><b>{_esc(r.get('photo'))}</b> SSIM {_num(r.get('ssim'), '.4f')} LPIPS "
+                f"{_num(r.get('lpips'), '.4f')} PSNR {_num(r.get('psnr'), '.2f')}<br>"
+                + _fig(vdir / f"{stem}_render.png", base, "render")
+                + _fig(vdir / f"{stem}_photo.png", base, "photo")
+                + _fig(vdir / f"{stem}_error.png", base, "error")
+                + "</div>"
+            )
     # --- timings of the workflow, when it ran
     bench = stage_benchmarks(results)
     if bench:
-        parts.append("<h2>Workflow time per stage (Snakemake benchmarks)</h2>" + _table(
-            ["stage", "jobs", "wall s (sum)", "max RSS (MB)"],
-            [[r, d["jobs"], d["seconds"], d["max_rss_mb"]] for r, d in bench.items()], ".1f"))
-    parts.append("</body></html>")
-    write_text(out, "\n".join(parts))
-    return out
-
-
-def markdown_table_html(md: str) -> str:
-    """The markdown of an evaluation table as HTML (pipe tables and bullet lines only)."""
-    out, in_table = [], False
-    for ln in md.splitlines():
-        if ln.startswith("|"):
-            cells = [c.strip() for c in ln.strip().strip("|").split("|")]
-            if all(set(c) <= set("-:") for c in cells):
-                continue
-            tag = "th" if not in_table else "td"
-            if not in_table:
-                out.append("<table>")
-                in_table = True
-            out.append("<tr>" + "".join(f"<{tag}>{html.escape(c).replace('**', '')}</{tag}>" for c in cells) + "</tr>")
-            continue
-        if in_table:
-            out.append("</table>")
-            in_table = False
-        if ln.startswith("# "):
-            out.append(f"<h1>{html.escape(ln[2:])}</h1>")
-        elif ln.startswith("- "):
-            out.append(f"<p class=small>{html.escape(ln[2:])}</p>")
-        elif ln.strip():
-            out.append(f"<p>{html.escape(ln)}</p>")
-    if in_table:
-        out.append("</table>")
-    return "\n".join(out)
-
-
-def comparison_page(out: str | Path, title: str, table_md: str, runs: dict[str, str | Path],
-                    scene: str | Path | None = None) -> Path:
-    """One page: the table, links to each method's report, and every polygon's textures side by side."""
-    out = Path(out)
-    base = out.parent
-    parts = [f"<!doctype html><html><head><meta charset='utf-8'><title>{html.escape(title)}</title><style>{CSS}</style></head><body>",
-             markdown_table_html(table_md), "<h2>Reports per method</h2><ul>"]
-    for m, r in runs.items():
-        parts.append(f"<li><a href='{_rel(Path(r) / 'report' / 'index.html', base)}'>{html.escape(m)}</a></li>")
-    parts.append("</ul><h2>Textures side by side</h2>")
-    pids = sorted({p.name for r in runs.values() for p in (Path(r) / "textures").glob("*") if (p / "texture.png").is_file()})
-    for pid in pids:
-        figs = []
-        if scene is not None:
-            figs.append(_fig(Path(scene) / "ground_truth" / "maps" / f"{pid}.png", base, "ground truth"))
-        for m, r in runs.items():
-            figs.append(_fig(Path(r) / "textures" / pid / "texture.png", base, m))
-            figs.append(_fig(Path(r) / "textures" / pid / "source.png", base, f"{m} sources"))
-        parts.append(f"<h3>{html.escape(pid)}</h3>" + "".join(f for f in figs if f))
+        parts.append(
+            "<h2>Workflow time per stage (Snakemake benchmarks)</h2>"
+            + _table(
+                ["stage", "jobs", "wall s (sum)", "max RSS (MB)"],
+                [[r, d["jobs"], d["seconds"], d["max_rss_mb"]] for r, d in bench.items()],
+                ".1f",
+            )
+        )
     parts.append("</body></html>")
     write_text(out, "\n".join(parts))
     return out

@@ -120,14 +120,16 @@ def _fit(sizes: dict[str, tuple[int, int]], side: int):
     packer.add_bin(side, side, count=float("inf"))
     packer.pack()
     out = {}
-    for b, x, y, w, h, rid in packer.rect_list():
+    for b, x, y, _w, _h, rid in packer.rect_list():
         out[rid] = (b, x, y)
     if len(out) != len(sizes):
         raise DifftexError(f"atlas packing placed {len(out)} of {len(sizes)} textures")
     return out
 
 
-def pack(sizes: dict[str, tuple[int, int]], max_side: int) -> tuple[dict[str, tuple[int, int, int]], list[tuple[int, int]]]:
+def pack(
+    sizes: dict[str, tuple[int, int]], max_side: int
+) -> tuple[dict[str, tuple[int, int, int]], list[tuple[int, int]]]:
     """Place padded rectangles (w, h) on pages of at most ``max_side``: {id: (page, x, y)} and
     the page sizes (w, h), each cropped to what it uses.
 
@@ -187,7 +189,9 @@ def build_atlas(items: list[PolygonTexture], cfg: AssembleConfig) -> Atlas:
             if max(h, w) + 2 * pad > max_side:
                 # A texture larger than a page (density mode on a huge facade) is shrunk to fit.
                 shrink = (max_side - 2 * pad) / max(h, w)
-                log.warning("texture of '%s' (%dx%d) shrunk by %.3f to fit a %d atlas page", pid, w, h, shrink, max_side)
+                log.warning(
+                    "texture of '%s' (%dx%d) shrunk by %.3f to fit a %d atlas page", pid, w, h, shrink, max_side
+                )
                 tex, mask = _shrink(tex, mask, shrink)
                 scale = tex.shape[1] / it.frame.width
             prepared[pid] = dilate(tex, mask, pad)
@@ -198,7 +202,10 @@ def build_atlas(items: list[PolygonTexture], cfg: AssembleConfig) -> Atlas:
             scales[pid] = 0.0
     sizes = {pid: (a.shape[1], a.shape[0]) for pid, a in prepared.items()}
     where, used = pack(sizes, max_side)
-    page_sizes = [(min(_round_size(w, cfg.power_of_two), max_side), min(_round_size(h, cfg.power_of_two), max_side)) for w, h in used]
+    page_sizes = [
+        (min(_round_size(w, cfg.power_of_two), max_side), min(_round_size(h, cfg.power_of_two), max_side))
+        for w, h in used
+    ]
     atlas = Atlas(pages=[np.zeros((h, w, 3), np.float32) for w, h in page_sizes])
     # Unused page area gets the grey too: a viewer's coarsest mip levels average it in.
     for p in atlas.pages:
@@ -226,7 +233,9 @@ def is_convex(polygon: Polygon) -> bool:
     return bool((cross >= -tol).all() or (cross <= tol).all())
 
 
-def vertex_uvs(item: PolygonTexture, verts: np.ndarray, place: Placement, page_size: tuple[int, int], pad: int) -> np.ndarray:
+def vertex_uvs(
+    item: PolygonTexture, verts: np.ndarray, place: Placement, page_size: tuple[int, int], pad: int
+) -> np.ndarray:
     """OBJ/trimesh UVs (v up) of world points on the polygon: frame texel -> atlas texel -> [0, 1]."""
     pw, ph = page_size
     if item.textured:
@@ -247,7 +256,9 @@ def _fmt(a: np.ndarray) -> str:
     return " ".join(f"{x:.9g}" for x in a)
 
 
-def write_obj(out_dir: Path, items: list[PolygonTexture], atlas: Atlas, page_names: list[str], pad: int, name: str = "model") -> tuple[Path, Path]:
+def write_obj(
+    out_dir: Path, items: list[PolygonTexture], atlas: Atlas, page_names: list[str], pad: int, name: str = "model"
+) -> tuple[Path, Path]:
     from difftex.scene.files import write_text
 
     mtl_lines = ["# difftex texture atlas materials"]
@@ -435,8 +446,13 @@ def render_view(glb: str | Path, proxy, photo, long_side: int = 512) -> tuple[np
 # ---------------------------------------------------------------------------------------------
 
 
-def assemble(items: list[PolygonTexture], out_dir: str | Path, cfg: AssembleConfig = AssembleConfig(), name: str = "model",
-             bits: int = 8) -> dict:
+def assemble(
+    items: list[PolygonTexture],
+    out_dir: str | Path,
+    cfg: AssembleConfig = AssembleConfig(),
+    name: str = "model",
+    bits: int = 8,
+) -> dict:
     """Write atlas pages, OBJ + MTL and GLB for ``items`` into ``out_dir``; return the summary."""
     from difftex.scene.files import write_image
 
@@ -457,7 +473,9 @@ def assemble(items: list[PolygonTexture], out_dir: str | Path, cfg: AssembleConf
     summary = {
         "obj": obj.name,
         "mtl": mtl.name,
-        "atlas_pages": [{"file": p.name, "width": pg.shape[1], "height": pg.shape[0]} for p, pg in zip(page_paths, atlas.pages)],
+        "atlas_pages": [
+            {"file": p.name, "width": pg.shape[1], "height": pg.shape[0]} for p, pg in zip(page_paths, atlas.pages)
+        ],
         "polygons": [],
     }
     for it in items:
@@ -477,7 +495,9 @@ def assemble(items: list[PolygonTexture], out_dir: str | Path, cfg: AssembleConf
         )
     summary["untextured"] = [it.polygon.id for it in items if not it.textured]
     total = sum(it.polygon.area for it in items)
-    summary["textured_area_share"] = round(sum(it.polygon.area * it.coverage for it in items if it.textured) / max(total, 1e-12), 4)
+    summary["textured_area_share"] = round(
+        sum(it.polygon.area * it.coverage for it in items if it.textured) / max(total, 1e-12), 4
+    )
     if cfg.glb:
         glb = out_dir / f"{name}.glb"
         write_glb(glb, items, atlas, page_paths, pad)

@@ -6,9 +6,9 @@ from math import ceil
 
 import numpy as np
 
+from difftex.geometry.visibility import id_buffer
 from difftex.scene.camera import Photo
 from difftex.scene.proxy import Proxy
-from difftex.geometry.visibility import id_buffer
 
 
 def palette(n: int, seed: int = 7) -> np.ndarray:

@@ -19,9 +19,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from difftex.scene.camera import Photo
 from difftex.config import TextureConfig
 from difftex.geometry.frames import UVFrame, map_texels, texel_footprint
+from difftex.scene.camera import Photo
 
 FRONTAL_DEG = 60.0
 # Optimizer memory per texel and slot (weights, Adam state, mapped colours, masks, autograd
@@ -82,8 +82,9 @@ class TexelSize:
     bound: str  # "photos", "max_long_side", "memory", "min_long_side", "density", "long_side"
 
 
-def choose_texel_size(extent: tuple[float, float], area: float, photo_size: float | None, cfg: TextureConfig,
-                      slots: int) -> TexelSize:
+def choose_texel_size(
+    extent: tuple[float, float], area: float, photo_size: float | None, cfg: TextureConfig, slots: int
+) -> TexelSize:
     """The texel size of a polygon with rectangle ``extent`` (width, height) and ``area`` (scene units).
 
     Args:
@@ -95,9 +96,9 @@ def choose_texel_size(extent: tuple[float, float], area: float, photo_size: floa
     """
     long_m = max(extent)
     if cfg.mode == "long_side":
-        return TexelSize(long_m / int(cfg.long_side), photo_size, "long_side")
+        return TexelSize(long_m / int(cfg.long_side), photo_size, "long_side")  # type: ignore[arg-type]  # set in this mode
     if cfg.mode == "density":
-        s, bound = 1.0 / float(cfg.density), "density"
+        s, bound = 1.0 / float(cfg.density), "density"  # type: ignore[arg-type]  # set in this mode
     else:
         if photo_size is None:  # nothing sees it: the coarsest map allowed
             return TexelSize(long_m / int(cfg.min_long_side), None, "min_long_side")

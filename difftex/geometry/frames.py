@@ -10,10 +10,9 @@ from math import ceil
 
 import numpy as np
 
-from difftex.scene.camera import Photo
 from difftex.errors import DifftexError
+from difftex.scene.camera import Photo
 from difftex.scene.proxy import Polygon
-
 
 _HORIZONTAL_SIN = float(np.sin(np.radians(10.0)))
 
@@ -55,7 +54,7 @@ class UVFrame:
         ty, tx = np.mgrid[0 : self.height, 0 : self.width].astype(np.float64) + 0.5
         return tx, ty
 
-    def resized(self, long_side: int) -> "UVFrame":
+    def resized(self, long_side: int) -> UVFrame:
         """Same rectangle at another resolution (coarse-to-fine levels)."""
         W_m, H_m = self.width * self.texel_size, self.height * self.texel_size
         return _frame_with_size(self.origin, self.e_u, self.e_v, self.normal, W_m, H_m, long_side, None)
@@ -72,7 +71,7 @@ class UVFrame:
         }
 
     @classmethod
-    def from_dict(cls, d: dict) -> "UVFrame":
+    def from_dict(cls, d: dict) -> UVFrame:
         return cls(
             origin=np.asarray(d["origin"], float),
             e_u=np.asarray(d["e_u"], float),

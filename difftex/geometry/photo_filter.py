@@ -20,13 +20,13 @@ from math import ceil
 
 import numpy as np
 
-from difftex.scene.camera import Photo
 from difftex.config import FilterConfig
 from difftex.errors import DifftexError
-from difftex.scene.files import decode_photo
-from difftex.scene.proxy import Proxy
 from difftex.geometry.raycast import ProxyCaster
 from difftex.geometry.visibility import id_buffer, prepare
+from difftex.scene.camera import Photo
+from difftex.scene.files import decode_photo
+from difftex.scene.proxy import Proxy
 
 log = logging.getLogger(__name__)
 
@@ -56,7 +56,7 @@ class PhotoRecord:
 
 def viewing_angles(proxy: Proxy, photo: Photo, ids: np.ndarray, dist: np.ndarray, stride: int, min_pixels: int) -> dict:
     """Per seen polygon: visible pixel count (at analysis size) and the median viewing angle (deg)."""
-    out = {}
+    out: dict = {}
     ys, xs = np.nonzero(ids >= 0)
     if len(ys) == 0:
         return out
@@ -95,7 +95,13 @@ def check_kept(records: list[PhotoRecord], proxy: Proxy, images_dir) -> None:
         raise DifftexError(f"{images_dir}: every photo was filtered out ({detail}); nothing to texture.{hint}")
     if blind:
         shown = ", ".join(blind[:3]) + (", ..." if len(blind) > 3 else "")
-        log.warning("%s: %d photo%s no proxy polygon, dropped (%s)", images_dir, len(blind), "s see" if len(blind) > 1 else " sees", shown)
+        log.warning(
+            "%s: %d photo%s no proxy polygon, dropped (%s)",
+            images_dir,
+            len(blind),
+            "s see" if len(blind) > 1 else " sees",
+            shown,
+        )
 
 
 def _blurry(r: PhotoRecord) -> bool:
@@ -134,9 +140,13 @@ def polygon_photos(pid: str, records: list[PhotoRecord], cfg: FilterConfig) -> d
             kept.append(r.name)
     out = {"kept": kept, "dropped": dropped, "inclined": inclined, "textured_from_oblique": False}
     if not kept and inclined:
-        out.update(kept=sorted(inclined), dropped={n: w for n, w in dropped.items() if n not in inclined},
-                   inclined={}, textured_from_oblique=True,
-                   oblique_angles=dict(sorted(inclined.items(), key=lambda kv: kv[1])))
+        out.update(
+            kept=sorted(inclined),
+            dropped={n: w for n, w in dropped.items() if n not in inclined},
+            inclined={},
+            textured_from_oblique=True,
+            oblique_angles=dict(sorted(inclined.items(), key=lambda kv: kv[1])),
+        )
     return out
 
 
@@ -173,8 +183,11 @@ def sight_line(caster: ProxyCaster, index: int, photo: Photo, points: np.ndarray
     if not seen.any():
         return {"state": "hidden", "points": 0}
     cos = -(rays[seen] / dist[seen, None]) @ poly.normal
-    return {"state": "visible", "points": int(seen.sum()),
-            "angle_deg": round(float(np.degrees(np.arccos(np.clip(np.median(cos), -1, 1)))), 2)}
+    return {
+        "state": "visible",
+        "points": int(seen.sum()),
+        "angle_deg": round(float(np.degrees(np.arccos(np.clip(np.median(cos), -1, 1)))), 2),
+    }
 
 
 def unseen_reason(sight: dict[str, dict], blurry: list[str]) -> str:
@@ -185,7 +198,10 @@ def unseen_reason(sight: dict[str, dict], blurry: list[str]) -> str:
     n = len(sight)
     count = {state: sum(s["state"] == state for s in sight.values()) for state in ("back-facing", "outside", "hidden")}
     if blurry:
-        return f"every photo that sees it was dropped as blurry ({', '.join(blurry[:3])}{', ...' if len(blurry) > 3 else ''})"
+        return (
+            "every photo that sees it was dropped as blurry "
+            f"({', '.join(blurry[:3])}{', ...' if len(blurry) > 3 else ''})"
+        )
     if count["hidden"]:
         return f"hidden behind other polygons in the {count['hidden']} photo(s) that have it in view"
     if count["outside"]:
@@ -240,20 +256,26 @@ def filter_photos(proxy: Proxy, photos: list[Photo], cfg: FilterConfig, progress
         else:
             blurry = sorted(n for n, s in sight.items() if s["state"] == "visible")
             d["untextured_reason"] = unseen_reason(sight, blurry)
-            d["sight"] = {state: sum(s["state"] == state for s in sight.values())
-                          for state in ("back-facing", "outside", "hidden", "visible")}
+            d["sight"] = {
+                state: sum(s["state"] == state for s in sight.values())
+                for state in ("back-facing", "outside", "hidden", "visible")
+            }
     oblique = {pid: d for pid, d in per_polygon.items() if d["textured_from_oblique"]}
     if oblique:
         log.warning(
             "%s: textured from oblique photos only (every photo sees them beyond filter.max_angle_deg = %g): %s",
-            proxy.path, cfg.max_angle_deg,
+            proxy.path,
+            cfg.max_angle_deg,
             ", ".join(f"{pid} ({min(d['oblique_angles'].values()):.0f} deg)" for pid, d in oblique.items()),
         )
     unseen = {pid: d["untextured_reason"] for pid, d in per_polygon.items() if not d["kept"]}
     if unseen:
         log.warning(
             "%s: no photo sees %d of %d polygons, untextured (grey): %s",
-            proxy.path, len(unseen), len(per_polygon), "; ".join(f"{pid} ({why})" for pid, why in unseen.items()),
+            proxy.path,
+            len(unseen),
+            len(per_polygon),
+            "; ".join(f"{pid} ({why})" for pid, why in unseen.items()),
         )
     return {
         "config": cfg.__dict__,
@@ -278,6 +300,8 @@ def write_table(result: dict, json_path, csv_path=None) -> None:
         for r in result["photos"]:
             seen = ";".join(f"{k}:{v['angle_deg']:.1f}deg" for k, v in (r["polygons"] or {}).items())
             reason = r["reason"].replace('"', "'")
-            rows.append(f'{r["name"]},{int(r["kept"])},"{reason}",{r["sharpness"]:.6g},{r["sharpness_rel"]:.3f},"{seen}",'
-                        f'"{";".join(used.get(r["name"], []))}"')
+            rows.append(
+                f'{r["name"]},{int(r["kept"])},"{reason}",{r["sharpness"]:.6g},{r["sharpness_rel"]:.3f},"{seen}",'
+                f'"{";".join(used.get(r["name"], []))}"'
+            )
         write_text(csv_path, "\n".join(rows) + "\n")

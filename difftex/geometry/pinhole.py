@@ -24,8 +24,8 @@ from math import floor
 
 import numpy as np
 
-from difftex.scene.camera import Photo
 from difftex.errors import DifftexError
+from difftex.scene.camera import Photo
 
 
 @dataclass(frozen=True)
@@ -69,8 +69,17 @@ def to_source_pixels(photo: Photo, cam: IdealCamera, pix: np.ndarray) -> np.ndar
 def _border_inside(photo: Photo, half: np.ndarray, n: int = 64) -> bool:
     """Whether the border of the normalised rectangle [-half, half] projects inside the photo."""
     s = np.linspace(-1.0, 1.0, n)
-    edges = np.concatenate([np.stack([s, np.full(n, -1.0)], 1), np.stack([s, np.full(n, 1.0)], 1),
-                            np.stack([np.full(n, -1.0), s], 1), np.stack([np.full(n, 1.0), s], 1)]) * half
+    edges = (
+        np.concatenate(
+            [
+                np.stack([s, np.full(n, -1.0)], 1),
+                np.stack([s, np.full(n, 1.0)], 1),
+                np.stack([np.full(n, -1.0), s], 1),
+                np.stack([np.full(n, 1.0), s], 1),
+            ]
+        )
+        * half
+    )
     pix = photo.project_camera(np.concatenate([edges, np.ones((len(edges), 1))], axis=1))
     return bool(np.isfinite(pix).all() and photo.in_image(pix).all())
 
@@ -128,8 +137,9 @@ def resample(photo: Photo, cam: IdealCamera, image: np.ndarray) -> np.ndarray:
     from difftex.geometry.frames import sample_photo
 
     if image.shape[:2] != (photo.height, photo.width):
-        raise DifftexError(f"{photo.image_path}: image is {image.shape[1]}x{image.shape[0]}, camera says "
-                           f"{photo.width}x{photo.height}")
+        raise DifftexError(
+            f"{photo.image_path}: image is {image.shape[1]}x{image.shape[0]}, camera says {photo.width}x{photo.height}"
+        )
     jj, ii = np.meshgrid(np.arange(cam.width) + 0.5, np.arange(cam.height) + 0.5)
     src = to_source_pixels(photo, cam, np.stack([jj, ii], -1))
     # Keep samples half a pixel inside: sample_photo pads with zeros, which would darken the rim.

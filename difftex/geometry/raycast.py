@@ -15,6 +15,7 @@ from __future__ import annotations
 import functools
 import logging
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -47,12 +48,12 @@ class ProxyCaster:
     proxy: Proxy
     centre: np.ndarray  # (3,) origin of the float32 frame
     backend: str  # "mitsuba" or "numpy"
-    _scene: object = None
-    _tri_polygon: np.ndarray | None = None  # (T,) polygon index of each triangle
-    _planes: object = None  # numpy backend: visibility._PlanarPolygons
+    _scene: Any = None  # mitsuba.Scene (mitsuba ships no type information)
+    _tri_polygon: Any = None  # (T,) polygon index of each triangle
+    _planes: Any = None  # numpy backend: visibility._PlanarPolygons
 
     @classmethod
-    def build(cls, proxy: Proxy, backend: str = "auto") -> "ProxyCaster":
+    def build(cls, proxy: Proxy, backend: str = "auto") -> ProxyCaster:
         """``backend``: "auto" (Mitsuba when its LLVM variant loads), "mitsuba" or "numpy"."""
         allv = np.concatenate([p.outer for p in proxy.polygons]) if proxy.polygons else np.zeros((1, 3))
         centre = allv.mean(0)
@@ -69,16 +70,18 @@ class ProxyCaster:
         import mitsuba as mi
 
         mi.set_variant(MITSUBA_VARIANT)
-        V, F, owner = [], [], []
+        Vs: list[np.ndarray] = []
+        Fs: list[np.ndarray] = []
+        owner: list[np.ndarray] = []
         n = 0
         for i, poly in enumerate(self.proxy.polygons):
             v, t = triangulate(poly)
-            V.append(v - self.centre)
-            F.append(t + n)
+            Vs.append(v - self.centre)
+            Fs.append(t + n)
             owner.append(np.full(len(t), i, np.int32))
             n += len(v)
-        V = np.concatenate(V).astype(np.float32)
-        F = np.concatenate(F).astype(np.uint32)
+        V = np.concatenate(Vs).astype(np.float32)
+        F = np.concatenate(Fs).astype(np.uint32)
         mesh = mi.Mesh("proxy", len(V), len(F))
         params = mi.traverse(mesh)
         params["vertex_positions"] = dr.ravel(mi.Point3f(V[:, 0], V[:, 1], V[:, 2]))
@@ -171,12 +174,12 @@ def _camera_rays(model: str, width: int, height: int, params: tuple[float, ...],
 def pixel_rays(photo: Photo, stride: int = 1) -> np.ndarray:
     """World-frame unit ray directions (h, w, 3) through the pixel centres of ``photo`` (every
     ``stride``-th pixel: h = ceil(H / stride))."""
-    params = tuple(float(v) for v in np.asarray(photo.camera.params, float))
+    params = tuple(float(v) for v in np.asarray(photo.camera.params, np.float64))
     cam = _camera_rays(photo.model, photo.width, photo.height, params, int(stride))
     return (cam.reshape(-1, 3) @ photo.R.astype(np.float32)).reshape(cam.shape)
 
 
-def id_buffer(proxy: "Proxy | ProxyCaster", photo: Photo, stride: int = 1) -> tuple[np.ndarray, np.ndarray]:
+def id_buffer(proxy: Proxy | ProxyCaster, photo: Photo, stride: int = 1) -> tuple[np.ndarray, np.ndarray]:
     """Nearest proxy polygon per pixel (index into proxy.polygons, or -1) and its ray distance.
 
     ``stride`` > 1 samples every stride-th pixel centre (for cheap photo filtering); the result
@@ -254,7 +257,7 @@ def _candidate_box(photo: Photo, verts: np.ndarray, pad: float) -> tuple[int, in
 
 
 def _id_buffer_numpy(
-    proxy: "Proxy | _PlanarPolygons",
+    proxy: Proxy | _PlanarPolygons,
     photo: Photo,
     stride: int = 1,
     chunk: int = 1 << 18,
@@ -288,8 +291,8 @@ def _id_buffer_numpy(
             continue
         n, d = pp.normals[j].astype(np.float32), pp.offsets[j]
         h_cam = np.float32(d - pp.normals[j] @ C)  # signed distance of the plane from the camera centre
-        step = max(1, chunk // (c1 - c0))
-        for ra in range(r0, r1, step):
+        step = max(1, int(chunk // (c1 - c0)))
+        for ra in range(int(r0), int(r1), step):
             rb = min(r1, ra + step)
             rays = all_rays[ra:rb, c0:c1]
             with np.errstate(divide="ignore", invalid="ignore"):
@@ -305,4 +308,3 @@ def _id_buffer_numpy(
             ids[hr, hc] = j
             dist[hr, hc] = lh[inside]
     return ids, dist
-

@@ -17,12 +17,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from difftex.scene.camera import Photo
+from difftex.config import TextureConfig
 from difftex.errors import DifftexError
 from difftex.geometry.frames import UVFrame, texel_mask, texel_to_pixel, uv_frame
-from difftex.scene.proxy import Proxy
 from difftex.geometry.raycast import NO_POLYGON, ProxyCaster, id_buffer, prepare  # noqa: F401  (id_buffer, prepare: re-exported)
-
+from difftex.scene.camera import Photo
+from difftex.scene.proxy import Proxy
 
 
 @dataclass(frozen=True, eq=False)
@@ -89,7 +89,11 @@ def load_visibility(path) -> PolygonVisibility:
         frame = UVFrame.from_dict(json.loads(str(d["frame"])))
         photos = [str(x) for x in d["photos"]]
         K = len(photos)
-        tv = np.unpackbits(d["texel_visible"], axis=1, count=H * W).astype(bool).reshape(K, H, W) if K else np.zeros((0, H, W), bool)
+        tv = (
+            np.unpackbits(d["texel_visible"], axis=1, count=H * W).astype(bool).reshape(K, H, W)
+            if K
+            else np.zeros((0, H, W), bool)
+        )
         flat = np.unpackbits(d["a_masks"], count=int(d["a_sizes"].sum())).astype(bool)
         crops, pos = [], 0
         for k in range(K):
@@ -151,7 +155,7 @@ def scene_visibility(
     photos: list[Photo],
     up: np.ndarray,
     candidates: dict[str, list[str]],
-    texture: "TextureConfig | int",
+    texture: TextureConfig | int,
     min_texels: int = 16,
     max_photos: int | None = None,
     progress: bool = True,
@@ -176,12 +180,10 @@ def scene_visibility(
     """
     from rich.progress import track
 
-    from difftex.config import TextureConfig
     from difftex.geometry.density import PROBE_LONG_SIDE, choose_texel_size, photo_texel_size, probe_gsd
 
     cfg = texture if isinstance(texture, TextureConfig) else TextureConfig(density=None, long_side=int(texture))
     caster = ProxyCaster.build(proxy)
-    index = {p.id: i for i, p in enumerate(proxy.polygons)}
     probes = [uv_frame(p, up, long_side=PROBE_LONG_SIDE) for p in proxy.polygons] if cfg.mode == "auto" else None
     probe_masks = [texel_mask(p, f) for p, f in zip(proxy.polygons, probes)] if probes else None
     fallback = fallback or {}
@@ -202,7 +204,7 @@ def scene_visibility(
             box = (int(xs.min()), int(ys.min()), int(xs.max()) + 1, int(ys.max()) + 1)
             crop = a[box[1] : box[3], box[0] : box[2]]
             gsd = cos = None
-            if probes is not None:
+            if probes is not None and probe_masks is not None:
                 seen_p = crop_texel_visibility(probes[i], ph, probe_masks[i], box, crop)
                 gsd, cos = probe_gsd(probes[i], ph, seen_p)
             v = ph.center - poly.centroid
@@ -217,11 +219,17 @@ def scene_visibility(
         extent = (rect.width * rect.texel_size, rect.height * rect.texel_size)
         photo_size = None
         if probes is not None and items:
-            photo_size = photo_texel_size(np.stack([it.gsd for it in items]), np.stack([it.cos for it in items]),
-                                          cfg.gsd_percentile)
+            photo_size = photo_texel_size(
+                np.stack([it.gsd for it in items]),  # type: ignore[misc]  # set whenever probes are
+                np.stack([it.cos for it in items]),  # type: ignore[misc]
+                cfg.gsd_percentile,
+            )
         size = choose_texel_size(extent, extent[0] * extent[1], photo_size, cfg, min(max(len(items), 1), top_k))
-        frame = uv_frame(poly, up, density=1.0 / size.texel_size) if cfg.mode != "long_side" \
-            else uv_frame(poly, up, long_side=int(cfg.long_side))
+        frame = (
+            uv_frame(poly, up, density=1.0 / size.texel_size)
+            if cfg.mode != "long_side"
+            else uv_frame(poly, up, long_side=int(cfg.long_side))  # type: ignore[arg-type]  # set in long_side mode
+        )
         tmask = texel_mask(poly, frame)
         kept, spare = [], []
         later = fallback.get(poly.id, {})
@@ -234,7 +242,9 @@ def scene_visibility(
             elif seen.sum() >= min_texels:
                 kept.append((it, crop, seen))
             elif seen.any():
-                spare.append((it, crop, seen, f"sees {int(seen.sum())} texels (< visibility.min_texels = {min_texels})"))
+                spare.append(
+                    (it, crop, seen, f"sees {int(seen.sum())} texels (< visibility.min_texels = {min_texels})")
+                )
         kept, rescued = last_sources(kept, spare, tmask)
         if max_photos is not None and len(kept) > max_photos:  # a cap the user set: it wins
             kept = sorted(kept, key=lambda k: -k[0].mean_cos)[:max_photos]
@@ -244,7 +254,10 @@ def scene_visibility(
         K = len(kept)
         H, W = frame.shape
         vis = PolygonVisibility(
-            polygon_id=poly.id, frame=frame, texel_mask=tmask, photos=[k[0].name for k in kept],
+            polygon_id=poly.id,
+            frame=frame,
+            texel_mask=tmask,
+            photos=[k[0].name for k in kept],
             texel_visible=np.stack([k[2] for k in kept]) if K else np.zeros((0, H, W), bool),
             a_bbox=np.asarray([k[0].bbox for k in kept], dtype=np.int64).reshape(K, 4),
             a_masks=[k[1] for k in kept],

@@ -3,7 +3,8 @@
 Layout: each texel keeps ``K`` candidate *slots*; slot ``j`` of texel ``t`` refers to photo
 ``idx[j, t]`` (or -1). The parameters ``z`` (K, H, W) are logits: the blend weights, the paper's
 normalised w_k in [0, 1], are their softmax over the active slots, ``W = a e^z / sum_j(a e^z)``
-with ``a`` the activation mask a_k^i mapped to texel space. Every sum over texels is divided by the polygon's texel count ``n_tex`` so that the
+with ``a`` the activation mask a_k^i mapped to texel space. Every sum over texels is divided by the
+polygon's texel count ``n_tex`` so that the
 paper's balance (alpha, beta, omega) does not change with the resolution level.
 
 Render loss comes in two forms: the texel-space form compares U with every photo mapped into
@@ -17,6 +18,7 @@ from dataclasses import dataclass
 
 import torch
 import torch.nn.functional as F
+
 
 def blend_weights(z: torch.Tensor, active: torch.Tensor) -> torch.Tensor:
     """W (K, H, W): the softmax of the logits z over each texel's active slots (zero where none).
@@ -116,8 +118,14 @@ class PixelBatch:
 def batch_pixel_sets(sets: list[PixelSet], support: torch.Tensor, device) -> PixelBatch:
     if not sets:
         z = torch.zeros(0, device=device)
-        return PixelBatch(grid=torch.zeros(1, 0, 1, 2, device=device), colour=torch.zeros(0, 3, device=device),
-                          texel=z.long(), slot=z.long(), scale=z, den=z)
+        return PixelBatch(
+            grid=torch.zeros(1, 0, 1, 2, device=device),
+            colour=torch.zeros(0, 3, device=device),
+            texel=z.long(),
+            slot=z.long(),
+            scale=z,
+            den=z,
+        )
     b = PixelBatch(
         grid=torch.cat([s.grid for s in sets], 1),
         colour=torch.cat([s.colour for s in sets]),
@@ -130,7 +138,9 @@ def batch_pixel_sets(sets: list[PixelSet], support: torch.Tensor, device) -> Pix
     return b
 
 
-def render_view(U: torch.Tensor, support: torch.Tensor, grid: torch.Tensor, den: torch.Tensor | None = None) -> torch.Tensor:
+def render_view(
+    U: torch.Tensor, support: torch.Tensor, grid: torch.Tensor, den: torch.Tensor | None = None
+) -> torch.Tensor:
     """R_k at the given pixels: bilinear lookup of U (3, H, W), normalised by the support.
 
     Texels outside the polygon (or with no source) carry no colour; dividing by the bilinearly
@@ -208,10 +218,10 @@ def neighbour_match(idx: torch.Tensor, mask: torch.Tensor, axis: int, fixed: boo
     match = torch.full_like(io, -1)
     q_in_o = torch.zeros(io.shape, dtype=torch.bool, device=idx.device)
     # K x K comparisons, done slot by slot to keep the temporary at (h, w).
-    for l in range(K):
-        same = (io == iq[l : l + 1]) & (io >= 0)
-        match = torch.where(same & (match < 0), torch.full_like(match, l), match)
-        q_in_o[l] = same.any(0)
+    for slot in range(K):
+        same = (io == iq[slot : slot + 1]) & (io >= 0)
+        match = torch.where(same & (match < 0), torch.full_like(match, slot), match)
+        q_in_o[slot] = same.any(0)
     q_alone = (~q_in_o) & (iq >= 0)
     return NeighbourMatch(match=match, q_alone=q_alone, pair_ok=ok)
 
@@ -240,11 +250,23 @@ def edge_weights(U: torch.Tensor, G: torch.Tensor, axes=(1, 2)) -> dict[int, tor
     optimizer refreshes it every few iterations.
     """
     U = U.detach()
-    return {a: torch.sigmoid((crop_pair(U, a, "o") - crop_pair(U, a, "q")).norm(dim=0)) * (1.0 + crop_pair(G, a, "o")) for a in axes}
+    return {
+        a: torch.sigmoid((crop_pair(U, a, "o") - crop_pair(U, a, "q")).norm(dim=0)) * (1.0 + crop_pair(G, a, "o"))
+        for a in axes
+    }
 
 
-def para_loss(W, U, active, G, matches: dict[int, NeighbourMatch], lambda_s: float, n_tex: float,
-              eps: float = 0.0, D: dict[int, torch.Tensor] | None = None) -> torch.Tensor:
+def para_loss(
+    W,
+    U,
+    active,
+    G,
+    matches: dict[int, NeighbourMatch],
+    lambda_s: float,
+    n_tex: float,
+    eps: float = 0.0,
+    D: dict[int, torch.Tensor] | None = None,
+) -> torch.Tensor:
     """L_Para (eq. 8-10) over up and left neighbours, summed over photos.
 
     C = m_k(t_o) D(t_o, t_q) + lambda_s with D from ``edge_weights`` (computed here if not given).
@@ -259,6 +281,8 @@ def para_loss(W, U, active, G, matches: dict[int, NeighbourMatch], lambda_s: flo
             term = (C * smooth_abs(Wo - Wq, eps)).sum(0)
         else:
             Wq_same = torch.gather(Wq, 0, nm.match.clamp_min(0)) * (nm.match >= 0).to(W.dtype)
-            term = (C * smooth_abs(Wo - Wq_same, eps)).sum(0) + lambda_s * smooth_abs(Wq * nm.q_alone.to(W.dtype), eps).sum(0)
+            term = (C * smooth_abs(Wo - Wq_same, eps)).sum(0) + lambda_s * smooth_abs(
+                Wq * nm.q_alone.to(W.dtype), eps  # type: ignore[union-attr]  # set unless fixed
+            ).sum(0)
         total = total + (term * nm.pair_ok.to(W.dtype)).sum()
     return total / n_tex

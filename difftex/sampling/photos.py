@@ -17,19 +17,20 @@ composition and the baselines above; they all sample photos through this module.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Callable
 
 import numpy as np
 import torch
 import torch.nn.functional as F
 
-from difftex.scene.camera import Photo
-from difftex.sampling.colour import apply_transfer_torch
 from difftex.errors import DifftexError
-from difftex.scene.files import decode_photo
 from difftex.geometry.frames import UVFrame
+from difftex.sampling.colour import apply_transfer_torch
 from difftex.sampling.texels import Region, level_frame, resample_nearest, texel_map
+from difftex.scene.camera import Photo
+from difftex.scene.files import decode_photo
+
 
 def pick_device(name: str | torch.device) -> torch.device:
     """The torch device for a config value: "auto" (CUDA when torch sees it), "cpu" or "cuda"."""
@@ -63,17 +64,22 @@ class PolygonInput:
         N = len(self.photos)
         if self.texel_visible.shape != (N, *self.frame.shape):
             raise DifftexError(
-                f"polygon '{self.polygon_id}': visibility is {self.texel_visible.shape}, expected {(N, *self.frame.shape)}"
+                f"polygon '{self.polygon_id}': visibility is {self.texel_visible.shape}, expected "
+                f"{(N, *self.frame.shape)}"
             )
         if self.texel_mask.shape != self.frame.shape:
-            raise DifftexError(f"polygon '{self.polygon_id}': texel mask shape {self.texel_mask.shape} != frame {self.frame.shape}")
+            raise DifftexError(
+                f"polygon '{self.polygon_id}': texel mask shape {self.texel_mask.shape} != frame {self.frame.shape}"
+            )
 
 
 def polygon_input_from_visibility(vis, scene_photos: dict[str, Photo], load_image=None) -> PolygonInput:
     """PolygonInput from a difftex.geometry.visibility.PolygonVisibility and the scene's photos by name."""
     missing = [n for n in vis.photos if n not in scene_photos]
     if missing:
-        raise DifftexError(f"polygon '{vis.polygon_id}': visibility names photo(s) not in the scene: {', '.join(missing[:3])}")
+        raise DifftexError(
+            f"polygon '{vis.polygon_id}': visibility names photo(s) not in the scene: {', '.join(missing[:3])}"
+        )
     return PolygonInput(
         polygon_id=vis.polygon_id,
         frame=vis.frame,
@@ -99,15 +105,17 @@ class PhotoSampler:
     ``box`` the crop in full-resolution pixels, a multiple of 2^``base``.
     """
 
-    def __init__(self, image: np.ndarray, box: tuple[int, int, int, int], device: torch.device,
-                 base: int = 0, min_side: int = 4):
+    def __init__(
+        self, image: np.ndarray, box: tuple[int, int, int, int], device: torch.device, base: int = 0, min_side: int = 4
+    ):
         x0, y0, x1, y1 = box
         s = 2**base
         if x0 % s or y0 % s:
             raise ValueError("the crop box must start on a multiple of the decode scale")
         self.x0, self.y0, self.base = int(x0), int(y0), int(base)
-        crop = torch.from_numpy(np.ascontiguousarray(image[y0 // s : -(-y1 // s), x0 // s : -(-x1 // s)],
-                                                     dtype=np.float32)).permute(2, 0, 1)
+        crop = torch.from_numpy(
+            np.ascontiguousarray(image[y0 // s : -(-y1 // s), x0 // s : -(-x1 // s)], dtype=np.float32)
+        ).permute(2, 0, 1)
         self.device = device
         levels = [crop.to(device=device, dtype=torch.float16)]
         cur = crop.to(device)
@@ -215,11 +223,17 @@ class PhotoSet:
     decode_scale: dict[int, int] = field(default_factory=dict)
     # Per photo, a small affine correction of f_k^i in pixels (difftex.method.alignment):
     # p -> p + d + M (p - c) / s, parameters (dx, dy, m11, m12, m21, m22), centre c, scale s.
-    corrections: dict[int, "Correction"] = field(default_factory=dict)
+    corrections: dict[int, Correction] = field(default_factory=dict)
 
     @classmethod
-    def load(cls, inp: PolygonInput, device, finest: UVFrame | None = None, exact_decode: bool = False,
-             progress: Callable[[], None] | None = None) -> "PhotoSet":
+    def load(
+        cls,
+        inp: PolygonInput,
+        device,
+        finest: UVFrame | None = None,
+        exact_decode: bool = False,
+        progress: Callable[[], None] | None = None,
+    ) -> PhotoSet:
         """Decode, crop and pyramid every candidate photo that sees a texel of ``inp``.
 
         ``finest``: the finest frame that will be sampled (default ``inp.frame``); each photo is
@@ -242,8 +256,12 @@ class PhotoSet:
                 continue
             scale = probe.texel_size / finest.texel_size  # probe texel -> finest texels
             fp_fine = tm.footprint.numpy()[ok] / scale
-            box = _crop_box(ph, tm.pix.numpy()[ok], tm.footprint.numpy()[ok],
-                            inp.a_bbox[n] if inp.a_bbox is not None and len(inp.a_bbox) > n else None)
+            box = _crop_box(
+                ph,
+                tm.pix.numpy()[ok],
+                tm.footprint.numpy()[ok],
+                inp.a_bbox[n] if inp.a_bbox is not None and len(inp.a_bbox) > n else None,
+            )
             if box is None:
                 continue
             reduce = 1
@@ -254,7 +272,9 @@ class PhotoSet:
             if inp.load_image is not None:
                 img = inp.load_image(ph)
                 if img.shape[:2] != (ph.height, ph.width):
-                    raise DifftexError(f"{ph.image_path}: image is {img.shape[1]}x{img.shape[0]}, camera says {ph.width}x{ph.height}")
+                    raise DifftexError(
+                        f"{ph.image_path}: image is {img.shape[1]}x{img.shape[0]}, camera says {ph.width}x{ph.height}"
+                    )
             else:
                 img = decode_photo(ph.image_path, (ph.width, ph.height), reduce)
             ps.reads += 1
@@ -269,8 +289,9 @@ class PhotoSet:
     def nbytes(self) -> int:
         return int(sum(s.nbytes() for s in self.samplers.values()))
 
-    def map(self, n: int, frame: UVFrame, mask: np.ndarray, transfer: np.ndarray | None = None,
-            region: Region | None = None) -> MappedPhoto | None:
+    def map(
+        self, n: int, frame: UVFrame, mask: np.ndarray, transfer: np.ndarray | None = None, region: Region | None = None
+    ) -> MappedPhoto | None:
         """Photo n mapped into ``frame`` over the texels of ``mask``; None if it sees none.
 
         ``transfer``: its brightness transfer (difftex.sampling.colour), applied to the colours;
@@ -306,17 +327,22 @@ def _any_pool(masks: np.ndarray, src: UVFrame, dst: UVFrame) -> np.ndarray:
     if masks.shape[-2:] == dst.shape:
         return masks
     t = torch.from_numpy(masks.astype(np.float32))[:, None]
-    out = F.adaptive_max_pool2d(t, dst.shape) if dst.height <= src.height and dst.width <= src.width \
+    out = (
+        F.adaptive_max_pool2d(t, dst.shape)
+        if dst.height <= src.height and dst.width <= src.width
         else F.interpolate(t, size=dst.shape, mode="nearest")
+    )
     return out[:, 0].numpy() > 0
 
 
-def _crop_box(photo: Photo, pix: np.ndarray, footprint: np.ndarray, a_box=None, pad: int = 16) -> tuple[int, int, int, int] | None:
+def _crop_box(
+    photo: Photo, pix: np.ndarray, footprint: np.ndarray, a_box=None, pad: int = 16
+) -> tuple[int, int, int, int] | None:
     """Pixel box holding the polygon's visible (probe) texels and a_k^i, padded, inside the image.
 
     A probe texel covers ``footprint`` pixels around its centre: the box grows by that much.
     """
-    boxes = []
+    boxes: list[tuple[float, ...]] = []
     if len(pix):
         r = footprint[:, None]
         lo, hi = pix - r, pix + r

@@ -13,8 +13,8 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from difftex.scene.camera import Photo
 from difftex.geometry.frames import UVFrame
+from difftex.scene.camera import Photo
 
 # Texel spacing of the exact projections that the distortion displacement is interpolated from
 # (texel_map): the displacement of every COLMAP model is a smooth function of the position.
@@ -43,7 +43,7 @@ def level_frame(frame: UVFrame, long_side: int) -> UVFrame:
     return frame if long_side == max(frame.shape) else frame.resized(long_side)
 
 
-def resample_nearest(arr: np.ndarray, src: UVFrame, dst: UVFrame, region: "Region | None" = None) -> np.ndarray:
+def resample_nearest(arr: np.ndarray, src: UVFrame, dst: UVFrame, region: Region | None = None) -> np.ndarray:
     """(..., H, W) array of ``src`` to ``dst`` texel centres (same rectangle), nearest texel;
     ``region``: only that rectangle of ``dst``."""
     y0, y1, x0, x1 = region if region is not None else (0, dst.height, 0, dst.width)
@@ -93,7 +93,9 @@ def _exact_pixels(frame: UVFrame, photo: Photo, tx: np.ndarray, ty: np.ndarray) 
 Region = tuple[int, int, int, int]  # (y0, y1, x0, x1): a rectangle of a frame's texels
 
 
-def texel_map(frame: UVFrame, photo: Photo, device: torch.device | str = "cpu", region: Region | None = None) -> TexelMap:
+def texel_map(
+    frame: UVFrame, photo: Photo, device: torch.device | str = "cpu", region: Region | None = None
+) -> TexelMap:
     """f_k^i at the texel centres of ``frame`` for ``photo``, vectorised in torch.
 
     Pinhole cameras: the homography H = K [R | t] A, exact, with its Jacobian in closed form.
@@ -106,8 +108,11 @@ def texel_map(frame: UVFrame, photo: Photo, device: torch.device | str = "cpu", 
     device = torch.device(device)
     y0, y1, x0, x1 = region if region is not None else (0, frame.height, 0, frame.width)
     Hm = torch.from_numpy(_homography(frame, photo)).to(device)
-    ty, tx = torch.meshgrid(torch.arange(y0, y1, device=device, dtype=torch.float64) + 0.5,
-                            torch.arange(x0, x1, device=device, dtype=torch.float64) + 0.5, indexing="ij")
+    ty, tx = torch.meshgrid(
+        torch.arange(y0, y1, device=device, dtype=torch.float64) + 0.5,
+        torch.arange(x0, x1, device=device, dtype=torch.float64) + 0.5,
+        indexing="ij",
+    )
     q = Hm[:, 0, None, None] * tx + Hm[:, 1, None, None] * ty + Hm[:, 2, None, None]
     depth = q[2]
     front = depth > 1e-9
@@ -133,12 +138,18 @@ def texel_map(frame: UVFrame, photo: Photo, device: torch.device | str = "cpu", 
     inside = (pix[..., 0] >= 0) & (pix[..., 0] <= photo.width) & (pix[..., 1] >= 0) & (pix[..., 1] <= photo.height)
     valid = front & inside & (cos > 0) & torch.isfinite(pix).all(-1)
     pix = torch.where(front[..., None], pix, torch.full_like(pix, float("nan")))
-    return TexelMap(pix=pix.float(), footprint=torch.nan_to_num(footprint, nan=1.0).float(),
-                    view=(-v).float(), cos=cos.clamp(0.0, 1.0).float(), valid=valid)
+    return TexelMap(
+        pix=pix.float(),
+        footprint=torch.nan_to_num(footprint, nan=1.0).float(),
+        view=(-v).float(),
+        cos=cos.clamp(0.0, 1.0).float(),
+        valid=valid,
+    )
 
 
-def _distorted(frame: UVFrame, photo: Photo, pix_u: torch.Tensor, fp_u: torch.Tensor, device,
-               region: Region) -> tuple[torch.Tensor, torch.Tensor]:
+def _distorted(
+    frame: UVFrame, photo: Photo, pix_u: torch.Tensor, fp_u: torch.Tensor, device, region: Region
+) -> tuple[torch.Tensor, torch.Tensor]:
     """Add the lens distortion to undistorted pixels: exact on a coarse grid, bilinear between."""
     y0, y1, x0, x1 = region
     h, w = y1 - y0, x1 - x0
@@ -158,8 +169,18 @@ def _distorted(frame: UVFrame, photo: Photo, pix_u: torch.Tensor, fp_u: torch.Te
     a, b = ex_dx - exact, ex_dy - exact
     with np.errstate(invalid="ignore"):
         fp = np.sqrt(np.abs(a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0]))
-    und_fp = F.grid_sample(fp_u[None, None].float(), _grid(TX - x0, TY - y0, w, h, device), mode="bilinear",
-                           padding_mode="border", align_corners=False)[0, 0].double().cpu().numpy()
+    und_fp = (
+        F.grid_sample(
+            fp_u[None, None].float(),
+            _grid(TX - x0, TY - y0, w, h, device),
+            mode="bilinear",
+            padding_mode="border",
+            align_corners=False,
+        )[0, 0]
+        .double()
+        .cpu()
+        .numpy()
+    )
     ratio = np.nan_to_num(fp / np.maximum(und_fp, 1e-12), nan=1.0)
     coarse = torch.from_numpy(np.concatenate([disp.transpose(2, 0, 1), ratio[None]])).to(device)
     # Interpolate the coarse samples (at texel centres cx, cy) at every texel centre.

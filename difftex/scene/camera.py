@@ -10,6 +10,7 @@ from __future__ import annotations
 import logging
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -17,6 +18,7 @@ from difftex.errors import DifftexError
 
 log = logging.getLogger(__name__)
 
+# the photo files a scene's images/ folder is read for (load_photos) and the workflow tracks as inputs
 IMAGE_SUFFIXES = {".jpg", ".jpeg", ".png", ".tif", ".tiff", ".exr", ".bmp"}
 _PINHOLE = {"SIMPLE_PINHOLE", "PINHOLE"}
 # Points closer than this (in camera z, scene units) count as behind the camera.
@@ -29,7 +31,7 @@ class Photo:
 
     name: str
     image_path: Path
-    camera: object  # pycolmap.Camera; typed loosely so the dataclass stays picklable-free of pycolmap
+    camera: Any  # pycolmap.Camera; typed loosely so the dataclass stays picklable-free of pycolmap
     R: np.ndarray  # (3, 3) rotation, cam_from_world
     t: np.ndarray  # (3,) translation, cam_from_world
     width: int
@@ -171,7 +173,9 @@ def load_photos(
         R, t = _rigid(image)
         path = images_dir / image.name
         if abs(np.linalg.det(R) - 1.0) > 1e-3:
-            raise DifftexError(f"{images_file}: image '{image.name}': rotation is not a rotation (det {np.linalg.det(R):.3f})")
+            raise DifftexError(
+                f"{images_file}: image '{image.name}': rotation is not a rotation (det {np.linalg.det(R):.3f})"
+            )
         if check_images:
             if not path.is_file():
                 raise DifftexError(f"{path}: image listed in {images_file} is missing")
@@ -201,7 +205,11 @@ def load_photos(
             shown = ", ".join(extra[:3]) + (", ..." if len(extra) > 3 else "")
             log.warning(
                 "%s: %d photo%s not in the COLMAP model %s, ignored (%s)",
-                images_dir, len(extra), "s are" if len(extra) > 1 else " is", images_file, shown,
+                images_dir,
+                len(extra),
+                "s are" if len(extra) > 1 else " is",
+                images_file,
+                shown,
             )
     return sorted(photos, key=lambda p: p.name)
 

@@ -130,11 +130,15 @@ def check_cameras_text(path: Path) -> dict[int, str]:
         try:
             w, h = int(parts[2]), int(parts[3])
         except ValueError:
-            raise DifftexError(f"{where}: camera {cid}: width/height '{parts[2]} {parts[3]}' are not integers") from None
+            raise DifftexError(
+                f"{where}: camera {cid}: width/height '{parts[2]} {parts[3]}' are not integers"
+            ) from None
         try:
             params = np.array([float(x) for x in parts[4:]], dtype=np.float64)
         except ValueError:
-            raise DifftexError(f"{where}: camera {cid}: parameters are not numbers ('{' '.join(parts[4:])[:80]}')") from None
+            raise DifftexError(
+                f"{where}: camera {cid}: parameters are not numbers ('{' '.join(parts[4:])[:80]}')"
+            ) from None
         problem = camera_problem(parts[1], w, h, params)
         if problem:
             raise DifftexError(f"{where}: camera {cid} ({parts[1]}): {problem}")
@@ -272,12 +276,16 @@ def check_reconstruction(rec, files: dict[str, Path]) -> None:
         if hasattr(image, "has_pose") and not image.has_pose:
             continue
         if image.camera_id not in rec.cameras:
-            raise DifftexError(f"{files['images']}: image '{image.name}' uses camera {image.camera_id}, which is not defined")
+            raise DifftexError(
+                f"{files['images']}: image '{image.name}' uses camera {image.camera_id}, which is not defined"
+            )
         problem = pose_problem(*_quat_t(image))
         if problem:
             raise DifftexError(f"{pose_file}: image '{image.name}': {problem}")
         if image.name in seen:
-            raise DifftexError(f"{files['images']}: image '{image.name}' is listed twice (image ids {seen[image.name]} and {iid})")
+            raise DifftexError(
+                f"{files['images']}: image '{image.name}' is listed twice (image ids {seen[image.name]} and {iid})"
+            )
         seen[image.name] = iid
 
 
@@ -307,8 +315,13 @@ def model_difference(a, b) -> str | None:
         if not (_close(qa, qb) or _close(qa, -qb)) or not _close(ta, tb, scale):
             return f"image '{name}' has different poses"
         ca, cb = a.cameras[ia[name].camera_id], b.cameras[ib[name].camera_id]
-        if (ca.model_name, ca.width, ca.height) != (cb.model_name, cb.width, cb.height) or not _close(ca.params, cb.params):
-            return f"image '{name}' has different cameras ({ca.model_name} {np.round(ca.params, 3).tolist()} vs {cb.model_name} {np.round(cb.params, 3).tolist()})"
+        if (ca.model_name, ca.width, ca.height) != (cb.model_name, cb.width, cb.height) or not _close(
+            ca.params, cb.params
+        ):
+            return (
+                f"image '{name}' has different cameras ({ca.model_name} {np.round(ca.params, 3).tolist()} vs "
+                f"{cb.model_name} {np.round(cb.params, 3).tolist()})"
+            )
     return None
 
 
@@ -333,7 +346,9 @@ def _read(files: dict[str, Path], ext: str):
         if ext == "bin":
             check_cameras_binary(files["cameras"])
         first = str(exc).strip().splitlines()[-1] if str(exc).strip() else type(exc).__name__
-        raise DifftexError(f"{files['cameras'].parent}: unreadable COLMAP {'text' if ext == 'txt' else 'binary'} model ({first})") from None
+        raise DifftexError(
+            f"{files['cameras'].parent}: unreadable COLMAP {'text' if ext == 'txt' else 'binary'} model ({first})"
+        ) from None
     check_reconstruction(rec, files)
     return rec
 

@@ -11,8 +11,9 @@ import json
 import math
 import os
 import tempfile
+from collections.abc import Iterator
 from pathlib import Path
-from typing import Any, Iterator
+from typing import Any
 
 import numpy as np
 
@@ -137,8 +138,7 @@ def read_image(path: str | os.PathLike, expected_size: tuple[int, int] | None = 
         spec = inp.spec()
         if expected_size is not None and (spec.width, spec.height) != tuple(expected_size):
             raise DifftexError(
-                f"{path}: image is {spec.width}x{spec.height} but its camera says "
-                f"{expected_size[0]}x{expected_size[1]}"
+                f"{path}: image is {spec.width}x{spec.height} but its camera says {expected_size[0]}x{expected_size[1]}"
             )
         pixels = inp.read_image(0, 0, 0, spec.nchannels, oiio.FLOAT)
         if pixels is None or not isinstance(pixels, np.ndarray):
@@ -236,7 +236,9 @@ def _decode_jpeg_scaled(path: Path, size: tuple[int, int], reduce: int) -> tuple
     except DifftexError:
         raise
     except (OSError, ValueError, SyntaxError) as exc:
-        raise DifftexError(f"{path}: corrupt image ({str(exc).splitlines()[0] if str(exc) else type(exc).__name__})") from None
+        raise DifftexError(
+            f"{path}: corrupt image ({str(exc).splitlines()[0] if str(exc) else type(exc).__name__})"
+        ) from None
     if arr.shape[:2] != (math.ceil(height / got), math.ceil(width / got)):
         # a decoder that did not honour the draft exactly: fall back to the general path
         return read_image(path, expected_size=size), 1

@@ -10,8 +10,8 @@ from pathlib import Path
 
 import numpy as np
 
-from difftex.scene.camera import Photo, load_photos, read_reconstruction, scene_up
 from difftex.errors import DifftexError
+from difftex.scene.camera import Photo, load_photos, read_reconstruction, scene_up
 from difftex.scene.proxy import Proxy, load_proxy
 
 log = logging.getLogger(__name__)
@@ -112,7 +112,9 @@ def check_alignment(proxy: Proxy, points: np.ndarray, model_path: Path) -> None:
         f"(ratio {size / extent:.3g}); the median point lies {far:.2g} x that extent from the proxy"
     )
     if far > FAR_ERROR or size / extent < SMALL_ERROR:
-        raise DifftexError(f"{proxy.path}: the proxy does not fit the COLMAP model: {what}. Wrong units or another frame?")
+        raise DifftexError(
+            f"{proxy.path}: the proxy does not fit the COLMAP model: {what}. Wrong units or another frame?"
+        )
     if far > FAR_WARN:
         log.warning("%s: many COLMAP points are far from the proxy: %s", proxy.path, what)
 

@@ -15,7 +15,13 @@ from pathlib import Path
 import numpy as np
 
 from difftex.errors import DifftexError
-from difftex.scene.planar import newell_normal, planarity_deviation, polygon_area, polygons_from_triangles, triangulate_rings
+from difftex.scene.planar import (
+    newell_normal,
+    planarity_deviation,
+    polygon_area,
+    polygons_from_triangles,
+    triangulate_rings,
+)
 
 log = logging.getLogger(__name__)
 
@@ -150,7 +156,9 @@ def _read_trimesh(path: Path):
     try:
         scene = trimesh.load(str(path), force="scene", process=False)
     except Exception as exc:
-        raise DifftexError(f"{path}: cannot read mesh ({str(exc).splitlines()[0] if str(exc) else type(exc).__name__})") from None
+        raise DifftexError(
+            f"{path}: cannot read mesh ({str(exc).splitlines()[0] if str(exc) else type(exc).__name__})"
+        ) from None
     verts, faces, names = [], [], []
     offset = 0
     # dump() applies the scene graph transforms, so glTF nodes land in the world frame.
@@ -236,7 +244,11 @@ def assign_ids(names: list[str], path: Path) -> list[str]:
         more = f"; and {len(shared) - 3} more names" if len(shared) > 3 else ""
         log.warning(
             "%s: %d polygon name%s shared by several polygons, so their ids get suffixes: %s%s",
-            path, len(shared), "s are" if len(shared) > 1 else " is", shown, more,
+            path,
+            len(shared),
+            "s are" if len(shared) > 1 else " is",
+            shown,
+            more,
         )
     return ids
 
@@ -289,7 +301,9 @@ def load_proxy(
         fids = [fi for fi, _ in items]
         groups = polygons_from_triangles(verts, [f for _, f in items], angle_tol_deg, dist_tol_rel)
         if not groups:
-            log.warning("%s: the triangles of '%s' are all degenerate (zero area), skipped", path, name or "an unnamed group")
+            log.warning(
+                "%s: the triangles of '%s' are all degenerate (zero area), skipped", path, name or "an unnamed group"
+            )
         for outer, holes, first in groups:
             raw.append((outer, holes, name, fids[first]))
     raw.sort(key=lambda r: r[3])
@@ -314,8 +328,10 @@ def load_proxy(
         hint = ""
         if raw and thin == len(raw):  # every polygon tiny next to its distance from the origin
             v = np.concatenate([r[0] for r in raw])
-            hint = (f" (it is {np.linalg.norm(np.ptp(v, axis=0)):.3g} across, "
-                    f"{np.linalg.norm(v.mean(axis=0)):.3g} from the origin: wrong units?)")
+            hint = (
+                f" (it is {np.linalg.norm(np.ptp(v, axis=0)):.3g} across, "
+                f"{np.linalg.norm(v.mean(axis=0)):.3g} from the origin: wrong units?)"
+            )
         raise DifftexError(f"{path}: proxy has no usable polygons{hint}")
 
     ids = assign_ids([n for _, _, n in kept], path)

@@ -10,8 +10,6 @@ from __future__ import annotations
 import time
 from pathlib import Path
 
-import numpy as np
-
 from difftex.synth.presets import PRESETS, BuildingSpec, SynthConfig, get_preset
 
 __all__ = ["generate", "generate_scene", "PRESETS", "SynthConfig", "BuildingSpec", "get_preset"]

@@ -196,7 +196,8 @@ def _occluder(kind, c, along, rng) -> list[Primitive]:
     # car: body and cabin boxes oriented along the wall, four wheels
     a = np.array([along[0], along[1], 0.0])
     b = np.cross([0, 0, 1.0], a)
-    color = tuple(np.clip(np.array([0.6, 0.05, 0.05]) if rng.random() < 0.3 else rng.uniform(0.05, 0.7, 3), 0.02, 0.9).tolist())
+    base = np.array([0.6, 0.05, 0.05]) if rng.random() < 0.3 else rng.uniform(0.05, 0.7, 3)
+    color = tuple(np.clip(base, 0.02, 0.9).tolist())
 
     def box(cx, cy, cz, sx, sy, sz):
         M = np.eye(4)
@@ -204,11 +205,18 @@ def _occluder(kind, c, along, rng) -> list[Primitive]:
         M[:3, 3] = np.array([x, y, 0.0]) + a * cx + b * cy + [0, 0, cz]
         return {"to_world": M.tolist()}
 
-    out = [Primitive("cube", box(0, 0, 0.7, 4.3, 1.8, 0.8), color),
-           Primitive("cube", box(-0.2, 0, 1.4, 2.3, 1.6, 0.6), tuple(np.array(color) * 0.8))]
+    out = [
+        Primitive("cube", box(0, 0, 0.7, 4.3, 1.8, 0.8), color),
+        Primitive("cube", box(-0.2, 0, 1.4, 2.3, 1.6, 0.6), tuple(np.array(color) * 0.8)),
+    ]
     for su in (-1.4, 1.4):
         for sv in (-0.9, 0.9):
             p = np.array([x, y, 0.33]) + a * su + b * sv
-            out.append(Primitive("cylinder", {"p0": (p - b * 0.12).tolist(), "p1": (p + b * 0.12).tolist(), "radius": 0.33},
-                                 (0.03, 0.03, 0.03)))
+            out.append(
+                Primitive(
+                    "cylinder",
+                    {"p0": (p - b * 0.12).tolist(), "p1": (p + b * 0.12).tolist(), "radius": 0.33},
+                    (0.03, 0.03, 0.03),
+                )
+            )
     return out

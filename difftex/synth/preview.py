@@ -39,7 +39,6 @@ def write_previews(scene_dir: Path, views, intr_by_id, polygons, max_photos: int
 
     # proxy overlay on the photo that sees most polygons, drawn with the *written* camera
     def n_seen(v):
-        c = intr_by_id[v.camera_id]
         return sum(((p.outer @ v.R_written.T + v.t_written)[:, 2] > 0).all() for p in polygons)
 
     v = max(views, key=n_seen)

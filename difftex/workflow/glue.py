@@ -15,6 +15,7 @@ from typing import Any
 
 from difftex.errors import DifftexError
 from difftex.evaluation.report import stage_benchmarks
+from difftex.scene.camera import IMAGE_SUFFIXES
 
 # Sections each stage command reads (docs/stages.md). A stage's config file holds only these,
 # so a change elsewhere leaves its file, and therefore its outputs, untouched.
@@ -31,7 +32,6 @@ STAGE_SECTIONS = {
 }
 
 SPARSE_FILES = ("cameras", "images", "points3D")
-IMAGE_EXTS = {".jpg", ".jpeg", ".png", ".tif", ".tiff", ".exr", ".bmp", ".webp"}
 EXAMPLE_SCENE = "data/synth/tiny"
 
 
@@ -167,7 +167,8 @@ def stage_config_text(cfg: dict, stage: str) -> str:
             sections.setdefault(sec, {})[key] = cfg[sec][key]
         else:
             sections[s] = cfg[s]
-    return f"# written by the difftex workflow: the '{stage}' stage's sections\n" + yaml.safe_dump(sections, sort_keys=True)
+    header = f"# written by the difftex workflow: the '{stage}' stage's sections\n"
+    return header + yaml.safe_dump(sections, sort_keys=True)
 
 
 def stage_config_paths(results: str | Path, texts: dict[str, str]) -> dict[str, str]:
@@ -238,7 +239,7 @@ def scene_inputs(scene: str | Path) -> list[str]:
     model = [sparse / f"{n}{ext}" for n in SPARSE_FILES for ext in (".bin", ".txt") if (sparse / f"{n}{ext}").is_file()]
     if not any(p.stem == "images" for p in model):
         raise DifftexError(f"{root}: no COLMAP model in sparse/0 (cameras/images .bin or .txt)")
-    images = sorted(p for p in (root / "images").rglob("*") if p.suffix.lower() in IMAGE_EXTS and p.is_file())
+    images = sorted(p for p in (root / "images").rglob("*") if p.suffix.lower() in IMAGE_SUFFIXES and p.is_file())
     if not images:
         raise DifftexError(f"{root / 'images'}: no photos")
     return [str(p) for p in [proxies[0], *model, *images]]
@@ -328,7 +329,7 @@ def scene_mem_mb(scene_inputs_list: list[str], run: dict, factor: float = 4.0) -
 
     pixels = 4000 * 3000
     for p in scene_inputs_list:
-        if Path(p).suffix.lower() in IMAGE_EXTS and "images" in Path(p).parts:
+        if Path(p).suffix.lower() in IMAGE_SUFFIXES and "images" in Path(p).parts:
             try:
                 w, h = image_size(p)
                 pixels = w * h
@@ -407,15 +408,22 @@ def format_summary(s: dict) -> str:
             lines.append(f"  {p['id']:<{w}}  {_polygon_state(p)}  {size}")
     if s["stages"]:
         total = sum(d["seconds"] for d in s["stages"].values())
-        parts = ", ".join(f"{r} {d['seconds']:.0f}s" + (f"/{d['jobs']}" if d["jobs"] > 1 else "") for r, d in s["stages"].items())
+        parts = ", ".join(
+            f"{r} {d['seconds']:.0f}s" + (f"/{d['jobs']}" if d["jobs"] > 1 else "") for r, d in s["stages"].items()
+        )
         lines.append(f"time: {total:.0f} s of jobs ({parts})")
     chk = s.get("check")
     if chk:
-        lines.append(f"GLB reloaded: {chk['glb_polygons']} polygons, max colour difference to the textures {chk['max_color_error']:.3f}")
+        lines.append(
+            f"GLB reloaded: {chk['glb_polygons']} polygons, max colour difference to the textures "
+            f"{chk['max_color_error']:.3f}"
+        )
     oblique = s.get("textured_from_oblique") or {}
     if oblique:
-        lines.append("textured from oblique photos only (every photo sees them beyond filter.max_angle_deg): "
-                     + ", ".join(f"{pid} ({min(a.values()):.0f} deg)" if a else pid for pid, a in oblique.items()))
+        lines.append(
+            "textured from oblique photos only (every photo sees them beyond filter.max_angle_deg): "
+            + ", ".join(f"{pid} ({min(a.values()):.0f} deg)" if a else pid for pid, a in oblique.items())
+        )
     if s["untextured"]:
         reasons = s.get("untextured_reasons") or {}
         lines.append("untextured (grey), no photo sees them:")
@@ -461,14 +469,15 @@ def write_report(results: str | Path, out: str | Path) -> None:
 def finish_polygon_job(composite: str | Path, config: str | Path, out_dir: str | Path, log: str | Path) -> None:
     """The ``finish`` rule (run inside Snakemake, no interpreter start-up): a polygon's PNGs and
     report from its composite.npz, in the format of the config's ``output`` section."""
+    from difftex.compose.outputs import OutputConfig, finish_polygon
     from difftex.config import section
     from difftex.scene.files import write_text
-    from difftex.compose.outputs import OutputConfig, finish_polygon
 
     cfg = section(config, "output", OutputConfig)
     report = finish_polygon(composite, out_dir, cfg)
-    write_text(log, f"finish {report.get('polygon_id')}: {out_dir} ({cfg.bits}-bit"
-               + (", exr" if cfg.exr else "") + ")\n")
+    write_text(
+        log, f"finish {report.get('polygon_id')}: {out_dir} ({cfg.bits}-bit" + (", exr" if cfg.exr else "") + ")\n"
+    )
 
 
 def want_evaluation(cfg: dict) -> bool:
@@ -483,12 +492,3 @@ def want_evaluation(cfg: dict) -> bool:
         raise DifftexError("run.evaluate is true but this difftex has no 'evaluate' command")
     return has_cmd
 
-
-def synth_available() -> bool:
-    import importlib.util
-
-    return importlib.util.find_spec("difftex.cli.synth") is not None
-
-
-def as_json(obj: Any) -> str:
-    return json.dumps(obj, sort_keys=True)

@@ -109,7 +109,10 @@ def failure_report(jobs: list[tuple[str, str, list[str]]], results: str | Path) 
     """
     lines = warnings(results)
     if not jobs:
-        return [*lines, ERROR_PREFIX + "the run failed before any job could report why (see Snakemake's messages above)"]
+        return [
+            *lines,
+            ERROR_PREFIX + "the run failed before any job could report why (see Snakemake's messages above)",
+        ]
     errors: dict[str, list[str]] = {}
     logs: list[str] = []
     for rule, wildcards, job_logs in jobs:

@@ -35,7 +35,7 @@ try:
         [f"{SCENE}/proxy.obj", f"{SCENE}/synth.json"] if EXAMPLE else wf.scene_inputs(SCENE)
     )
     # What per-polygon jobs read of the scene besides their candidate photos.
-    SCENE_MODEL = [p for p in SCENE_INPUTS if Path(p).suffix.lower() not in wf.IMAGE_EXTS]
+    SCENE_MODEL = [p for p in SCENE_INPUTS if Path(p).suffix.lower() not in wf.IMAGE_SUFFIXES]
     # One small file per stage with only that stage's sections, named by its content and made
     # by the stage_config rule (nothing is written while the Snakefile is read, so a dry run
     # changes nothing): editing an optimization parameter reruns optimization and what

@@ -145,13 +145,20 @@ def write_uv_obj(path: Path, mesh, uv: np.ndarray) -> None:
 
 def prepare(method: str, work: Path, cams: list, mesh, frames, cfg) -> dict:
     """Bundler cameras, image list, the mesh (with the atlas UVs in blend mode) and the child's job file."""
-    from difftex.scene.files import write_json, write_text
     from difftex.geometry.meshing import write_ply
+    from difftex.scene.files import write_json, write_text
 
     write_text(work / "bundle.out", bundler_text(cams))
     write_text(work / "list.txt", "".join(f"photos/v{i:05d}.png\n" for i in range(len(cams))))
-    job = {"mode": method.split("-", 1)[1], "bundle": "bundle.out", "list": "list.txt", "out": "out/model.obj",
-           "texture": "texture.png", "views": len(cams), "faces": int(len(mesh.faces))}
+    job = {
+        "mode": method.split("-", 1)[1],
+        "bundle": "bundle.out",
+        "list": "list.txt",
+        "out": "out/model.obj",
+        "texture": "texture.png",
+        "views": len(cams),
+        "faces": int(len(mesh.faces)),
+    }
     if job["mode"] == "face":
         write_ply(work / "mesh.ply", mesh)
         job.update(mesh="mesh.ply", texsize=face_texture_size(frames, cfg.oversample, cfg.max_texture))
@@ -211,8 +218,10 @@ def collect(job: dict, work: Path, frames, mesh) -> tuple[dict, None, dict]:
 
 
 def describe(job: dict) -> dict:
-    filt = {"face": "compute_texcoord_parametrization_and_texture_from_registered_rasters",
-            "blend": "compute_color_and_texture_from_active_rasters_projection"}[job["mode"]]
+    filt = {
+        "face": "compute_texcoord_parametrization_and_texture_from_registered_rasters",
+        "blend": "compute_color_and_texture_from_active_rasters_projection",
+    }[job["mode"]]
     return {"program": "pymeshlab", "filter": filt, "texture_size": job["texsize"]}
 
 
@@ -243,11 +252,13 @@ def _child(job_path: str) -> int:
     t = time.perf_counter()
     if job["mode"] == "face":
         ms.compute_texcoord_parametrization_and_texture_from_registered_rasters(
-            texturesize=int(job["texsize"]), texturename=job["texture"])
+            texturesize=int(job["texsize"]), texturename=job["texture"]
+        )
     else:
         # no refill: texels no raster sees keep alpha 0 and are filled by difftex like everyone's
-        ms.compute_color_and_texture_from_active_rasters_projection(textname=job["texture"], texsize=int(job["texsize"]),
-                                                                    dorefill=False)
+        ms.compute_color_and_texture_from_active_rasters_projection(
+            textname=job["texture"], texsize=int(job["texsize"]), dorefill=False
+        )
     steps["filter_s"] = time.perf_counter() - t
     t = time.perf_counter()
     out = Path(job["out"])

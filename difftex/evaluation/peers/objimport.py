@@ -25,7 +25,9 @@ from difftex.geometry.frames import UVFrame
 MAX_SUPERSAMPLE = 8
 
 
-def read_obj(path: str | Path) -> tuple[np.ndarray, np.ndarray, list[tuple[list[int], list[int], str]], dict[str, Path]]:
+def read_obj(
+    path: str | Path,
+) -> tuple[np.ndarray, np.ndarray, list[tuple[list[int], list[int], str]], dict[str, Path]]:
     """(positions (n, 3), uvs (m, 2), faces as (vertex ids, uv ids, material), material -> image path).
 
     Faces keep their OBJ corner lists (uv id -1 where the face has none).
@@ -177,7 +179,9 @@ def supersample_factor(corners: np.ndarray, uv: np.ndarray, sizes: np.ndarray, f
 
 def fine_frame(frame: UVFrame, k: int) -> UVFrame:
     """The same rectangle with every texel split into k x k (exactly nested)."""
-    return UVFrame(frame.origin, frame.e_u, frame.e_v, frame.normal, frame.texel_size / k, frame.width * k, frame.height * k)
+    return UVFrame(
+        frame.origin, frame.e_u, frame.e_v, frame.normal, frame.texel_size / k, frame.width * k, frame.height * k
+    )
 
 
 def box_down(tex: np.ndarray, cov: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
@@ -217,8 +221,14 @@ def read_atlas(path: Path, coverage: str = "uv") -> tuple[np.ndarray, np.ndarray
     return rgb, np.ones(rgb.shape[:2], np.float32)
 
 
-def import_obj(obj: str | Path, frames: dict[str, UVFrame], masks: dict[str, np.ndarray], plane_tol: float = 1e-3,
-               supersample: int | None = None, coverage: str = "uv") -> dict[str, tuple[np.ndarray, np.ndarray]]:
+def import_obj(
+    obj: str | Path,
+    frames: dict[str, UVFrame],
+    masks: dict[str, np.ndarray],
+    plane_tol: float = 1e-3,
+    supersample: int | None = None,
+    coverage: str = "uv",
+) -> dict[str, tuple[np.ndarray, np.ndarray]]:
     """Per polygon id: (texture (H, W, 3), covered (H, W) bool) in its UV frame, from a textured OBJ.
 
     Args:

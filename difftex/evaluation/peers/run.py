@@ -95,8 +95,8 @@ def export_photos(photos, folder: Path, long_side: int | None) -> list:
     Sequential names keep the peers' name matching simple (texrecon pairs a .cam file with the
     image whose name starts like it).
     """
-    from difftex.scene.files import read_image
     from difftex.geometry.pinhole import ideal_camera, resample
+    from difftex.scene.files import read_image
 
     folder.mkdir(parents=True, exist_ok=True)
     cams = []
@@ -136,8 +136,9 @@ class Frames:
     visibility: Path | None  # an existing visibility folder (results link it), or None
 
 
-def frames_for(scene, visibility: str | Path | None, polygons: list[str] | None, long_side: int | None,
-               density: float | None) -> Frames:
+def frames_for(
+    scene, visibility: str | Path | None, polygons: list[str] | None, long_side: int | None, density: float | None
+) -> Frames:
     """Frames from a visibility folder (every polygon some photo sees), or computed at a resolution."""
     from difftex.geometry.frames import texel_mask, uv_frame
     from difftex.geometry.visibility import load_visibility
@@ -177,21 +178,31 @@ def write_frames(folder: Path, fr: Frames) -> None:
     from difftex.geometry.visibility import PolygonVisibility, save_visibility
 
     for pid, frame in fr.frames.items():
-        save_visibility(folder / f"{pid}.npz", PolygonVisibility(
-            polygon_id=pid, frame=frame, texel_mask=fr.masks[pid], photos=[],
-            texel_visible=np.zeros((0, *frame.shape), bool), a_bbox=np.zeros((0, 4), np.int64), a_masks=[]))
+        save_visibility(
+            folder / f"{pid}.npz",
+            PolygonVisibility(
+                polygon_id=pid,
+                frame=frame,
+                texel_mask=fr.masks[pid],
+                photos=[],
+                texel_visible=np.zeros((0, *frame.shape), bool),
+                a_bbox=np.zeros((0, 4), np.int64),
+                a_masks=[],
+            ),
+        )
 
 
-def write_textures(out: Path, method: str, fr: Frames, imported: dict, sources: dict | None, names: list[str],
-                   extra: dict) -> dict:
+def write_textures(
+    out: Path, method: str, fr: Frames, imported: dict, sources: dict | None, names: list[str], extra: dict
+) -> dict:
     """textures/<pid>/ for every polygon from the imported (texture, covered) pairs.
 
     Texels the peer left untextured are filled by push-pull from its textured ones, as difftex
     fills its unseen texels (a polygon it did not texture at all stays mid-grey). ``sources``:
     per polygon the dominant photo index per texel (-1: unknown), for the source map.
     """
-    from difftex.compose.outputs import write_texture_outputs
     from difftex.compose.composite import finish_texture
+    from difftex.compose.outputs import write_texture_outputs
 
     rows = {}
     for pid, (tex, cov) in imported.items():
@@ -207,9 +218,17 @@ def write_textures(out: Path, method: str, fr: Frames, imported: dict, sources: 
     return rows
 
 
-def run_peer(method: str, scene_dir: str | Path, out: str | Path, cfg: PeerConfig = PeerConfig(),
-             visibility: str | Path | None = None, polygons: list[str] | None = None, long_side: int | None = 2048,
-             density: float | None = None, photos_table: str | Path | None = None) -> dict:
+def run_peer(
+    method: str,
+    scene_dir: str | Path,
+    out: str | Path,
+    cfg: PeerConfig = PeerConfig(),
+    visibility: str | Path | None = None,
+    polygons: list[str] | None = None,
+    long_side: int | None = 2048,
+    density: float | None = None,
+    photos_table: str | Path | None = None,
+) -> dict:
     """Texture a scene with a peer and write a difftex results folder ``out``.
 
     Args:
@@ -225,8 +244,8 @@ def run_peer(method: str, scene_dir: str | Path, out: str | Path, cfg: PeerConfi
         coverage, and ``prepare`` / ``peer`` / ``import`` phases with their totals.
     """
     from difftex.evaluation.peers import meshlab, texrecon
-    from difftex.scene.files import write_json
     from difftex.geometry.meshing import default_max_edge, proxy_mesh
+    from difftex.scene.files import write_json
     from difftex.scene.loading import load_scene
 
     if method not in PEERS:
@@ -260,18 +279,29 @@ def run_peer(method: str, scene_dir: str | Path, out: str | Path, cfg: PeerConfi
             coverage = write_textures(tmp, method, fr, imported, sources, names, extra)
         if not cfg.keep_inputs:
             shutil.rmtree(work / "photos", ignore_errors=True)
-        total = Phase(wall_s=prep.wall_s + peer.wall_s + imp.wall_s, cpu_s=prep.cpu_s + peer.cpu_s + imp.cpu_s,
-                      peak_rss_mib=max(prep.peak_rss_mib, peer.peak_rss_mib, imp.peak_rss_mib))
+        total = Phase(
+            wall_s=prep.wall_s + peer.wall_s + imp.wall_s,
+            cpu_s=prep.cpu_s + peer.cpu_s + imp.cpu_s,
+            peak_rss_mib=max(prep.peak_rss_mib, peer.peak_rss_mib, imp.peak_rss_mib),
+        )
         record = {
-            "method": method, "label": LABELS[method], "scene": str(scene.root), "config": asdict(cfg),
-            "photos": names, "photo_sizes": [[c.width, c.height] for c in cams],
+            "method": method,
+            "label": LABELS[method],
+            "scene": str(scene.root),
+            "config": asdict(cfg),
+            "photos": names,
+            "photo_sizes": [[c.width, c.height] for c in cams],
             "mesh": {"triangles": int(len(mesh.faces)), "vertices": int(len(mesh.vertices)), "max_edge": mesh.max_edge},
-            "polygons": coverage, "peer_program": runner.describe(job),
-            "prepare": asdict(prep), "peer": asdict(peer), "import": asdict(imp), "total": asdict(total),
+            "polygons": coverage,
+            "peer_program": runner.describe(job),
+            "prepare": asdict(prep),
+            "peer": asdict(peer),
+            "import": asdict(imp),
+            "total": asdict(total),
             "timing_notes": "prepare/import: this process (CPU user+system; peak RSS is the process high-water mark "
-                            "so far); peer: the program's process tree (getrusage(RUSAGE_CHILDREN) of a launcher "
-                            "that only waits for it: CPU of the program and its waited-for descendants, peak RSS "
-                            "of the largest; wall time includes the launcher's start, about 20 ms)",
+            "so far); peer: the program's process tree (getrusage(RUSAGE_CHILDREN) of a launcher "
+            "that only waits for it: CPU of the program and its waited-for descendants, peak RSS "
+            "of the largest; wall time includes the launcher's start, about 20 ms)",
         }
         # the command line named the temporary folder, which is about to become ``out``
         record = json.loads(json.dumps(record, default=str).replace(str(tmp), str(out)))

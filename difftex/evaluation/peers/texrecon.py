@@ -40,7 +40,11 @@ def _find() -> tuple[str | None, str]:
             return env, ""
         return None, f"{env}: DIFFTEX_TEXRECON is not an executable file"
     exe = shutil.which("texrecon")
-    return (exe, "") if exe else (None, f"texrecon: no 'texrecon' executable on PATH and DIFFTEX_TEXRECON unset ({BUILD_HINT})")
+    return (
+        (exe, "")
+        if exe
+        else (None, f"texrecon: no 'texrecon' executable on PATH and DIFFTEX_TEXRECON unset ({BUILD_HINT})")
+    )
 
 
 def executable() -> str | None:
@@ -73,8 +77,8 @@ def cam_file_text(cam) -> str:
 
 def prepare(method: str, work: Path, cams: list, mesh, frames, cfg) -> dict:
     """Write the .cam files beside the resampled photos (``work/photos/v00000.png``) and the mesh PLY."""
-    from difftex.scene.files import write_text
     from difftex.geometry.meshing import write_ply
+    from difftex.scene.files import write_text
 
     for i, cam in enumerate(cams):
         write_text(work / "photos" / f"v{i:05d}.cam", cam_file_text(cam))
