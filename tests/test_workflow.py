@@ -180,6 +180,9 @@ def test_workflow_end_to_end(tiny_scene, tmp_path):
     glb, obj = model / "model.glb", model / "model.obj"
     assert glb.is_file() and obj.is_file()
     assert str(glb.relative_to(work)) in r.stdout + r.stderr  # the end-of-run summary names the GLB
+    # ... the device that textured the polygons and each polygon's texel size in scene units
+    assert "device: cpu (" in r.stdout + r.stderr
+    assert re.search(r"\d+x\d+ texels of [0-9.e-]+ units", r.stdout + r.stderr)
 
     proxy = load_proxy(tiny_scene / "proxy.obj")
     scene = trimesh.load(glb, force="scene")
@@ -263,3 +266,13 @@ def test_config_yaml_mirrors_the_stage_dataclasses():
             if isinstance(value, tuple):
                 value, mine = list(value), list(mine)
             assert mine == value, f"{name}.{key}: config.yaml {mine!r} != {cls.__name__} {value!r}"
+
+
+def test_version_names_torch_and_the_device():
+    r = subprocess.run([sys.executable, "-m", "difftex", "--version"], capture_output=True, text=True)
+    assert r.returncode == 0, r.stderr
+    lines = r.stdout.splitlines()
+    import torch
+
+    assert lines[0].startswith("difftex ") and lines[1] == f"torch {torch.__version__}"
+    assert lines[2].startswith("device: cuda" if torch.cuda.is_available() else "device: cpu")

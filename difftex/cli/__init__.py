@@ -35,13 +35,36 @@ def _commands() -> list:
 
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="difftex", description=__doc__.splitlines()[0])
-    parser.add_argument("--version", action="version", version=f"difftex {__version__}")
+    parser.add_argument(
+        "--version", action=_Version, nargs=0, help="print the versions, the torch build and its device"
+    )
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     for mod in _commands():
         p = sub.add_parser(mod.NAME, help=mod.HELP, description=mod.HELP)
         mod.add_arguments(p)
         p.set_defaults(_run=mod.run)
     return parser
+
+
+class _Version(argparse.Action):
+    """``difftex --version``: difftex, torch and the device the texture stage would use.
+
+    A user on a GPU node checks here that the install found CUDA (torch is imported only here,
+    not for ``--help``).
+    """
+
+    def __call__(self, parser, namespace, values, option_string=None):
+        import torch
+
+        cuda = torch.version.cuda
+        if torch.cuda.is_available():
+            device = f"cuda ({torch.cuda.get_device_name(0)})"
+        else:
+            device = "cpu" + (
+                " (this torch has CUDA " + cuda + " but sees no GPU)" if cuda else " (CPU-only torch build)"
+            )
+        print(f"difftex {__version__}\ntorch {torch.__version__}\ndevice: {device}")
+        parser.exit()
 
 
 class _Once(logging.Filter):

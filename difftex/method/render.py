@@ -70,7 +70,13 @@ def build_pixel_sets(photos: PhotoSet, lv: Level, transfers: list | None) -> los
             continue
         px = cx0 + (cols_.numpy() + 0.5) * s
         py = cy0 + (rows.numpy() + 0.5) * s
-        t = pixel_to_texel(frame, inp.photos[n], np.stack([px, py], -1))
+        pix = np.stack([px, py], -1)
+        if n in photos.corrections:
+            # the alignment moved f_k^i to p + d(p); its inverse, to first order in the (small,
+            # smooth) displacement, takes photo pixel p back through p - d(p)
+            d = photos.corrections[n].displacement(torch.from_numpy(pix).double()).numpy()
+            pix = pix - d
+        t = pixel_to_texel(frame, inp.photos[n], pix)
         ok = np.isfinite(t).all(-1) & (t[:, 0] >= 0) & (t[:, 0] < w) & (t[:, 1] >= 0) & (t[:, 1] < h)
         if not ok.any():
             continue

@@ -371,6 +371,8 @@ def run_summary(results: str | Path) -> dict:
         "textured_from_oblique": summary.get("textured_from_oblique", {}),
         "check": summary.get("check"),
         "stages": stage_benchmarks(results),
+        "texels": _texel_sizes(results),
+        "devices": _devices(results),
     }
     metrics = results / "evaluation" / "metrics.json"
     if metrics.is_file():
@@ -378,6 +380,33 @@ def run_summary(results: str | Path) -> dict:
     html = results / "report" / "index.html"
     if html.is_file():
         out["html_report"] = str(html)
+    return out
+
+
+def _texel_sizes(results: Path) -> dict:
+    """Per polygon id: its texel size (scene units) and what set it, from the visibility summary."""
+    from difftex.scene.files import read_json
+
+    path = results / "visibility" / "summary.json"
+    if not path.is_file():
+        return {}
+    try:
+        rows = read_json(path).get("polygons", [])
+    except (DifftexError, AttributeError):
+        return {}
+    return {r["id"]: (r.get("texel_size"), r.get("texel_size_bound")) for r in rows if "id" in r}
+
+
+def _devices(results: Path) -> dict[str, int]:
+    """How many polygons each torch device textured (from the texture stage's stats)."""
+    out: dict[str, int] = {}
+    for st in sorted((results / "optimized").glob("*/stats.json")):
+        try:
+            dev = json.loads(st.read_text()).get("device")
+        except (OSError, ValueError):
+            continue
+        if dev:
+            out[dev] = out.get(dev, 0) + 1
     return out
 
 
@@ -403,8 +432,12 @@ def format_summary(s: dict) -> str:
     lines = [f"difftex: {n_tex}/{len(polys)} polygons textured"]
     if polys:
         w = max(len(p["id"]) for p in polys)
+        texels = s.get("texels") or {}
         for p in polys:
             size = "x".join(map(str, p["texture_size"])) if p.get("texture_size") else "-"
+            ts, bound = texels.get(p["id"], (None, None))
+            if ts and p.get("texture_size"):
+                size += f" texels of {ts:.3g} units" + (f" (set by {bound})" if bound and bound != "photos" else "")
             lines.append(f"  {p['id']:<{w}}  {_polygon_state(p)}  {size}")
     if s["stages"]:
         total = sum(d["seconds"] for d in s["stages"].values())
@@ -412,6 +445,8 @@ def format_summary(s: dict) -> str:
             f"{r} {d['seconds']:.0f}s" + (f"/{d['jobs']}" if d["jobs"] > 1 else "") for r, d in s["stages"].items()
         )
         lines.append(f"time: {total:.0f} s of jobs ({parts})")
+    if s.get("devices"):
+        lines.append("device: " + ", ".join(f"{d} ({n} polygons)" for d, n in s["devices"].items()))
     chk = s.get("check")
     if chk:
         lines.append(
