@@ -142,12 +142,14 @@ def run_average(scene: Path, results: Path) -> dict:
     return {"wall_s": time.perf_counter() - t0, "cpu_s": time.process_time() - c0, "polygons": n}
 
 
-def subset_scene(scene: Path, n: int, out: Path) -> Path:
+def subset_scene(scene: Path, n: int, out: Path) -> Path | None:
     from difftex.evaluation.holdout import prepare_holdout
     from difftex.scene.camera import load_photos
     from difftex.scene.loading import find_sparse
 
     names = [p.name for p in load_photos(find_sparse(scene), scene / "images", check_images=False)]
+    if len(names) <= n:
+        return None  # no smaller copy to make
     step = max(1, len(names) // n)
     dst = out / f"{scene.name}-{n}"
     if not (dst / "sparse").is_dir():
@@ -168,7 +170,8 @@ def main(argv=None) -> int:
     work = Path(args.work)
     scenes = [Path(s) for s in args.scene]
     if args.subset:
-        scenes += [subset_scene(s, args.subset, work / "scenes") for s in list(scenes)]
+        subsets = [subset_scene(s, args.subset, work / "scenes") for s in list(scenes)]
+        scenes += [s for s in subsets if s is not None]
     mach = C.machine()
     rows = []
     for scene in scenes:

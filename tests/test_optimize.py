@@ -163,7 +163,6 @@ def test_numerics_stay_finite(case):
 
 @pytest.mark.parametrize("mode", ["texel", "render"])
 def test_compiled_objective_matches_eager(mode):
-    # texel mode has its gradient written out (nothing to compile): on and off must agree exactly
     """compile=on gives the eager weights up to float tolerance (or falls back to eager with
     a recorded reason where inductor cannot build, e.g. no C++ compiler). Four photos and
     top_k 3 exercise the per-texel slot matching of L_Para, not only the fixed layout."""
@@ -176,10 +175,8 @@ def test_compiled_objective_matches_eager(mode):
     eager = optimize(inp, cfg, compile="off")
     comp = optimize(inp, cfg, compile="on")
     assert not eager.stats["levels"][0]["compiled"]
-    if mode == "render":
-        assert comp.stats["levels"][0]["compiled"] or "compile_failed" in comp.stats
-    else:
-        assert not comp.stats["levels"][0]["compiled"]
+    # render: autograd through the compiled objective; texel: the written-out gradient compiled
+    assert comp.stats["levels"][0]["compiled"] or "compile_failed" in comp.stats
     # Adam's steps on the logits (lr 0.1) carry float rounding further than on the weights
     assert np.abs(comp.W - eager.W).max() < 2e-3
     assert np.abs(comp.U - eager.U).max() < 1e-4

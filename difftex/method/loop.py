@@ -27,7 +27,13 @@ from difftex.method.elimination import (
 )
 from difftex.method.gradient import Adam
 from difftex.method.levels import Level, build_level, upsample_field
-from difftex.method.objective import LevelState, compiled_objective, objective, value_and_grad
+from difftex.method.objective import (
+    LevelState,
+    compiled_objective,
+    compiled_texel_gradient,
+    objective,
+    value_and_grad,
+)
 from difftex.method.render import build_pixel_sets
 from difftex.sampling.photos import MappedPhoto, PhotoSet
 from difftex.sampling.texels import level_frame, level_sides, resample_nearest
@@ -188,7 +194,10 @@ def _run_level(
     if cfg.use_para:
         st.matches = {a: losses.neighbour_match(lv.idx, lv.mask, a, fixed=lv.fixed_slots) for a in (1, 2)}
     adam = Adam(lr=cfg.lr, betas=cfg.betas)
-    fn = (compiled_objective(lv, compute) or objective) if cfg.loss_mode == "render" else None
+    if cfg.loss_mode == "render":
+        fn = compiled_objective(lv, compute) or objective
+    else:
+        fn = compiled_texel_gradient(lv, compute)
     hist: dict[str, list] = {k: [] for k in LOSS_KEYS}
     n_elim = 0
     dropped_here: list[str] = []
@@ -219,7 +228,7 @@ def _run_level(
             reason = f"{type(e).__name__}: {str(e).splitlines()[0][:200]}"
             warnings.warn(f"torch.compile failed ({reason}); running eagerly", stacklevel=2)
             stats["compile_failed"] = reason
-            fn = objective
+            fn = objective if cfg.loss_mode == "render" else None
             terms, grad = value_and_grad(st, cfg, fn)
         for k in hist:
             hist[k].append(float(terms[k]) if k in terms else 0.0)

@@ -92,7 +92,7 @@ def value_and_grad(st: LevelState, cfg: OptimizeConfig, fn=None) -> tuple[dict[s
         if st.texel is None:
             st.texel = texel_data(lv.colours, Q, lv.cost, lv.n_tex, ghost_margin(lv, cfg))
         with torch.no_grad():
-            return texel_value_and_grad(st.z, st.active, st.texel, st.D, st.matches, cfg)
+            return (fn or texel_value_and_grad)(st.z, st.active, st.texel, st.D, st.matches, cfg)
     support = render_support(lv) if cfg.use_render else None
     if fn is None:
         with torch.no_grad():
@@ -119,3 +119,17 @@ def compiled_objective(lv: Level, compute: ComputeConfig):
     if mode == "off" or (mode == "auto" and lv.idx.numel() < compute.compile_min_slots):
         return None
     return torch.compile(objective, dynamic=False)
+
+
+def compiled_texel_gradient(lv: Level, compute: ComputeConfig):
+    """torch.compile'd ``texel_value_and_grad`` for this level, or None to run it eagerly.
+
+    The written-out gradient is still some 80 elementwise passes over (K, 3, H, W) and (K, H, W)
+    tensors per iteration, each a trip through memory; inductor fuses them into a few loops
+    (evaluation/bench_optimize.md gives the iteration time against the bytes it must touch).
+    Same rule as ``compiled_objective`` for when it pays.
+    """
+    mode = compute.compile
+    if mode == "off" or (mode == "auto" and lv.idx.numel() < compute.compile_min_slots):
+        return None
+    return torch.compile(texel_value_and_grad, dynamic=False)
