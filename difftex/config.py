@@ -23,7 +23,9 @@ def from_dict(cls: type[T], data: dict[str, Any] | None, where: str = "") -> T:
     names = {f.name for f in dataclasses.fields(cls)}
     unknown = sorted(set(data) - names)
     if unknown:
-        raise DifftexError(f"{where or cls.__name__}: unknown key(s) {', '.join(unknown)} (known: {', '.join(sorted(names))})")
+        raise DifftexError(
+            f"{where or cls.__name__}: unknown key(s) {', '.join(unknown)} (known: {', '.join(sorted(names))})"
+        )
     for f in dataclasses.fields(cls):
         if f.name in data:
             problem = _type_problem(data[f.name], f.default)
@@ -79,7 +81,7 @@ class TextureConfig:
 
     What sets each polygon's texel size (``mode``): a numeric ``density`` (texels per scene
     unit); else ``long_side`` when it is given; else ``density: auto``, per polygon from its
-    photos' ground sampling distance (difftex.density).
+    photos' ground sampling distance (difftex.geometry.density).
     """
 
     density: str | float | None = "auto"
@@ -113,7 +115,7 @@ class TextureConfig:
 
     @property
     def mode(self) -> str:
-        """"density", "long_side" or "auto": what sets each polygon's texel size."""
+        """ "density", "long_side" or "auto": what sets each polygon's texel size."""
         if self.density is not None and self.density != "auto":
             return "density"
         return "long_side" if self.long_side is not None else "auto"

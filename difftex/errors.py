@@ -2,7 +2,7 @@
 
 A failed command prints ``difftex: error: <file>: <problem>`` on one line and exits 2; a warning
 is ``difftex: warning: <file>: <problem>``. The workflow's end-of-run handler looks for exactly
-these prefixes in the job logs (difftex/runlog.py), so they are defined here once.
+these prefixes in the job logs (difftex/workflow/runlog.py), so they are defined here once.
 """
 
 from __future__ import annotations

@@ -27,8 +27,14 @@ VARIANTS = {
     "no_para": ({"use_para": False}, "without L_Para"),
     "no_elimination": ({"data_elimination": False}, "without photo / pixel elimination"),
     "no_histmatch": ({"histogram_matching": False}, "without HSV histogram matching"),
-    "histmatch_best": ({"histmatch_reference": "best"}, "histogram matching to the best photo (not the per-texel median)"),
-    "histmatch_pooled": ({"histmatch_reference": "pooled"}, "histogram matching to the pooled histogram (not the per-texel median)"),
+    "histmatch_best": (
+        {"histmatch_reference": "best"},
+        "histogram matching to the best photo (not the per-texel median)",
+    ),
+    "histmatch_pooled": (
+        {"histmatch_reference": "pooled"},
+        "histogram matching to the pooled histogram (not the per-texel median)",
+    ),
     "no_coarse_to_fine": ({"coarse_to_fine": False}, "target level only (no coarse-to-fine)"),
 }
 
@@ -66,19 +72,30 @@ def main(argv=None) -> int:
     for m in [m for m in args.peers.split(",") if m]:
         r = P.run_peer(m, scene, work / m, common)
         ev = None if r.get("missing") else C.evaluate(scene, work / m, args.lpips, config=common["config"])
-        rows.append({"variant": m, "what": f"peer: {C.LABELS[m]}", "run": r, "metrics": ev, "missing": r.get("missing")})
+        rows.append(
+            {"variant": m, "what": f"peer: {C.LABELS[m]}", "run": r, "metrics": ev, "missing": r.get("missing")}
+        )
     mach = C.machine()
-    notes = [f"Scene `{scene}`, polygons: {', '.join(r['id'] for r in common['polygons'])}.",
-             f"**Reduced sizes**: texture long side {args.long_side}, difftex preset `{args.preset}` "
-             f"({cfg['optimize'].get('loss_mode')} loss, iteration caps {cfg['optimize'].get('max_iters_per_level')}).",
-             "One switch of the `optimize:` section off per row (OptimizeConfig: use_render, use_sparsity, use_persp, "
-             "use_para, data_elimination, histogram_matching, coarse_to_fine), or another histogram-matching reference "
-             "(histmatch_reference; default median); everything else as in `full`.",
-             "Maps scored against ground truth as in Table 1; time is texturing (init + optimize + histmatch) summed over the polygons.",
-             "Peer rows: the peer programs on the same polygons and photos, for reference (not difftex variants)."]
+    notes = [
+        f"Scene `{scene}`, polygons: {', '.join(r['id'] for r in common['polygons'])}.",
+        f"**Reduced sizes**: texture long side {args.long_side}, difftex preset `{args.preset}` "
+        f"({cfg['optimize'].get('loss_mode')} loss, iteration caps {cfg['optimize'].get('max_iters_per_level')}).",
+        "One switch of the `optimize:` section off per row (OptimizeConfig: use_render, use_sparsity, use_persp, "
+        "use_para, data_elimination, histogram_matching, coarse_to_fine), or another histogram-matching reference "
+        "(histmatch_reference; default median); everything else as in `full`.",
+        "Maps scored against ground truth as in Table 1; time is texturing (init + optimize + histmatch) summed over "
+        "the polygons.",
+        "Peer rows: the peer programs on the same polygons and photos, for reference (not difftex variants).",
+    ]
     notes += [n for n in [P.timing_note(rows)] if n]
-    lines = [C.header("Ablation: each loss term and data-quality step off in turn",
-                      "python evaluation/ablation.py " + " ".join(sys.argv[1:] if argv is None else argv), mach, notes)]
+    lines = [
+        C.header(
+            "Ablation: each loss term and data-quality step off in turn",
+            "python evaluation/ablation.py " + " ".join(sys.argv[1:] if argv is None else argv),
+            mach,
+            notes,
+        )
+    ]
     lv = next((r["metrics"]["maps"]["overall"]["lpips_variant"] for r in rows if r.get("metrics")), "n/a")
     lines.append(f"| Variant | Error (90%) | Error (95%) | SSIM | LPIPS ({lv}) | PSNR | Q_front | Q_vc | Time (s) |")
     lines.append("|---|---|---|---|---|---|---|---|---|")
@@ -88,8 +105,11 @@ def main(argv=None) -> int:
             continue
         o = r["metrics"]["maps"]["overall"]
         q = r["metrics"].get("perspective", {})
-        lines.append(f"| {r['what']} | {C.fmt(o['error90'])} | {C.fmt(o['error95'])} | {C.fmt(o['ssim'])} | {C.fmt(o['lpips'])} | "
-                     f"{C.fmt(o['psnr'], 2)} | {C.fmt(q.get('q_front'))} | {C.fmt(q.get('q_vc'))} | {r['run']['total_s']:.0f} |")
+        lines.append(
+            f"| {r['what']} | {C.fmt(o['error90'])} | {C.fmt(o['error95'])} | {C.fmt(o['ssim'])} | "
+            f"{C.fmt(o['lpips'])} | "
+            f"{C.fmt(o['psnr'], 2)} | {C.fmt(q.get('q_front'))} | {C.fmt(q.get('q_vc'))} | {r['run']['total_s']:.0f} |"
+        )
     C.finish_table(Path(args.out), lines, t_all, mach, args, rows)
     return 0
 

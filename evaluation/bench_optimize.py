@@ -39,7 +39,6 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from evaluation import common as C  # noqa: E402
 
 
-
 def machine() -> dict:
     """The shared machine description (evaluation/common.py) plus what this benchmark adds."""
     m = C.machine()
@@ -50,8 +49,8 @@ def machine() -> dict:
 
 
 def visibility_file(scene: str, polygon: str, size: int, cache: Path) -> Path:
-    from difftex.scene import load_scene
-    from difftex.visibility import save_visibility, scene_visibility
+    from difftex.geometry.visibility import save_visibility, scene_visibility
+    from difftex.scene.loading import load_scene
 
     path = cache / f"{Path(scene).name}_{polygon}_{size}.npz"
     if path.is_file():
@@ -88,11 +87,12 @@ def run_one(args) -> dict:
 
     import torch
 
+    from difftex.geometry.visibility import load_visibility
     from difftex.method.config import ComputeConfig, OptimizeConfig
     from difftex.method.loop import optimize_polygon
-    from difftex.sampling import PhotoSet, polygon_input_from_visibility, resample_nearest
-    from difftex.scene import load_scene
-    from difftex.visibility import load_visibility
+    from difftex.sampling.photos import PhotoSet, polygon_input_from_visibility
+    from difftex.sampling.texels import resample_nearest
+    from difftex.scene.loading import load_scene
 
     torch.set_num_threads(args.threads)
     sc = load_scene(args.scene, check_images=False)
@@ -177,47 +177,81 @@ def main() -> int:
             with tempfile.TemporaryDirectory(prefix="difftex_inductor_") as cache_dir:
                 env = dict(os.environ, TORCHINDUCTOR_CACHE_DIR=cache_dir)
                 p = subprocess.run(cmd, capture_output=True, text=True, env=env)
-            line = [l for l in p.stdout.splitlines() if l.startswith("RESULT ")]
+            line = [ln for ln in p.stdout.splitlines() if ln.startswith("RESULT ")]
             if p.returncode or not line:
                 print(p.stderr[-2000:], file=sys.stderr)
-                rows.append({"size": size, "mode": mode, "compile": comp, "python": py, "error": p.stderr.strip().splitlines()[-1] if p.stderr.strip() else "failed"})
+                rows.append(
+                    {
+                        "size": size,
+                        "mode": mode,
+                        "compile": comp,
+                        "python": py,
+                        "error": p.stderr.strip().splitlines()[-1] if p.stderr.strip() else "failed",
+                    }
+                )
                 continue
             r = json.loads(line[0][7:])
             rows.append(r)
-            print(f"{r['torch']:14s} {size:5d} {mode:6s} {comp:4s} {r['time_s']:8.1f}s  x bound {r['levels'][-1]['x_bound']:6.1f}  full~{r['est_full_run_s']:8.1f}s  rss {r['peak_rss_mib']:8.1f} MiB", flush=True)
-    info = {"command": " ".join(sys.argv), "scene": args.scene, "polygon": args.polygon, "iters_per_level": args.iters,
-            "machine": machine(), "results": rows}
-    from difftex.io import write_json, write_text
+            print(
+                f"{r['torch']:14s} {size:5d} {mode:6s} {comp:4s} {r['time_s']:8.1f}s  x bound "
+                f"{r['levels'][-1]['x_bound']:6.1f}  full~{r['est_full_run_s']:8.1f}s  "
+                f"rss {r['peak_rss_mib']:8.1f} MiB",
+                flush=True,
+            )
+    info = {
+        "command": " ".join(sys.argv),
+        "scene": args.scene,
+        "polygon": args.polygon,
+        "iters_per_level": args.iters,
+        "machine": machine(),
+        "results": rows,
+    }
+    from difftex.scene.files import write_json, write_text
 
     write_json(args.out + ".json", info)
     m = info["machine"]
     from difftex.method.config import ComputeConfig
 
-    lines = [f"# Optimizer time and memory per polygon ({Path(args.scene).name} / {args.polygon})", "",
-             f"Command: `{info['command']}`", "",
-             f"Machine: {m['cpu']}, {m['cores']} cores, {m['ram_gib']} GiB RAM, torch {m['torch']}, "
-             f"CUDA: {m['cuda'] or 'none'}, torch threads {args.threads}, load average at the end {tuple(round(x, 1) for x in m['load_avg'])}.", "",
-             f"Each level ran {args.iters} iterations (0 = config caps). 'full run' = read + setup + first iteration "
-             "(which carries torch.compile's cost) + the rest of the default caps (300, 150, 80, 40 iterations per level) "
-             "x the median time of the later iterations. `compile`: OptimizeConfig.compile (auto compiles levels with "
-             f"at least {ComputeConfig().compile_min_slots} K x H x W slot entries); 'compiled' lists the levels that were.", "",
-             "Bound: the bytes one iteration must touch (K x H x W x "
-             f"{BYTES_PER_SLOT_ITER} B, plus the render pixel sets) over the one-thread copy bandwidth measured in the "
-             "same process; 'x bound' is the last level's iteration time in units of it.", "",
-             "| torch | texels | mode | compile | photos | run (s) | est. full run (s) | peak RSS (MiB) | last level: s/iter | "
-             "bytes/iter (MiB) | bound (s) | x bound | last level: first iter (s) | compiled levels | last level tensors (MiB) |",
-             "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+    lines = [
+        f"# Optimizer time and memory per polygon ({Path(args.scene).name} / {args.polygon})",
+        "",
+        f"Command: `{info['command']}`",
+        "",
+        f"Machine: {m['cpu']}, {m['cores']} cores, {m['ram_gib']} GiB RAM, torch {m['torch']}, "
+        f"CUDA: {m['cuda'] or 'none'}, torch threads {args.threads}, load average at the end "
+        f"{tuple(round(x, 1) for x in m['load_avg'])}.",
+        "",
+        f"Each level ran {args.iters} iterations (0 = config caps). 'full run' = read + setup + first iteration "
+        "(which carries torch.compile's cost) + the rest of the default caps (300, 150, 80, 40 iterations per level) "
+        "x the median time of the later iterations. `compile`: OptimizeConfig.compile (auto compiles levels with "
+        f"at least {ComputeConfig().compile_min_slots} K x H x W slot entries); 'compiled' lists the levels that were.",
+        "",
+        "Bound: the bytes one iteration must touch (K x H x W x "
+        f"{BYTES_PER_SLOT_ITER} B, plus the render pixel sets) over the one-thread copy bandwidth measured in the "
+        "same process; 'x bound' is the last level's iteration time in units of it.",
+        "",
+        "| torch | texels | mode | compile | photos | run (s) | est. full run (s) | peak RSS (MiB) | last level: "
+        "s/iter | "
+        "bytes/iter (MiB) | bound (s) | x bound | last level: first iter (s) | compiled levels | last level tensors "
+        "(MiB) |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
+    ]
     for r in rows:
         if "error" in r:
-            lines.append(f"| {r.get('python', '')} | {r['size']} | {r['mode']} | {r.get('compile', '')} | | failed: {r['error']} |"
-                         + " |" * 9)
+            lines.append(
+                f"| {r.get('python', '')} | {r['size']} | {r['mode']} | {r.get('compile', '')} | | failed: "
+                f"{r['error']} |" + " |" * 9
+            )
             continue
         last = r["levels"][-1]
         comp_lv = ", ".join(str(lv["long_side"]) for lv in r["levels"] if lv.get("compiled")) or "none"
-        lines.append(f"| {r['torch']} | {r['size']} ({r['texels']} in polygon) | {r['mode']} | {r['compile']} | {r['photos']} | "
-                     f"{r['time_s']} | {r['est_full_run_s']} | {r['peak_rss_mib']} | {last['iter_s']} | "
-                     f"{last['bytes_per_iter'] / 2**20:.0f} | {last['bound_s']:.4f} | {last['x_bound']} | {last['first_iter_s']} | "
-                     f"{comp_lv} | {last['tensor_mib']} |")
+        lines.append(
+            f"| {r['torch']} | {r['size']} ({r['texels']} in polygon) | {r['mode']} | {r['compile']} | {r['photos']} | "
+            f"{r['time_s']} | {r['est_full_run_s']} | {r['peak_rss_mib']} | {last['iter_s']} | "
+            f"{last['bytes_per_iter'] / 2**20:.0f} | {last['bound_s']:.4f} | {last['x_bound']} | "
+            f"{last['first_iter_s']} | "
+            f"{comp_lv} | {last['tensor_mib']} |"
+        )
     write_text(args.out + ".md", "\n".join(lines) + "\n")
     return 0
 

@@ -63,7 +63,7 @@ def read_benchmarks(results: Path) -> dict[str, dict]:
 
 def polygon_work(results: Path) -> dict:
     """Texels, slots and iterations of the run's texture stage (visibility summary, stats.json)."""
-    from difftex.io import read_json
+    from difftex.scene.files import read_json
 
     vis = read_json(results / "visibility" / "summary.json")["polygons"]
     texels = sum(int(p["texels"]) for p in vis if p.get("photos"))
@@ -95,7 +95,7 @@ def run_workflow(scene: Path, work: Path, preset: str, cores: int) -> dict:
     wall, cpu = time.perf_counter() - t0, children_cpu() - c0
     if r.returncode != 0:
         raise RuntimeError(f"workflow failed on {scene} ({preset}): {(r.stdout + r.stderr)[-1500:]}")
-    from difftex.workflow import scene_name
+    from difftex.workflow.glue import scene_name
 
     results = work / "results" / scene_name(scene)
     stages = read_benchmarks(results)
@@ -111,8 +111,13 @@ def run_texrecon(scene: Path, work: Path, results: Path) -> dict:
     why = peers.unavailable("texrecon")
     if why:
         return {"missing": why}
-    common = {"visibility": results / "visibility", "config": results / "config" / "x.yaml",
-              "polygons": [p for p in json.loads((results / "visibility" / "summary.json").read_text())["polygons"] if p["photos"]]}
+    common = {
+        "visibility": results / "visibility",
+        "config": results / "config" / "x.yaml",
+        "polygons": [
+            p for p in json.loads((results / "visibility" / "summary.json").read_text())["polygons"] if p["photos"]
+        ],
+    }
     (results / "config" / "x.yaml").parent.mkdir(exist_ok=True)
     shutil.copyfile(results / "photos.json", results / "config" / "photos.json")
     return peers.run_peer("texrecon", scene, work / "texrecon", common)
@@ -120,10 +125,10 @@ def run_texrecon(scene: Path, work: Path, results: Path) -> dict:
 
 def run_average(scene: Path, results: Path) -> dict:
     """The plain per-texel average of every textured polygon at the run's texel sizes, in-process."""
-    from difftex.baselines import baseline_texture
-    from difftex.sampling import polygon_input_from_visibility
-    from difftex.scene import load_scene
-    from difftex.visibility import load_visibility
+    from difftex.evaluation.baselines import baseline_texture
+    from difftex.geometry.visibility import load_visibility
+    from difftex.sampling.photos import polygon_input_from_visibility
+    from difftex.scene.loading import load_scene
 
     t0, c0 = time.perf_counter(), time.process_time()
     sc = load_scene(scene, check_images=False)
@@ -138,9 +143,9 @@ def run_average(scene: Path, results: Path) -> dict:
 
 
 def subset_scene(scene: Path, n: int, out: Path) -> Path | None:
-    from difftex.camera import load_photos
-    from difftex.evaluate import prepare_holdout
-    from difftex.scene import find_sparse
+    from difftex.evaluation.holdout import prepare_holdout
+    from difftex.scene.camera import load_photos
+    from difftex.scene.loading import find_sparse
 
     names = [p.name for p in load_photos(find_sparse(scene), scene / "images", check_images=False)]
     if len(names) <= n:
@@ -179,8 +184,11 @@ def main(argv=None) -> int:
                 shutil.rmtree(wd)
             run = run_workflow(scene, wd, p, args.cores)
             row["runs"].append(run)
-            print(f"bench_speed: {scene.name} {p}: {run['wall_s']:.0f} s wall, {run['cpu_s']:.0f} s CPU, "
-                  f"peak {run['peak_rss_mb']:.0f} MB, {run['texels'] / 1e6:.2f} M texels", flush=True)
+            print(
+                f"bench_speed: {scene.name} {p}: {run['wall_s']:.0f} s wall, {run['cpu_s']:.0f} s CPU, "
+                f"peak {run['peak_rss_mb']:.0f} MB, {run['texels'] / 1e6:.2f} M texels",
+                flush=True,
+            )
         first = Path(row["runs"][0]["results"])
         row["texrecon"] = run_texrecon(scene, work / scene.name, first)
         if "peer_s" in row["texrecon"]:
@@ -194,20 +202,29 @@ def main(argv=None) -> int:
 
 
 def write(stem: Path, rows: list[dict], mach: dict, args) -> None:
-    lines = [C.header("Speed: the workflow per preset against texrecon and a plain average",
-                      "python evaluation/bench_speed.py " + " ".join(sys.argv[1:]), mach, [
-                          "One run per row, in the order texrecon's input (the first preset's run), the presets, "
-                          "texrecon, the average; wall seconds of the whole command on the machine below, "
-                          f"Snakemake with --cores {args.cores}, evaluation off (the workflow's other stages all on).",
-                          "texrecon: the program's own wall time (difftex's preparation of its input and the import of "
-                          "its atlas apart, in the JSON). Average: every polygon's plain per-texel average at the first "
-                          "preset's texel sizes, in one process.",
-                          "Ratio = workflow wall / texrecon wall. CPU: all jobs of the run; RSS: the largest job.",
-                      ])]
-    lines.append("| scene | photos | method | wall (s) | CPU (s) | peak RSS (MB) | texels (M) | K x texels (M) | iterations | vs texrecon |")
+    lines = [
+        C.header(
+            "Speed: the workflow per preset against texrecon and a plain average",
+            "python evaluation/bench_speed.py " + " ".join(sys.argv[1:]),
+            mach,
+            [
+                "One run per row, in the order texrecon's input (the first preset's run), the presets, "
+                "texrecon, the average; wall seconds of the whole command on the machine below, "
+                f"Snakemake with --cores {args.cores}, evaluation off (the workflow's other stages all on).",
+                "texrecon: the program's own wall time (difftex's preparation of its input and the import of "
+                "its atlas apart, in the JSON). Average: every polygon's plain per-texel average at the first "
+                "preset's texel sizes, in one process.",
+                "Ratio = workflow wall / texrecon wall. CPU: all jobs of the run; RSS: the largest job.",
+            ],
+        )
+    ]
+    lines.append(
+        "| scene | photos | method | wall (s) | CPU (s) | peak RSS (MB) | texels (M) | K x texels (M) | iterations | "
+        "vs texrecon |"
+    )
     lines.append("|---|---|---|---|---|---|---|---|---|---|")
-    from difftex.camera import load_photos
-    from difftex.scene import find_sparse
+    from difftex.scene.camera import load_photos
+    from difftex.scene.loading import find_sparse
 
     for row in rows:
         sc = Path(row["scene"])
@@ -215,24 +232,34 @@ def write(stem: Path, rows: list[dict], mach: dict, args) -> None:
         tr = row.get("texrecon", {})
         tw = tr.get("peer_s")
         if tw is not None:
-            lines.append(f"| {sc.name} | {n_ph} | texrecon | {tw:.1f} | {tr['peer_cpu_s']:.1f} | {tr['peer_peak_rss_mib']:.0f} "
-                         f"| | | | 1.0 |")
+            lines.append(
+                f"| {sc.name} | {n_ph} | texrecon | {tw:.1f} | {tr['peer_cpu_s']:.1f} | {tr['peer_peak_rss_mib']:.0f} "
+                f"| | | | 1.0 |"
+            )
         else:
             lines.append(f"| {sc.name} | {n_ph} | texrecon | not run: {tr.get('missing', '?')} | | | | | | |")
         for run in row["runs"]:
             ratio = f"{run['wall_s'] / tw:.1f}" if tw else "n/a"
-            lines.append(f"| {sc.name} | {n_ph} | difftex {run['preset']} | {run['wall_s']:.1f} | {run['cpu_s']:.1f} | "
-                         f"{run['peak_rss_mb']:.0f} | {run['texels'] / 1e6:.2f} | {run['slot_texels'] / 1e6:.2f} | "
-                         f"{run['iterations']} | {ratio} |")
+            lines.append(
+                f"| {sc.name} | {n_ph} | difftex {run['preset']} | {run['wall_s']:.1f} | {run['cpu_s']:.1f} | "
+                f"{run['peak_rss_mb']:.0f} | {run['texels'] / 1e6:.2f} | {run['slot_texels'] / 1e6:.2f} | "
+                f"{run['iterations']} | {ratio} |"
+            )
         av = row["average"]
-        lines.append(f"| {sc.name} | {n_ph} | plain average | {av['wall_s']:.1f} | {av['cpu_s']:.1f} | | | | | "
-                     f"{av['wall_s'] / tw:.1f} |" if tw else f"| {sc.name} | {n_ph} | plain average | {av['wall_s']:.1f} | {av['cpu_s']:.1f} | | | | | n/a |")
+        lines.append(
+            f"| {sc.name} | {n_ph} | plain average | {av['wall_s']:.1f} | {av['cpu_s']:.1f} | | | | | "
+            f"{av['wall_s'] / tw:.1f} |"
+            if tw
+            else f"| {sc.name} | {n_ph} | plain average | {av['wall_s']:.1f} | {av['cpu_s']:.1f} | | | | | n/a |"
+        )
     lines.append("")
     lines.append("CPU seconds per stage (sum over the stage's jobs):")
     lines.append("")
     for row in rows:
         for run in row["runs"]:
-            parts = ", ".join(f"{k} {d['cpu_s']:.1f}" + (f"/{d['jobs']}" if d["jobs"] > 1 else "") for k, d in run["stages"].items())
+            parts = ", ".join(
+                f"{k} {d['cpu_s']:.1f}" + (f"/{d['jobs']}" if d["jobs"] > 1 else "") for k, d in run["stages"].items()
+            )
             lines.append(f"- {Path(row['scene']).name} {run['preset']}: {parts}")
     C.write_outputs(stem, "\n".join(lines) + "\n", {"machine": mach, "args": vars(args), "rows": rows})
 

@@ -19,7 +19,6 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from evaluation import common as C  # noqa: E402
 
-
 HERE = Path(__file__).resolve().parent
 
 CHILD = r"""
@@ -52,7 +51,7 @@ def main() -> None:
     ap.add_argument("--long-side", type=int, nargs="+", default=[1024, 2048])
     ap.add_argument("--out", default=str(HERE / "results" / "bench_visibility"))
     args = ap.parse_args()
-    from difftex.scene import load_scene
+    from difftex.scene.loading import load_scene
 
     sc = load_scene(args.scene)
     rows = []
@@ -73,26 +72,35 @@ def main() -> None:
         "command": "python evaluation/bench_visibility.py " + " ".join(sys.argv[1:]),
         "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
         "machine": machine(),
-        "scene": {"name": sc.name, "photos": len(sc.photos), "polygons": len(sc.proxy), "megapixels": round(pixels / 1e6, 1)},
+        "scene": {
+            "name": sc.name,
+            "photos": len(sc.photos),
+            "polygons": len(sc.proxy),
+            "megapixels": round(pixels / 1e6, 1),
+        },
         "runs": rows,
     }
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
-    from difftex.io import write_json, write_text
+    from difftex.scene.files import write_json, write_text
 
     write_json(out.with_suffix(".json"), result)
     m = result["machine"]
     lines = [
         f"# Visibility benchmark: {sc.name}",
         "",
-        f"`{result['command']}` on {result['date']}; {m['cpu']}, {m['cores']} cores, {m['ram_gib']} GiB, torch {m['torch']}.",
+        f"`{result['command']}` on {result['date']}; {m['cpu']}, {m['cores']} cores, {m['ram_gib']} GiB, torch "
+        f"{m['torch']}.",
         f"Scene: {len(sc.photos)} photos ({result['scene']['megapixels']} MP in all), {len(sc.proxy)} polygons.",
         "",
         "| stage | texture long side | time (s) | peak RSS (MiB) | mask files (MiB) |",
         "|---|---|---|---|---|",
     ]
     for r in rows:
-        lines.append(f"| {r['stage']} | {r['long_side'] or '-'} | {r['seconds']:.1f} | {r['peak_rss_mib']:.0f} | {r.get('files_mib', 0):.2f} |")
+        lines.append(
+            f"| {r['stage']} | {r['long_side'] or '-'} | {r['seconds']:.1f} | {r['peak_rss_mib']:.0f} | "
+            f"{r.get('files_mib', 0):.2f} |"
+        )
     write_text(out.with_suffix(".md"), "\n".join(lines) + "\n")
     print("\n".join(lines))
 

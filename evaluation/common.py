@@ -50,14 +50,24 @@ def machine() -> dict:
     except OSError:
         pass
     try:
-        commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True, text=True).stdout.strip()
+        commit = subprocess.run(
+            ["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True, text=True
+        ).stdout.strip()
     except OSError:
         commit = ""
-    return {"cpu": cpu, "cores": os.cpu_count(), "ram_gib": ram, "torch": torch.__version__,
-            "torch_threads": torch.get_num_threads(), "cuda": torch.cuda.is_available(),
-            "load_avg": os.getloadavg(), "platform": platform.platform(),
-            "python": platform.python_version(), "git_commit": commit,
-            "date_utc": _dt.datetime.now(_dt.timezone.utc).strftime("%Y-%m-%d %H:%M UTC")}
+    return {
+        "cpu": cpu,
+        "cores": os.cpu_count(),
+        "ram_gib": ram,
+        "torch": torch.__version__,
+        "torch_threads": torch.get_num_threads(),
+        "cuda": torch.cuda.is_available(),
+        "load_avg": os.getloadavg(),
+        "platform": platform.platform(),
+        "python": platform.python_version(),
+        "git_commit": commit,
+        "date_utc": _dt.datetime.now(_dt.UTC).strftime("%Y-%m-%d %H:%M UTC"),
+    }
 
 
 def base_config(long_side: int, preset: str | None = "fast", overrides: dict | None = None) -> dict:
@@ -93,24 +103,39 @@ def difftex(*argv: str) -> float:
 
 def run_common(scene: Path, out: Path, cfg: dict, only: list[str] | None = None) -> dict:
     """Filter and visibility once per scene and config (``only``: texture just these polygons)."""
-    from difftex.io import read_json
+    from difftex.scene.files import read_json
 
     c = out / "common"
     c.mkdir(parents=True, exist_ok=True)
     cfg_path = c / "config.yaml"
     _write_yaml(cfg_path, cfg)
     t_f = difftex("filter", "--quiet", "--scene", scene, "--config", cfg_path, "--out", c / "photos.json")
-    t_v = difftex("visibility", "--quiet", "--scene", scene, "--photos", c / "photos.json", "--config", cfg_path,
-                  "--out-dir", c / "visibility")
+    t_v = difftex(
+        "visibility",
+        "--quiet",
+        "--scene",
+        scene,
+        "--photos",
+        c / "photos.json",
+        "--config",
+        cfg_path,
+        "--out-dir",
+        c / "visibility",
+    )
     summary = read_json(c / "visibility" / "summary.json")
-    return {"config": cfg_path, "visibility": c / "visibility", "filter_s": t_f, "visibility_s": t_v,
-            "polygons": [r for r in summary["polygons"] if r["photos"] and (not only or r["id"] in only)]}
+    return {
+        "config": cfg_path,
+        "visibility": c / "visibility",
+        "filter_s": t_f,
+        "visibility_s": t_v,
+        "polygons": [r for r in summary["polygons"] if r["photos"] and (not only or r["id"] in only)],
+    }
 
 
 def _write_yaml(path: Path, data: dict) -> None:
     import yaml
 
-    from difftex.io import write_text
+    from difftex.scene.files import write_text
 
     write_text(path, yaml.safe_dump(data, sort_keys=False))
 
@@ -137,10 +162,34 @@ def run_method(method: str, scene: Path, r: Path, common: dict, cfg: dict | None
         tex = r / "textures" / pid
         ts = time.perf_counter()
         if method == "difftex":
-            difftex("texture", "--scene", scene, "--visibility", vis, "--config", cfg_path, "--out-dir", r / "optimized" / pid,
-                    "--png-dir", tex, "--no-progress")
+            difftex(
+                "texture",
+                "--scene",
+                scene,
+                "--visibility",
+                vis,
+                "--config",
+                cfg_path,
+                "--out-dir",
+                r / "optimized" / pid,
+                "--png-dir",
+                tex,
+                "--no-progress",
+            )
         elif method in ("average", "frontal"):
-            difftex("baseline", "--scene", scene, "--visibility", vis, "--config", cfg_path, "--method", method, "--out-dir", tex)
+            difftex(
+                "baseline",
+                "--scene",
+                scene,
+                "--visibility",
+                vis,
+                "--config",
+                cfg_path,
+                "--method",
+                method,
+                "--out-dir",
+                tex,
+            )
         elif method == "mrf":
             difftex("mrf", "--scene", scene, "--visibility", vis, "--config", cfg_path, "--out-dir", tex)
         else:
@@ -151,7 +200,7 @@ def run_method(method: str, scene: Path, r: Path, common: dict, cfg: dict | None
 
 
 def evaluate(scene: Path, results: Path, lpips: str = "auto", config: Path | None = None) -> dict:
-    from difftex.io import read_json
+    from difftex.scene.files import read_json
 
     out = Path(results) / "evaluation" / "metrics.json"
     extra = ["--config", config] if config else []
@@ -183,7 +232,7 @@ def fmt(v, nd=4) -> str:
 
 
 def write_outputs(stem: Path, md: str, data: dict) -> None:
-    from difftex.io import write_json, write_text
+    from difftex.scene.files import write_json, write_text
 
     write_text(stem.with_suffix(".md"), md)
     write_json(stem.with_suffix(".json"), json.loads(json.dumps(data, default=str)))
@@ -199,8 +248,14 @@ def finish_table(stem: Path, lines: list[str], t_all: float, mach: dict, args, r
 
 
 def header(title: str, command: str, m: dict, notes: list[str]) -> str:
-    lines = [f"# {title}", "", f"Command: `{command}`  ", f"Date: {m['date_utc']}  ",
-             f"Machine: {m['cpu']}, {m['cores']} cores, {m['ram_gib']} GiB RAM, torch {m['torch']} "
-             f"({m['torch_threads']} threads), CUDA {'yes' if m['cuda'] else 'no'}; git {m['git_commit']}", ""]
+    lines = [
+        f"# {title}",
+        "",
+        f"Command: `{command}`  ",
+        f"Date: {m['date_utc']}  ",
+        f"Machine: {m['cpu']}, {m['cores']} cores, {m['ram_gib']} GiB RAM, torch {m['torch']} "
+        f"({m['torch_threads']} threads), CUDA {'yes' if m['cuda'] else 'no'}; git {m['git_commit']}",
+        "",
+    ]
     lines += [f"- {n}" for n in notes]
     return "\n".join(lines) + "\n\n"

@@ -3,7 +3,7 @@
 A peer textures the same scene from the same photos as the other methods: the photos the shared
 filter kept (``OUT/common/photos.json``), into the frames of the shared visibility files (so its
 maps have the table's resolution and are scored on the same texels), through
-:func:`difftex.peer.run_peer`; its results folder is then scored by ``difftex evaluate`` like
+:func:`difftex.evaluation.peers.run.run_peer`; its results folder is then scored by ``difftex evaluate`` like
 every other. A peer that is not installed gives a row that says so instead of figures.
 """
 
@@ -15,7 +15,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from difftex.peer import LABELS, PEERS  # noqa: E402
+from difftex.evaluation.peers.run import LABELS, PEERS  # noqa: E402
 
 __all__ = ["PEERS", "LABELS", "is_peer", "unavailable", "run_peer", "missing_line"]
 
@@ -26,7 +26,7 @@ def is_peer(method: str) -> bool:
 
 def unavailable(method: str) -> str:
     """Why the peer cannot run here ('' when it can)."""
-    from difftex import meshlab, texrecon
+    from difftex.evaluation.peers import meshlab, texrecon
 
     return (texrecon if method == "texrecon" else meshlab).unavailable_reason()
 
@@ -39,8 +39,8 @@ def run_peer(method: str, scene: Path, r: Path, common: dict, **cfg) -> dict:
     ``peer_peak_rss_mib``, ``prepare_cpu_s``, ``import_cpu_s`` and the whole ``peer.json`` record.
     When the peer is not installed: {"method", "results": None, "missing": reason}.
     """
-    from difftex.peer import PeerConfig
-    from difftex.peer import run_peer as run
+    from difftex.evaluation.peers.run import PeerConfig
+    from difftex.evaluation.peers.run import run_peer as run
 
     why = unavailable(method)
     if why:
@@ -49,10 +49,19 @@ def run_peer(method: str, scene: Path, r: Path, common: dict, **cfg) -> dict:
     rec = run(method, scene, r, PeerConfig(**cfg), visibility=common["visibility"],
               polygons=[row["id"] for row in common["polygons"]],
               photos_table=Path(common["config"]).parent / "photos.json")
-    return {"method": method, "results": str(r), "total_s": time.perf_counter() - t0,
-            "prepare_s": rec["prepare"]["wall_s"], "peer_s": rec["peer"]["wall_s"], "import_s": rec["import"]["wall_s"],
-            "prepare_cpu_s": rec["prepare"]["cpu_s"], "peer_cpu_s": rec["peer"]["cpu_s"],
-            "import_cpu_s": rec["import"]["cpu_s"], "peer_peak_rss_mib": rec["peer"]["peak_rss_mib"], "peer_record": rec}
+    return {
+        "method": method,
+        "results": str(r),
+        "total_s": time.perf_counter() - t0,
+        "prepare_s": rec["prepare"]["wall_s"],
+        "peer_s": rec["peer"]["wall_s"],
+        "import_s": rec["import"]["wall_s"],
+        "prepare_cpu_s": rec["prepare"]["cpu_s"],
+        "peer_cpu_s": rec["peer"]["cpu_s"],
+        "import_cpu_s": rec["import"]["cpu_s"],
+        "peer_peak_rss_mib": rec["peer"]["peak_rss_mib"],
+        "peer_record": rec,
+    }
 
 
 def missing_line(label: str, reason: str, columns: int, first: list[str] | None = None) -> str:
@@ -67,6 +76,9 @@ def timing_note(rows: list[dict]) -> str | None:
     if not runs:
         return None
     parts = [f"{LABELS[r['method']]} {r['prepare_s']:.0f} + {r['peer_s']:.0f} + {r['import_s']:.0f} s" for r in runs]
-    return ("Peers' time = difftex's preparation (photos resampled as centred pinhole cameras, proxy meshed) + the "
-            "program + import into the UV frames (wall seconds; CPU and peak memory per phase in the JSON): "
-            + ", ".join(parts) + ".")
+    return (
+        "Peers' time = difftex's preparation (photos resampled as centred pinhole cameras, proxy meshed) + the "
+        "program + import into the UV frames (wall seconds; CPU and peak memory per phase in the JSON): "
+        + ", ".join(parts)
+        + "."
+    )

@@ -4,7 +4,7 @@
     python evaluation/stress.py --sizes 20,10,5,3 --seed 1 --polygons all
 
 For each size a seeded random subset of the scene's photos is kept (the scene is copied with the
-others removed from its COLMAP model: `difftex.evaluate.prepare_holdout(..., keep=...)`), the
+others removed from its COLMAP model: `difftex.evaluation.holdout.prepare_holdout(..., keep=...)`), the
 whole pipeline runs on the copy and every method is scored on the ground-truth maps.
 """
 
@@ -35,9 +35,9 @@ def main(argv=None) -> int:
     import numpy as np
     import torch
 
-    from difftex.camera import read_reconstruction
-    from difftex.evaluate import prepare_holdout
-    from difftex.scene import find_sparse
+    from difftex.evaluation.holdout import prepare_holdout
+    from difftex.scene.camera import read_reconstruction
+    from difftex.scene.loading import find_sparse
     from evaluation.table1 import ensure_synth
 
     torch.set_num_threads(args.threads)
@@ -62,26 +62,49 @@ def main(argv=None) -> int:
             r = C.run_method(m, sub / "scene", sub / m, common)
             ev = C.evaluate(sub / "scene", sub / m, args.lpips, config=common["config"])
             cov = [row["coverage"] for row in common["polygons"]]
-            rows.append({"photos": n, "method": m, "run": r, "metrics": ev, "kept": keep,
-                         "coverage": float(np.mean(cov)), "polygons": len(cov)})
+            rows.append(
+                {
+                    "photos": n,
+                    "method": m,
+                    "run": r,
+                    "metrics": ev,
+                    "kept": keep,
+                    "coverage": float(np.mean(cov)),
+                    "polygons": len(cov),
+                }
+            )
             print(f"stress: {n} photos, {m} done in {r['total_s']:.0f} s", flush=True)
     mach = C.machine()
-    notes = [f"Scene `{scene}`; polygons {args.polygons}; nested random photo subsets (seed {args.seed}) of sizes {args.sizes}.",
-             f"**Reduced sizes**: texture long side {args.long_side}, difftex preset `{args.preset}`.",
-             "Coverage: mean share of the polygons' texels that some kept photo sees (the rest is filled from neighbours "
-             "by every method alike). Maps scored against ground truth as in Table 1."]
-    lines = [C.header("Stress test: fewer and fewer photos",
-                      "python evaluation/stress.py " + " ".join(sys.argv[1:] if argv is None else argv), mach, notes)]
+    notes = [
+        f"Scene `{scene}`; polygons {args.polygons}; nested random photo subsets (seed {args.seed}) of sizes "
+        f"{args.sizes}.",
+        f"**Reduced sizes**: texture long side {args.long_side}, difftex preset `{args.preset}`.",
+        "Coverage: mean share of the polygons' texels that some kept photo sees (the rest is filled from neighbours "
+        "by every method alike). Maps scored against ground truth as in Table 1.",
+    ]
+    lines = [
+        C.header(
+            "Stress test: fewer and fewer photos",
+            "python evaluation/stress.py " + " ".join(sys.argv[1:] if argv is None else argv),
+            mach,
+            notes,
+        )
+    ]
     lv = next((r["metrics"]["maps"]["overall"]["lpips_variant"] for r in rows if "metrics" in r), "n/a")
     lines.append(f"| Photos | Method | coverage | Error (90%) | Error (95%) | SSIM | LPIPS ({lv}) | Time (s) |")
     lines.append("|---|---|---|---|---|---|---|---|")
     for r in rows:
         if "metrics" not in r:
-            lines.append(f"| {r['photos']} | {C.LABELS.get(r['method'], r['method'])} | 0 | n/a | n/a | n/a | n/a | n/a |")
+            lines.append(
+                f"| {r['photos']} | {C.LABELS.get(r['method'], r['method'])} | 0 | n/a | n/a | n/a | n/a | n/a |"
+            )
             continue
         o = r["metrics"]["maps"]["overall"]
-        lines.append(f"| {r['photos']} | {C.LABELS.get(r['method'], r['method'])} | {r['coverage']:.3f} | {C.fmt(o['error90'])} | "
-                     f"{C.fmt(o['error95'])} | {C.fmt(o['ssim'])} | {C.fmt(o['lpips'])} | {r['run']['total_s']:.0f} |")
+        lines.append(
+            f"| {r['photos']} | {C.LABELS.get(r['method'], r['method'])} | {r['coverage']:.3f} | "
+            f"{C.fmt(o['error90'])} | "
+            f"{C.fmt(o['error95'])} | {C.fmt(o['ssim'])} | {C.fmt(o['lpips'])} | {r['run']['total_s']:.0f} |"
+        )
     C.finish_table(Path(args.out), lines, t_all, mach, args, rows)
     return 0
 

@@ -21,7 +21,6 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from evaluation import common as C  # noqa: E402
 
-
 HERE = Path(__file__).resolve().parent
 
 
@@ -48,7 +47,7 @@ def main(argv=None) -> int:
     ap.add_argument("--markdown-only", action="store_true", help="rewrite the markdown from the JSON, generate nothing")
     args = ap.parse_args(argv)
 
-    from difftex.io import write_json, write_text
+    from difftex.scene.files import write_json, write_text
     from difftex.synth import generate, get_preset
 
     cfg = get_preset(args.preset)
@@ -86,21 +85,32 @@ def main(argv=None) -> int:
             r["note"] = args.note
     res = {"preset": args.preset, "seed": args.seed, "buildings": [rows[k] for k in sorted(rows)]}
     write_json(result_json, res)
-    lines = [f"# Synthetic data set generation time (`{args.preset}` preset)", "",
-             "Written by `evaluation/synth_timing.py`; one row per building generated, on the machine named in it.",
-             "", "| building | style | polygons | photos | size | spp | s / photo | GT maps (s) | held-out (s) | total (s) | total / photo (s) |",
-             "|---|---|---|---|---|---|---|---|---|---|---|"]
+    lines = [
+        f"# Synthetic data set generation time (`{args.preset}` preset)",
+        "",
+        "Written by `evaluation/synth_timing.py`; one row per building generated, on the machine named in it.",
+        "",
+        "| building | style | polygons | photos | size | spp | s / photo | GT maps (s) | held-out (s) | total (s) | "
+        "total / photo (s) |",
+        "|---|---|---|---|---|---|---|---|---|---|---|",
+    ]
     for r in res["buildings"]:
-        lines.append(f"| {r['building']} | {r['style']} | {r['polygons']} | {r['views']} | {r['width']}x{r['height']} | {r['spp']} | "
-                     f"{r['seconds_per_view']:.2f} | {r['gt_maps_s']:.0f} | {r['held_out_s']:.0f} | {r['total_s']:.0f} | {r['total_per_view_s']:.2f} |")
+        lines.append(
+            f"| {r['building']} | {r['style']} | {r['polygons']} | {r['views']} | {r['width']}x{r['height']} | "
+            f"{r['spp']} | "
+            f"{r['seconds_per_view']:.2f} | {r['gt_maps_s']:.0f} | {r['held_out_s']:.0f} | {r['total_s']:.0f} | "
+            f"{r['total_per_view_s']:.2f} |"
+        )
     notes = [f"- {r['building']}: {r['note']}" for r in res["buildings"] if r.get("note")]
     if notes:
         lines += ["", "Notes:", ""] + notes
     lines += ["", "Machines:", ""]
     for m in {json.dumps(r["machine"], sort_keys=True) for r in res["buildings"]}:
         m = json.loads(m)
-        lines.append(f"- {m['cpu']}, {m['cores']} cores, {m['ram_gib']} GiB RAM; Python {m['python']}, torch {m['torch']}, "
-                     f"Mitsuba {m['mitsuba']} ({m['mitsuba_variant']}); {m['platform']}")
+        lines.append(
+            f"- {m['cpu']}, {m['cores']} cores, {m['ram_gib']} GiB RAM; Python {m['python']}, torch {m['torch']}, "
+            f"Mitsuba {m['mitsuba']} ({m['mitsuba_variant']}); {m['platform']}"
+        )
     lines += ["", "Commands:", ""] + sorted({f"- `{r['command']}`" for r in res["buildings"]}) + [""]
     write_text(Path(args.result + ".md"), "\n".join(lines))
     print("\n".join(lines))

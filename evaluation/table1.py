@@ -61,31 +61,47 @@ def main(argv=None) -> int:
         rows.append({"method": m, "run": r, "metrics": ev})
         print(f"table1: {m} done in {r['total_s']:.0f} s", flush=True)
     mach = C.machine()
-    from difftex.io import read_json
+    from difftex.scene.files import read_json
 
     synth = read_json(scene / "synth.json")
     sc = synth.get("config", {})
-    notes = [
-        f"Scene: `{scene}` (difftex synth preset `{synth.get('preset')}`, seed {synth.get('seed')}: building "
-        f"'{synth['building']['name']}', {len(synth['building']['polygons'])} polygons, {sc.get('views')} photos "
-        f"{sc.get('width')}x{sc.get('height')}, exposure range +-{sc.get('exposure_range')} stops, occluders "
-        f"{'on' if sc.get('occluders') else 'off'}; ground-truth maps {sc.get('gt_long_side')} texels long side).",
-        f"**Reduced sizes** (2 shared CPU cores): texture long side {args.long_side} for every method (paper: 2048); "
-        f"difftex preset `{args.preset}` ({cfg['optimize'].get('loss_mode')} loss, iteration caps "
-        f"{cfg['optimize'].get('max_iters_per_level')}, coarse level {cfg['optimize'].get('long_side_start')}).",
-        "Every method textures the same polygons from the same filtered photos and visibility masks; textures are "
-        "resampled to the ground-truth map size and scored on the ground-truth texel masks (Error = RGB distance in "
-        "[0, sqrt 3], percentiles pooled over all texels; SSIM/LPIPS texel-weighted over polygons).",
-        "`views`: the textured proxy rendered into the scene's occluder-free held-out views and compared on the "
-        "proxy's pixels (Table 2's scheme on synthetic data).",
-        "Time: texturing only (sum over polygons of the method's per-polygon commands: init + optimize + histmatch "
-        f"for difftex); shared filter {common['filter_s']:.0f} s + visibility {common['visibility_s']:.0f} s not included.",
-        "Lower is better for Error and LPIPS, higher for SSIM, PSNR, Q_front, Q_vc.",
-    ] + [n for n in [P.timing_note(rows)] if n] + skipped
-    lines = [C.header("Table 1: synthetic scene, texture maps against ground truth",
-                      "python evaluation/table1.py " + " ".join(sys.argv[1:] if argv is None else argv), mach, notes)]
+    notes = (
+        [
+            f"Scene: `{scene}` (difftex synth preset `{synth.get('preset')}`, seed {synth.get('seed')}: building "
+            f"'{synth['building']['name']}', {len(synth['building']['polygons'])} polygons, {sc.get('views')} photos "
+            f"{sc.get('width')}x{sc.get('height')}, exposure range +-{sc.get('exposure_range')} stops, occluders "
+            f"{'on' if sc.get('occluders') else 'off'}; ground-truth maps {sc.get('gt_long_side')} texels long side).",
+            f"**Reduced sizes** (2 shared CPU cores): texture long side {args.long_side} for every method (paper: "
+            "2048); "
+            f"difftex preset `{args.preset}` ({cfg['optimize'].get('loss_mode')} loss, iteration caps "
+            f"{cfg['optimize'].get('max_iters_per_level')}, coarse level {cfg['optimize'].get('long_side_start')}).",
+            "Every method textures the same polygons from the same filtered photos and visibility masks; textures are "
+            "resampled to the ground-truth map size and scored on the ground-truth texel masks (Error = RGB distance "
+            "in "
+            "[0, sqrt 3], percentiles pooled over all texels; SSIM/LPIPS texel-weighted over polygons).",
+            "`views`: the textured proxy rendered into the scene's occluder-free held-out views and compared on the "
+            "proxy's pixels (Table 2's scheme on synthetic data).",
+            "Time: texturing only (sum over polygons of the method's per-polygon commands: init + optimize + histmatch "
+            f"for difftex); shared filter {common['filter_s']:.0f} s + visibility {common['visibility_s']:.0f} s not "
+            "included.",
+            "Lower is better for Error and LPIPS, higher for SSIM, PSNR, Q_front, Q_vc.",
+        ]
+        + [n for n in [P.timing_note(rows)] if n]
+        + skipped
+    )
+    lines = [
+        C.header(
+            "Table 1: synthetic scene, texture maps against ground truth",
+            "python evaluation/table1.py " + " ".join(sys.argv[1:] if argv is None else argv),
+            mach,
+            notes,
+        )
+    ]
     lv = next((r["metrics"]["maps"]["overall"]["lpips_variant"] for r in rows if "maps" in r.get("metrics", {})), "n/a")
-    lines.append(f"| Method | Error (90%) | Error (95%) | SSIM | LPIPS ({lv}) | PSNR | views SSIM | views LPIPS | Q_front | Q_vc | Time (s) |")
+    lines.append(
+        f"| Method | Error (90%) | Error (95%) | SSIM | LPIPS ({lv}) | PSNR | views SSIM | views LPIPS | Q_front | "
+        "Q_vc | Time (s) |"
+    )
     lines.append("|---|---|---|---|---|---|---|---|---|---|---|")
     for r in rows:
         if r.get("missing"):
@@ -95,25 +111,38 @@ def main(argv=None) -> int:
         o = mm["maps"]["overall"]
         v = mm.get("views", {}).get("overall", {})
         q = mm.get("perspective", {})
-        lines.append(f"| {C.LABELS.get(r['method'], r['method'])} | {C.fmt(o['error90'])} | {C.fmt(o['error95'])} | "
-                     f"{C.fmt(o['ssim'])} | {C.fmt(o['lpips'])} | {C.fmt(o['psnr'], 2)} | {C.fmt(v.get('ssim'))} | "
-                     f"{C.fmt(v.get('lpips'))} | {C.fmt(q.get('q_front'))} | {C.fmt(q.get('q_vc'))} | {r['run']['total_s']:.0f} |")
+        lines.append(
+            f"| {C.LABELS.get(r['method'], r['method'])} | {C.fmt(o['error90'])} | {C.fmt(o['error95'])} | "
+            f"{C.fmt(o['ssim'])} | {C.fmt(o['lpips'])} | {C.fmt(o['psnr'], 2)} | {C.fmt(v.get('ssim'))} | "
+            f"{C.fmt(v.get('lpips'))} | {C.fmt(q.get('q_front'))} | {C.fmt(q.get('q_vc'))} | "
+            f"{r['run']['total_s']:.0f} |"
+        )
     lines.append("")
-    lines.append(f"Per-polygon values: `{Path(args.out).with_suffix('.json').name}`. Whole command: "
-                 f"{time.perf_counter() - t_all:.0f} s" + (f" (scene generation {t_synth:.0f} s)" if t_synth else "") + ".")
+    lines.append(
+        f"Per-polygon values: `{Path(args.out).with_suffix('.json').name}`. Whole command: "
+        f"{time.perf_counter() - t_all:.0f} s" + (f" (scene generation {t_synth:.0f} s)" if t_synth else "") + "."
+    )
     try:
-        from difftex.report import comparison_page, write_report
+        from difftex.evaluation.html import comparison_page
+        from difftex.evaluation.report import write_report
 
         done = [r for r in rows if not r.get("missing")]
         for r in done:
             write_report(r["run"]["results"], scene=scene)
-        comparison_page(work / "index.html", "Table 1", "\n".join(lines), {r["method"]: r["run"]["results"] for r in done})
-        lines.append(f"HTML reports: `{work}/index.html` (one page per method with textures, source/error maps, loss curves).")
+        comparison_page(
+            work / "index.html", "Table 1", "\n".join(lines), {r["method"]: r["run"]["results"] for r in done}
+        )
+        lines.append(
+            f"HTML reports: `{work}/index.html` (one page per method with textures, source/error maps, loss curves)."
+        )
     except ImportError:
         pass
     md = "\n".join(lines) + "\n"
-    C.write_outputs(Path(args.out), md, {"machine": mach, "args": vars(args), "rows": rows, "common": common,
-                                         "total_s": time.perf_counter() - t_all})
+    C.write_outputs(
+        Path(args.out),
+        md,
+        {"machine": mach, "args": vars(args), "rows": rows, "common": common, "total_s": time.perf_counter() - t_all},
+    )
     print(md)
     return 0
 

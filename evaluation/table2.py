@@ -5,7 +5,7 @@
 
 The paper's scheme: per scene, some photos are held out (``--holdout N``: N photos spread evenly
 over the sorted names, or ``--holdout-names a.jpg,b.jpg``), the scene is copied without them
-(`difftex.evaluate.prepare_holdout`: images symlinked, COLMAP model rewritten), every method
+(`difftex.evaluation.holdout.prepare_holdout`: images symlinked, COLMAP model rewritten), every method
 textures the proxy from the remaining photos, and the textured proxy is rendered into each
 held-out camera and compared with the held-out photo on the proxy's pixels. Q_front / Q_vc are
 computed on the texture maps from the view directions of the pixels that coloured each texel.
@@ -41,8 +41,9 @@ def main(argv=None) -> int:
 
     import torch
 
-    from difftex.evaluate import prepare_holdout
-    from difftex.report import comparison_page, write_report
+    from difftex.evaluation.holdout import prepare_holdout
+    from difftex.evaluation.html import comparison_page
+    from difftex.evaluation.report import write_report
 
     torch.set_num_threads(args.threads)
     t_all = time.perf_counter()
@@ -76,26 +77,50 @@ def main(argv=None) -> int:
             print(f"table2: {sc.name} {m} done in {r['total_s']:.0f} s", flush=True)
         per_scene[sc.name]["runs"] = runs
     mach = C.machine()
-    notes = [
-        "Scenes: " + ", ".join(f"`{s.name}` ({per_scene[s.name]['kept']} photos kept, held out: "
-                               + ", ".join(per_scene[s.name]["held_out"]) + ")" for s in scenes) + ".",
-        f"**Reduced sizes** (2 shared CPU cores): texture long side {args.long_side} for every method (paper: 2048); "
-        f"difftex preset `{args.preset}` ({cfg['optimize'].get('loss_mode')} loss, iteration caps "
-        f"{cfg['optimize'].get('max_iters_per_level')}); held-out views compared at {args.render_long_side} px long side.",
-        "SSIM / LPIPS / PSNR: the textured proxy rendered into each held-out camera against the held-out photo, on the "
-        "pixels where a textured proxy polygon is the nearest surface (pixel-weighted mean over views). The photos "
-        "contain what the proxy does not model (statues, columns, people) and exposure differs per photo, so these "
-        "numbers are far from 1 for every method; compare methods within a scene.",
-        "Q_front / Q_vc (docs/metrics.md): from the per-texel view directions of the pixels that coloured each texel "
-        "(difftex: optimized blend weights; averaging: all visible photos equally; frontal, MRF: the chosen photo), "
-        "texel-weighted over polygons.",
-        "Time: texturing only (sum over polygons); filter + visibility are shared: "
-        + ", ".join(f"{n} {d['filter_s'] + d['visibility_s']:.0f} s" for n, d in per_scene.items()) + ".",
-        "Lower is better for LPIPS, higher for the rest.",
-    ] + [n for n in [P.timing_note(results)] if n] + skipped
-    lines = [C.header("Table 2: real scenes, held-out photos and perspective quality",
-                      "python evaluation/table2.py " + " ".join(sys.argv[1:] if argv is None else argv), mach, notes)]
-    lv = next((r["metrics"]["views"]["overall"]["lpips_variant"] for r in results if "views" in r.get("metrics", {})), "n/a")
+    notes = (
+        [
+            "Scenes: "
+            + ", ".join(
+                f"`{s.name}` ({per_scene[s.name]['kept']} photos kept, held out: "
+                + ", ".join(per_scene[s.name]["held_out"])
+                + ")"
+                for s in scenes
+            )
+            + ".",
+            f"**Reduced sizes** (2 shared CPU cores): texture long side {args.long_side} for every method (paper: "
+            "2048); "
+            f"difftex preset `{args.preset}` ({cfg['optimize'].get('loss_mode')} loss, iteration caps "
+            f"{cfg['optimize'].get('max_iters_per_level')}); held-out views compared at {args.render_long_side} px "
+            "long side.",
+            "SSIM / LPIPS / PSNR: the textured proxy rendered into each held-out camera against the held-out photo, "
+            "on the "
+            "pixels where a textured proxy polygon is the nearest surface (pixel-weighted mean over views). The photos "
+            "contain what the proxy does not model (statues, columns, people) and exposure differs per photo, so these "
+            "numbers are far from 1 for every method; compare methods within a scene.",
+            "Q_front / Q_vc (docs/metrics.md): from the per-texel view directions of the pixels that coloured each "
+            "texel "
+            "(difftex: optimized blend weights; averaging: all visible photos equally; frontal, MRF: the chosen "
+            "photo), "
+            "texel-weighted over polygons.",
+            "Time: texturing only (sum over polygons); filter + visibility are shared: "
+            + ", ".join(f"{n} {d['filter_s'] + d['visibility_s']:.0f} s" for n, d in per_scene.items())
+            + ".",
+            "Lower is better for LPIPS, higher for the rest.",
+        ]
+        + [n for n in [P.timing_note(results)] if n]
+        + skipped
+    )
+    lines = [
+        C.header(
+            "Table 2: real scenes, held-out photos and perspective quality",
+            "python evaluation/table2.py " + " ".join(sys.argv[1:] if argv is None else argv),
+            mach,
+            notes,
+        )
+    ]
+    lv = next(
+        (r["metrics"]["views"]["overall"]["lpips_variant"] for r in results if "views" in r.get("metrics", {})), "n/a"
+    )
     lines.append(f"| Scene | Method | Q_front | Q_vc | SSIM | LPIPS ({lv}) | PSNR | Time (s) |")
     lines.append("|---|---|---|---|---|---|---|---|")
     for r in results:
@@ -105,9 +130,11 @@ def main(argv=None) -> int:
         mm = r["metrics"]
         v = mm.get("views", {}).get("overall", {})
         q = mm.get("perspective", {})
-        lines.append(f"| {r['scene']} | {C.LABELS.get(r['method'], r['method'])} | {C.fmt(q.get('q_front'))} | "
-                     f"{C.fmt(q.get('q_vc'))} | {C.fmt(v.get('ssim'))} | {C.fmt(v.get('lpips'))} | {C.fmt(v.get('psnr'), 2)} | "
-                     f"{r['run']['total_s']:.0f} |")
+        lines.append(
+            f"| {r['scene']} | {C.LABELS.get(r['method'], r['method'])} | {C.fmt(q.get('q_front'))} | "
+            f"{C.fmt(q.get('q_vc'))} | {C.fmt(v.get('ssim'))} | {C.fmt(v.get('lpips'))} | {C.fmt(v.get('psnr'), 2)} | "
+            f"{r['run']['total_s']:.0f} |"
+        )
     # mean over scenes per method
     methods = list(dict.fromkeys(r["method"] for r in results))
     if len(scenes) > 1:
@@ -116,24 +143,38 @@ def main(argv=None) -> int:
             if not rs:
                 continue
 
-            def mean(get):
+            def mean(get, rs=rs):
                 vals = [get(r) for r in rs if get(r) is not None]
                 return sum(vals) / len(vals) if vals else None
 
-            lines.append(f"| **mean** | {C.LABELS.get(m, m)} | {C.fmt(mean(lambda r: r['metrics'].get('perspective', {}).get('q_front')))} | "
-                         f"{C.fmt(mean(lambda r: r['metrics'].get('perspective', {}).get('q_vc')))} | "
-                         f"{C.fmt(mean(lambda r: r['metrics'].get('views', {}).get('overall', {}).get('ssim')))} | "
-                         f"{C.fmt(mean(lambda r: r['metrics'].get('views', {}).get('overall', {}).get('lpips')))} | "
-                         f"{C.fmt(mean(lambda r: r['metrics'].get('views', {}).get('overall', {}).get('psnr')), 2)} | "
-                         f"{mean(lambda r: r['run']['total_s']):.0f} |")
+            lines.append(
+                f"| **mean** | {C.LABELS.get(m, m)} | "
+                f"{C.fmt(mean(lambda r: r['metrics'].get('perspective', {}).get('q_front')))} | "
+                f"{C.fmt(mean(lambda r: r['metrics'].get('perspective', {}).get('q_vc')))} | "
+                f"{C.fmt(mean(lambda r: r['metrics'].get('views', {}).get('overall', {}).get('ssim')))} | "
+                f"{C.fmt(mean(lambda r: r['metrics'].get('views', {}).get('overall', {}).get('lpips')))} | "
+                f"{C.fmt(mean(lambda r: r['metrics'].get('views', {}).get('overall', {}).get('psnr')), 2)} | "
+                f"{mean(lambda r: r['run']['total_s']):.0f} |"
+            )
     lines.append("")
-    lines.append(f"Per-view and per-polygon values: `{Path(args.out).with_suffix('.json').name}`. Whole command: "
-                 f"{time.perf_counter() - t_all:.0f} s. HTML: `{args.work}/<scene>/index.html`.")
+    lines.append(
+        f"Per-view and per-polygon values: `{Path(args.out).with_suffix('.json').name}`. Whole command: "
+        f"{time.perf_counter() - t_all:.0f} s. HTML: `{args.work}/<scene>/index.html`."
+    )
     md = "\n".join(lines) + "\n"
     for sc in scenes:
         comparison_page(Path(args.work) / sc.name / "index.html", f"Table 2: {sc.name}", md, per_scene[sc.name]["runs"])
-    C.write_outputs(Path(args.out), md, {"machine": mach, "args": vars(args), "scenes": per_scene, "rows": results,
-                                         "total_s": time.perf_counter() - t_all})
+    C.write_outputs(
+        Path(args.out),
+        md,
+        {
+            "machine": mach,
+            "args": vars(args),
+            "scenes": per_scene,
+            "rows": results,
+            "total_s": time.perf_counter() - t_all,
+        },
+    )
     print(md)
     return 0
 

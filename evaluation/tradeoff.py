@@ -1,6 +1,6 @@
 """Speed/accuracy trade: Error 95% and SSIM against minutes for each difftex preset and resolution.
 
-    python evaluation/tradeoff.py                                    # fast and balanced presets at 128 and 256 texels, one facade
+    python evaluation/tradeoff.py             # fast and balanced presets at 128 and 256 texels, one facade
     python evaluation/tradeoff.py --runs fast@256,fast@512,balanced@512 --polygons all
 
 Writes evaluation/results/tradeoff.{md,json,png}: one point per preset@resolution (minutes of
@@ -27,10 +27,13 @@ def plot(rows: list[dict], out: Path) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from difftex.io import atomic_path
+    from difftex.scene.files import atomic_path
 
     fig, axes = plt.subplots(1, 2, figsize=(10, 4), dpi=100)
-    for ax, key, label in ((axes[0], "error95", "Error (95%)  (lower is better)"), (axes[1], "ssim", "SSIM  (higher is better)")):
+    for ax, key, label in (
+        (axes[0], "error95", "Error (95%)  (lower is better)"),
+        (axes[1], "ssim", "SSIM  (higher is better)"),
+    ):
         for r in rows:
             o = r["metrics"]["maps"]["overall"]
             x = r["run"]["total_s"] / 60
@@ -51,10 +54,14 @@ def plot(rows: list[dict], out: Path) -> None:
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--scene", default="evaluation/out/scenes/tiny")
-    ap.add_argument("--runs", default="fast@128,fast@256,balanced@128,balanced@256",
-                    help="comma-separated preset@long_side")
-    ap.add_argument("--baselines", default="average,mrf,texrecon,meshlab-face,meshlab-blend",
-                    help="run at each resolution as reference points ('' for none)")
+    ap.add_argument(
+        "--runs", default="fast@128,fast@256,balanced@128,balanced@256", help="comma-separated preset@long_side"
+    )
+    ap.add_argument(
+        "--baselines",
+        default="average,mrf,texrecon,meshlab-face,meshlab-blend",
+        help="run at each resolution as reference points ('' for none)",
+    )
     ap.add_argument("--polygons", default="wall00", help="comma-separated ids, or 'all'")
     C.add_table_args(ap, "tradeoff")
     args = ap.parse_args(argv)
@@ -78,28 +85,49 @@ def main(argv=None) -> int:
                 if P.is_peer(b):
                     r = P.run_peer(b, scene, work / f"{b}@{side}", commons[side])
                     if r.get("missing"):
-                        rows.append({"label": f"{b}@{side}", "method": b, "long_side": side, "run": r, "missing": r["missing"]})
+                        rows.append(
+                            {"label": f"{b}@{side}", "method": b, "long_side": side, "run": r, "missing": r["missing"]}
+                        )
                         continue
                 else:
                     r = C.run_method(b, scene, work / f"{b}@{side}", commons[side])
                 ev = C.evaluate(scene, work / f"{b}@{side}", args.lpips, config=commons[side]["config"])
-                rows.append({"label": f"{b}@{side}", "method": b, "preset": None, "long_side": side, "run": r, "metrics": ev})
+                rows.append(
+                    {"label": f"{b}@{side}", "method": b, "preset": None, "long_side": side, "run": r, "metrics": ev}
+                )
         cfg = C.base_config(side, preset, {"evaluate": {"views": False}})
         r = C.run_method("difftex", scene, work / f"{preset}@{side}", commons[side], cfg)
         ev = C.evaluate(scene, work / f"{preset}@{side}", args.lpips, config=commons[side]["config"])
-        rows.append({"label": f"{preset}@{side}", "method": "difftex", "preset": preset, "long_side": side, "run": r,
-                     "metrics": ev, "optimize": cfg["optimize"]})
+        rows.append(
+            {
+                "label": f"{preset}@{side}",
+                "method": "difftex",
+                "preset": preset,
+                "long_side": side,
+                "run": r,
+                "metrics": ev,
+                "optimize": cfg["optimize"],
+            }
+        )
         print(f"tradeoff: {preset}@{side} done in {r['total_s']:.0f} s", flush=True)
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
     plot([r for r in rows if not r.get("missing")], out.with_suffix(".png"))
     mach = C.machine()
-    notes = [f"Scene `{scene}`, polygons {args.polygons}.",
-             "Presets from config/presets/<name>.yaml with the texture long side overridden; minutes = texturing time "
-             "(init + optimize + histmatch for difftex) summed over the polygons, on this shared 2-core machine.",
-             f"Plot: `{out.with_suffix('.png').name}`."] + [n for n in [P.timing_note(rows)] if n]
-    lines = [C.header("Speed/accuracy trade: presets and resolutions",
-                      "python evaluation/tradeoff.py " + " ".join(sys.argv[1:] if argv is None else argv), mach, notes)]
+    notes = [
+        f"Scene `{scene}`, polygons {args.polygons}.",
+        "Presets from config/presets/<name>.yaml with the texture long side overridden; minutes = texturing time "
+        "(init + optimize + histmatch for difftex) summed over the polygons, on this shared 2-core machine.",
+        f"Plot: `{out.with_suffix('.png').name}`.",
+    ] + [n for n in [P.timing_note(rows)] if n]
+    lines = [
+        C.header(
+            "Speed/accuracy trade: presets and resolutions",
+            "python evaluation/tradeoff.py " + " ".join(sys.argv[1:] if argv is None else argv),
+            mach,
+            notes,
+        )
+    ]
     lv = next((r["metrics"]["maps"]["overall"]["lpips_variant"] for r in rows if r.get("metrics")), "n/a")
     lines.append(f"| Run | loss | iteration caps | Error (95%) | Error (90%) | SSIM | LPIPS ({lv}) | Minutes |")
     lines.append("|---|---|---|---|---|---|---|---|")
@@ -109,8 +137,11 @@ def main(argv=None) -> int:
             continue
         o = r["metrics"]["maps"]["overall"]
         opt = r.get("optimize") or {}
-        lines.append(f"| {r['label']} | {opt.get('loss_mode', '-')} | {opt.get('max_iters_per_level', '-')} | {C.fmt(o['error95'])} | "
-                     f"{C.fmt(o['error90'])} | {C.fmt(o['ssim'])} | {C.fmt(o['lpips'])} | {r['run']['total_s'] / 60:.2f} |")
+        lines.append(
+            f"| {r['label']} | {opt.get('loss_mode', '-')} | {opt.get('max_iters_per_level', '-')} | "
+            f"{C.fmt(o['error95'])} | "
+            f"{C.fmt(o['error90'])} | {C.fmt(o['ssim'])} | {C.fmt(o['lpips'])} | {r['run']['total_s'] / 60:.2f} |"
+        )
     lines.append("")
     lines.append(f"![trade-off]({out.with_suffix('.png').name})")
     C.finish_table(out, lines, t_all, mach, args, rows)

@@ -1,7 +1,8 @@
 """Optimizer variants on a synthetic building against its ground truth, polygon by polygon, in-process.
 
-    python evaluation/variants.py --scene data/synth/paper/archive --density-scale 0.5 --max-long-side 2048 \
-        --variants '{"defaults": {}, "raw": {"render_units": "raw"}, "average": null}' --out evaluation/results/variants_archive
+    python evaluation/variants.py --scene data/synth/paper/archive --density-scale 0.5 \
+        --max-long-side 2048 --out evaluation/results/variants_archive \
+        --variants '{"defaults": {}, "raw": {"render_units": "raw"}, "average": null}'
 
 For choosing the optimizer's defaults with evidence: every variant (a dict of ``optimize:``
 overrides, or null for the plain per-texel average) textures every polygon from the same
@@ -37,18 +38,18 @@ def grad_mag(img: np.ndarray, mask: np.ndarray) -> float:
 def run(scene: Path, density_scale: float, max_long_side: int, variants: dict, polygons: list[str] | None) -> dict:
     import torch
 
-    from difftex import metrics
-    from difftex.baselines import baseline_texture
+    from difftex.compose.composite import finish_texture
+    from difftex.compose.texturing import texture_polygon
     from difftex.config import TextureConfig
-    from difftex.evaluate import resample_texture
-    from difftex.io import read_image, read_json
-    from difftex.mapping import UVFrame
+    from difftex.evaluation import metrics
+    from difftex.evaluation.baselines import baseline_texture
+    from difftex.evaluation.evaluate import resample_texture
+    from difftex.geometry.frames import UVFrame
+    from difftex.geometry.visibility import scene_visibility
     from difftex.method.config import ComputeConfig, OptimizeConfig
-    from difftex.sampling import polygon_input_from_visibility
-    from difftex.scene import load_scene
-    from difftex.texture import finish_texture
-    from difftex.texturing import texture_polygon
-    from difftex.visibility import scene_visibility
+    from difftex.sampling.photos import polygon_input_from_visibility
+    from difftex.scene.files import read_image, read_json
+    from difftex.scene.loading import load_scene
 
     torch.set_num_threads(1)
     sc = load_scene(scene, check_images=False)
@@ -81,15 +82,27 @@ def run(scene: Path, density_scale: float, max_long_side: int, variants: dict, p
             sharp.append(grad_mag(U, mk))
             gsharp.append(grad_mag(ref, mk))
         e, w = np.concatenate(errs), np.asarray(weights)
-        out[name] = {"overrides": overrides, "e90": float(np.percentile(e, 90)), "e95": float(np.percentile(e, 95)),
-                     "ssim": float((np.asarray(ssims) * w).sum() / w.sum()),
-                     "sharpness_vs_gt": float((np.asarray(sharp) * w).sum() / (np.asarray(gsharp) * w).sum()),
-                     "effective_photos": float(np.concatenate(neff).mean()) if neff else None, "seconds": seconds}
+        out[name] = {
+            "overrides": overrides,
+            "e90": float(np.percentile(e, 90)),
+            "e95": float(np.percentile(e, 95)),
+            "ssim": float((np.asarray(ssims) * w).sum() / w.sum()),
+            "sharpness_vs_gt": float((np.asarray(sharp) * w).sum() / (np.asarray(gsharp) * w).sum()),
+            "effective_photos": float(np.concatenate(neff).mean()) if neff else None,
+            "seconds": seconds,
+        }
         r = out[name]
-        print(f"{scene.name} {name:14s} E90 {r['e90']:.4f} E95 {r['e95']:.4f} SSIM {r['ssim']:.4f} "
-              f"sharpness/gt {r['sharpness_vs_gt']:.3f} photos/texel {r['effective_photos']} {seconds:.0f}s", flush=True)
-    return {"scene": str(scene), "polygons": [v.polygon_id for v in vis], "texels": int(sum(v.texel_mask.sum() for v in vis)),
-            "variants": out}
+        print(
+            f"{scene.name} {name:14s} E90 {r['e90']:.4f} E95 {r['e95']:.4f} SSIM {r['ssim']:.4f} "
+            f"sharpness/gt {r['sharpness_vs_gt']:.3f} photos/texel {r['effective_photos']} {seconds:.0f}s",
+            flush=True,
+        )
+    return {
+        "scene": str(scene),
+        "polygons": [v.polygon_id for v in vis],
+        "texels": int(sum(v.texel_mask.sum() for v in vis)),
+        "variants": out,
+    }
 
 
 def main(argv=None) -> int:
@@ -101,19 +114,39 @@ def main(argv=None) -> int:
     ap.add_argument("--polygons", help="comma-separated polygon ids (default: all)")
     ap.add_argument("--out", required=True)
     args = ap.parse_args(argv)
-    res = run(args.scene, args.density_scale, args.max_long_side, json.loads(args.variants),
-              C.polygon_ids(args.polygons) if args.polygons else None)
+    res = run(
+        args.scene,
+        args.density_scale,
+        args.max_long_side,
+        json.loads(args.variants),
+        C.polygon_ids(args.polygons) if args.polygons else None,
+    )
     mach = C.machine()
-    lines = [C.header(f"Optimizer variants on {args.scene.name}", "python evaluation/variants.py " + " ".join(sys.argv[1:]),
-                      mach, [f"density auto x {args.density_scale} (max {args.max_long_side}), polygons {', '.join(res['polygons'])}, "
-                             f"{res['texels']} texels; metrics against the ground-truth maps at each texture's resolution."]),
-             "| variant | overrides | Error 90 % | Error 95 % | SSIM | sharpness / GT | photos per texel | seconds |",
-             "|---|---|---|---|---|---|---|---|"]
+    lines = [
+        C.header(
+            f"Optimizer variants on {args.scene.name}",
+            "python evaluation/variants.py " + " ".join(sys.argv[1:]),
+            mach,
+            [
+                f"density auto x {args.density_scale} (max {args.max_long_side}), "
+                f"polygons {', '.join(res['polygons'])}, "
+                f"{res['texels']} texels; metrics against the ground-truth maps at each texture's resolution."
+            ],
+        ),
+        "| variant | overrides | Error 90 % | Error 95 % | SSIM | sharpness / GT | photos per texel | seconds |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
     for name, r in res["variants"].items():
         neff = f"{r['effective_photos']:.1f}" if r["effective_photos"] is not None else "(blend of all)"
-        lines.append(f"| {name} | `{json.dumps(r['overrides'])}` | {r['e90']:.4f} | {r['e95']:.4f} | {r['ssim']:.4f} | "
-                     f"{r['sharpness_vs_gt']:.3f} | {neff} | {r['seconds']:.0f} |")
-    C.write_outputs(Path(args.out), "\n".join(lines) + "\n", {"machine": mach, "args": vars(args) | {"scene": str(args.scene)}, **res})
+        lines.append(
+            f"| {name} | `{json.dumps(r['overrides'])}` | {r['e90']:.4f} | {r['e95']:.4f} | {r['ssim']:.4f} | "
+            f"{r['sharpness_vs_gt']:.3f} | {neff} | {r['seconds']:.0f} |"
+        )
+    C.write_outputs(
+        Path(args.out),
+        "\n".join(lines) + "\n",
+        {"machine": mach, "args": vars(args) | {"scene": str(args.scene)}, **res},
+    )
     return 0
 
 

@@ -16,7 +16,7 @@ if [ -n "${TORCH_INDEX:-}" ]; then
 fi
 "${PIP[@]}" torch torchvision piq
 # "perceptual": the reference LPIPS (lpips) and ST-LPIPS (stlpips-pytorch) packages, which
-# difftex.metrics calls directly, with the imports stlpips-pytorch needs but does not declare.
+# difftex.evaluation.metrics calls directly, with the imports stlpips-pytorch needs but does not declare.
 "${PIP[@]}" -e ".[test,perceptual]"
 # Optional: Mitsuba's fast llvm_ad_rgb variant (synthetic scenes) needs Debian's libllvm19;
 # without it difftex synth falls back to scalar_rgb, about 2x slower.

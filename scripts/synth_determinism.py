@@ -95,13 +95,18 @@ def main() -> int:
             subprocess.run([sys.executable, __file__, "--out", str(args.out), "--one", cond], check=True, env=env)
     rows = {cond: compare(args.out / "reference", args.out / cond) for cond in CONDITIONS[1:]}
     (args.out / "determinism.json").write_text(json.dumps(rows, indent=2))
-    print("| condition | photos identical | differing 8-bit values | max / mean abs diff | maps identical | differing values | max / mean abs diff |")
+    print(
+        "| condition | photos identical | differing 8-bit values | max / mean abs diff | maps identical | differing "
+        "values | max / mean abs diff |"
+    )
     print("|---|---|---|---|---|---|---|")
     for cond, r in rows.items():
         p, m = r["photos"], r["maps"]
-        print(f"| {cond} | {p['identical_files']}/{p['files']} | {100 * p['differing_values']:.2f} % | "
-              f"{p['max_abs']} / {p['mean_abs']:.3f} | {m['identical_files']}/{m['files']} | "
-              f"{100 * m['differing_values']:.2f} % | {m['max_abs']} / {m['mean_abs']:.3f} |")
+        print(
+            f"| {cond} | {p['identical_files']}/{p['files']} | {100 * p['differing_values']:.2f} % | "
+            f"{p['max_abs']} / {p['mean_abs']:.3f} | {m['identical_files']}/{m['files']} | "
+            f"{100 * m['differing_values']:.2f} % | {m['max_abs']} / {m['mean_abs']:.3f} |"
+        )
     return 0
 
 

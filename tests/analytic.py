@@ -12,12 +12,12 @@ from types import SimpleNamespace
 
 import numpy as np
 
-from difftex.camera import Photo
-from difftex.mapping import map_texels, texel_mask, uv_frame
+from difftex.compose.texturing import texture_polygon
+from difftex.geometry.frames import map_texels, texel_mask, uv_frame
 from difftex.method.config import ComputeConfig, OptimizeConfig
-from difftex.proxy import Polygon
-from difftex.sampling import PolygonInput
-from difftex.texturing import texture_polygon
+from difftex.sampling.photos import PolygonInput
+from difftex.scene.camera import Photo
+from difftex.scene.proxy import Polygon
 
 WALL_W, WALL_H = 4.0, 3.0
 UP = np.array([0.0, 0.0, 1.0])
@@ -49,8 +49,9 @@ def look_at(C: np.ndarray, target: np.ndarray) -> np.ndarray:
     return np.stack([x, y, z])
 
 
-def make_photo(name: str, yaw_deg: float, dist: float = 6.0, pitch_deg: float = 0.0, f: float = 150.0,
-               size=(160, 120)) -> Photo:
+def make_photo(
+    name: str, yaw_deg: float, dist: float = 6.0, pitch_deg: float = 0.0, f: float = 150.0, size=(160, 120)
+) -> Photo:
     import pycolmap
 
     a, p = math.radians(yaw_deg), math.radians(pitch_deg)
@@ -88,7 +89,9 @@ def make_input(photos, images, long_side=64) -> PolygonInput:
 
 
 def fast_cfg(**kw) -> OptimizeConfig:
-    base = dict(long_side_start=32, max_iters_per_level=(300, 150, 80), min_iters_per_level=20, histogram_matching=False)
+    base = dict(
+        long_side_start=32, max_iters_per_level=(300, 150, 80), min_iters_per_level=20, histogram_matching=False
+    )
     base.update(kw)
     return OptimizeConfig(**base)
 
@@ -107,7 +110,7 @@ def gt_texture(inp: PolygonInput) -> np.ndarray:
 
 def photo_masks(inp: PolygonInput):
     """a_k^i for the analytic wall: pixels whose ray hits the wall inside its outline."""
-    from difftex.mapping import pixel_to_texel
+    from difftex.geometry.frames import pixel_to_texel
 
     boxes, crops = [], []
     for ph in inp.photos:
@@ -116,7 +119,9 @@ def photo_masks(inp: PolygonInput):
         ok = np.isfinite(t).all(-1)
         ix = np.clip(np.floor(np.nan_to_num(t[..., 0])).astype(int), 0, inp.frame.width - 1)
         iy = np.clip(np.floor(np.nan_to_num(t[..., 1])).astype(int), 0, inp.frame.height - 1)
-        inside = ok & (t[..., 0] >= 0) & (t[..., 0] < inp.frame.width) & (t[..., 1] >= 0) & (t[..., 1] < inp.frame.height)
+        inside = (
+            ok & (t[..., 0] >= 0) & (t[..., 0] < inp.frame.width) & (t[..., 1] >= 0) & (t[..., 1] < inp.frame.height)
+        )
         a = inside & inp.texel_mask[iy, ix]
         r, c = np.nonzero(a)
         x0, y0, x1, y1 = c.min(), r.min(), c.max() + 1, r.max() + 1
@@ -148,7 +153,7 @@ def write_scene(root, photos, images):
     """The analytic wall as a scene folder: COLMAP text model, PNG photos, proxy.obj."""
     from scipy.spatial.transform import Rotation
 
-    from difftex.io import write_image
+    from difftex.scene.files import write_image
 
     (root / "sparse" / "0").mkdir(parents=True)
     (root / "images").mkdir()
@@ -164,5 +169,3 @@ def write_scene(root, photos, images):
     (root / "sparse" / "0" / "points3D.txt").write_text("")
     v = wall().outer
     (root / "proxy.obj").write_text("".join(f"v {a} {b} {c}\n" for a, b, c in v) + "g wall\nf 1 2 3 4\n")
-
-

@@ -7,7 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
-TEMP_GLOB = ".*.part*"  # difftex.io.atomic_path's temporary files
+TEMP_GLOB = ".*.part*"  # difftex.scene.files.atomic_path's temporary files
 
 
 def copy_scene(src: Path, dst: Path) -> Path:
@@ -76,7 +76,7 @@ def transform_proxy(scene: Path, fn) -> None:
     V = np.array([[float(x) for x in lines[i].split()[1:4]] for i in idx])
     W = fn(V)
     for i, v in zip(idx, W):
-        lines[i] = "v %.12g %.12g %.12g" % tuple(v)
+        lines[i] = "v {:.12g} {:.12g} {:.12g}".format(*v)
     path.write_text("\n".join(lines) + "\n")
 
 
@@ -90,7 +90,7 @@ def add_polygon(scene: Path, name: str, loop) -> None:
     text = path.read_text().rstrip("\n")
     nv = sum(1 for ln in text.splitlines() if ln.startswith("v "))
     loop = np.asarray(loop, float)
-    vs = "\n".join("v %.12g %.12g %.12g" % tuple(v) for v in loop)
+    vs = "\n".join("v {:.12g} {:.12g} {:.12g}".format(*v) for v in loop)
     face = "f " + " ".join(str(nv + 1 + i) for i in range(len(loop)))
     path.write_text(f"{text}\n{vs}\ng {name}\n{face}\n")
 

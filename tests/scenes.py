@@ -6,7 +6,7 @@ from pathlib import Path
 
 import numpy as np
 
-from difftex.io import write_image
+from difftex.scene.files import write_image
 
 
 def look_at(center, target, up=(0.0, 0.0, 1.0)) -> tuple[np.ndarray, np.ndarray]:
@@ -48,7 +48,7 @@ def write_obj(path: Path, polygons: dict[str, np.ndarray]) -> None:
     faces = []
     for name, loop in polygons.items():
         for v in loop:
-            lines.append("v %.12g %.12g %.12g" % tuple(v))
+            lines.append("v {:.12g} {:.12g} {:.12g}".format(*v))
         faces.append((name, range(n + 1, n + 1 + len(loop))))
         n += len(loop)
     for name, idx in faces:

@@ -10,11 +10,12 @@ import numpy as np
 import pytest
 import torch
 
-from analytic import fast_cfg, gt_texture, make_input, make_photo, render
-from difftex.mapping import texel_to_pixel
+from difftex.compose.texturing import texture_polygon
+from difftex.geometry.frames import texel_to_pixel
 from difftex.method.config import ComputeConfig
-from difftex.sampling import Correction
-from difftex.texturing import texture_polygon
+from difftex.sampling.photos import Correction
+
+from analytic import fast_cfg, gt_texture, make_input, make_photo, render
 
 torch.set_num_threads(1)
 
@@ -32,12 +33,18 @@ def rotated(ph, ax: float, ay: float):
 @pytest.fixture(scope="module")
 def scene():
     f = 300.0
-    true = [make_photo(n, y, pitch_deg=p, size=(320, 240), f=f)
-            for n, y, p in zip(NAMES, [-12.0, 12.0, -4.0, 4.0], [6.0, 6.0, -6.0, -6.0])]
+    true = [
+        make_photo(n, y, pitch_deg=p, size=(320, 240), f=f)
+        for n, y, p in zip(NAMES, [-12.0, 12.0, -4.0, 4.0], [6.0, 6.0, -6.0, -6.0])
+    ]
     imgs = [render(ph) for ph in true]
     # about 2.5 px right, 2.5 px left, 2 px down, 2 px up
-    given = [rotated(true[0], 0, 2.5 / f), rotated(true[1], 0, -2.5 / f), rotated(true[2], 2.0 / f, 0),
-             rotated(true[3], -2.0 / f, 0)]
+    given = [
+        rotated(true[0], 0, 2.5 / f),
+        rotated(true[1], 0, -2.5 / f),
+        rotated(true[2], 2.0 / f, 0),
+        rotated(true[3], -2.0 / f, 0),
+    ]
     return true, given, imgs
 
 
@@ -55,7 +62,9 @@ def reprojection_error(inp, given, true, correction: dict | None) -> float:
     pg, _ = texel_to_pixel(inp.frame, given, tx + 0.5, ty + 0.5)
     pt, _ = texel_to_pixel(inp.frame, true, tx + 0.5, ty + 0.5)
     if correction is not None:
-        c = Correction(torch.tensor(correction["params"], dtype=torch.float64), tuple(correction["centre"]), correction["scale"])
+        c = Correction(
+            torch.tensor(correction["params"], dtype=torch.float64), tuple(correction["centre"]), correction["scale"]
+        )
         pg = c.apply(torch.from_numpy(pg)).numpy()
     return float(np.linalg.norm(pg - pt, axis=1).mean())
 
@@ -86,11 +95,13 @@ def test_correct_poses_get_no_correction(scene):
 def test_render_pixel_sets_follow_the_alignment_correction():
     """Render mode maps photo pixels back to texels: with a correction of f_k^i the pixel sets must
     use its inverse, so a pixel's colour is the texel-space colour of its texel."""
-    from analytic import photo_masks
     from difftex.method.config import OptimizeConfig
     from difftex.method.levels import build_level
     from difftex.method.render import build_pixel_sets
-    from difftex.sampling import PhotoSet, level_frame
+    from difftex.sampling.photos import PhotoSet
+    from difftex.sampling.texels import level_frame
+
+    from analytic import photo_masks
 
     ph = make_photo("p", 0.0, size=(320, 240), f=300.0)
     img = np.roll(render(ph), 3, axis=1)  # the photo's content 3 px to the right of its pose's
@@ -103,7 +114,9 @@ def test_render_pixel_sets_follow_the_alignment_correction():
     def mismatch(correct: bool) -> float:
         photos = PhotoSet.load(inp, "cpu")
         if correct:
-            photos.corrections[0] = Correction(torch.tensor([3.0, 0, 0, 0, 0, 0], dtype=torch.float64), (160.0, 120.0), 100.0)
+            photos.corrections[0] = Correction(
+                torch.tensor([3.0, 0, 0, 0, 0, 0], dtype=torch.float64), (160.0, 120.0), 100.0
+            )
         lv = build_level(photos, frame, cfg)
         pb = build_pixel_sets(photos, lv, None)
         ok = pb.slot >= 0

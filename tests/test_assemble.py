@@ -1,14 +1,14 @@
-"""Atlas packing, dilation, OBJ/GLB writing and their reload (difftex.assemble)."""
+"""Atlas packing, dilation, OBJ/GLB writing and their reload (difftex.export.assemble)."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from difftex.assemble import AssembleConfig, PolygonTexture, assemble, dilate, pack, sample_atlas, triangulate
 from difftex.errors import DifftexError
-from difftex.mapping import texel_mask, uv_frame
-from difftex.proxy import Polygon
+from difftex.export.assemble import AssembleConfig, PolygonTexture, assemble, dilate, pack, sample_atlas, triangulate
+from difftex.geometry.frames import texel_mask, uv_frame
+from difftex.scene.proxy import Polygon
 
 UP = np.array([0.0, 0.0, 1.0])
 
@@ -136,11 +136,16 @@ def test_texture_orientation_survives_the_round_trip(tmp_path):
 
 def test_mirrored_texture_is_detected(tmp_path):
     """The check above can fail: a texture flipped left-right after packing is caught."""
-    from difftex.assemble import verify_glb
+    from difftex.export.assemble import verify_glb
 
     items, _ = _items(np.random.default_rng(3), long_side=64)
     assemble(items, tmp_path, AssembleConfig(padding=2))
-    flipped = [PolygonTexture(it.polygon, it.frame, it.texture[:, ::-1].copy(), it.mask[:, ::-1].copy(), 1.0, 2) if it.textured else it for it in items]
+    flipped = [
+        PolygonTexture(it.polygon, it.frame, it.texture[:, ::-1].copy(), it.mask[:, ::-1].copy(), 1.0, 2)
+        if it.textured
+        else it
+        for it in items
+    ]
     assert verify_glb(tmp_path / "model.glb", flipped)["max_color_error"] > 0.1
 
 

@@ -12,9 +12,10 @@ import numpy as np
 import pytest
 
 from difftex.config import TextureConfig
-from difftex.density import BYTES_PER_TEXEL_SLOT, choose_texel_size, photo_texel_size
-from difftex.scene import load_scene
-from difftex.visibility import scene_visibility
+from difftex.geometry.density import BYTES_PER_TEXEL_SLOT, choose_texel_size, photo_texel_size
+from difftex.geometry.visibility import scene_visibility
+from difftex.scene.loading import load_scene
+
 from tests.scenes import make_scene, wall
 
 SIZE = (320, 240)
@@ -25,9 +26,14 @@ WALL = wall(-2, 2, 0, 2)  # 4 m x 2 m
 @pytest.fixture(scope="module")
 def frontal_scene(tmp_path_factory):
     # frontal at 6 m and at 12 m, and a close photo at 75 degrees (fine GSD along one axis only)
-    centers = [(0.0, -6.0, 1.0), (0.0, -12.0, 1.0), (-3.0 * math.sin(math.radians(75)), -3.0 * math.cos(math.radians(75)), 1.0)]
-    root = make_scene(tmp_path_factory.mktemp("density") / "s", {"front": WALL}, centers=centers,
-                      target=(0.0, 0.0, 1.0), size=SIZE)
+    centers = [
+        (0.0, -6.0, 1.0),
+        (0.0, -12.0, 1.0),
+        (-3.0 * math.sin(math.radians(75)), -3.0 * math.cos(math.radians(75)), 1.0),
+    ]
+    root = make_scene(
+        tmp_path_factory.mktemp("density") / "s", {"front": WALL}, centers=centers, target=(0.0, 0.0, 1.0), size=SIZE
+    )
     return load_scene(root)
 
 

@@ -9,11 +9,20 @@ import numpy as np
 import pytest
 
 from difftex.errors import DifftexError
-from difftex.evaluate import (EvaluateConfig, PolygonTexture, check_same_plane, evaluate_maps, prepare_holdout,
-                              render_proxy, resample_texture, view_weights)
-from difftex.io import write_image, write_json
-from difftex.mapping import UVFrame, texel_mask, uv_frame
-from difftex.proxy import Polygon
+from difftex.evaluation.evaluate import (
+    EvaluateConfig,
+    PolygonTexture,
+    check_same_plane,
+    evaluate_maps,
+    render_proxy,
+    resample_texture,
+    view_weights,
+)
+from difftex.evaluation.holdout import prepare_holdout
+from difftex.geometry.frames import UVFrame, texel_mask, uv_frame
+from difftex.scene.files import write_image, write_json
+from difftex.scene.proxy import Polygon
+
 from tests.scenes import make_scene, wall
 
 UP = np.array([0.0, 0.0, 1.0])
@@ -24,7 +33,9 @@ def linear_texture(frame: UVFrame) -> np.ndarray:
     """Colour = affine function of the world point (bilinear interpolation reproduces it exactly)."""
     tx, ty = frame.centres()
     X = frame.texel_to_world(tx, ty)
-    return np.stack([0.1 + 0.2 * (X[..., 0] + 2), 0.1 + 0.3 * X[..., 2], np.full(X.shape[:2], 0.5)], -1).astype(np.float32)
+    return np.stack([0.1 + 0.2 * (X[..., 0] + 2), 0.1 + 0.3 * X[..., 2], np.full(X.shape[:2], 0.5)], -1).astype(
+        np.float32
+    )
 
 
 def poly() -> Polygon:
@@ -51,8 +62,15 @@ def test_resample_finer_texture_to_coarse_frame_keeps_affine_colours():
 def test_resample_into_a_mirrored_frame():
     f = uv_frame(poly(), UP, long_side=64)
     # same rectangle, e_u reversed (and the normal kept: e_v reversed too, a 180 degree turn)
-    g = UVFrame(origin=f.origin + f.e_u * f.width * f.texel_size + f.e_v * f.height * f.texel_size,
-                e_u=-f.e_u, e_v=-f.e_v, normal=f.normal, texel_size=f.texel_size, width=f.width, height=f.height)
+    g = UVFrame(
+        origin=f.origin + f.e_u * f.width * f.texel_size + f.e_v * f.height * f.texel_size,
+        e_u=-f.e_u,
+        e_v=-f.e_v,
+        normal=f.normal,
+        texel_size=f.texel_size,
+        width=f.width,
+        height=f.height,
+    )
     rng = np.random.default_rng(1)
     tex = rng.random((*f.shape, 3)).astype(np.float32)
     np.testing.assert_allclose(resample_texture(tex, f, g), tex[::-1, ::-1], atol=1e-5)
@@ -72,14 +90,16 @@ def test_check_same_plane_rejects_other_planes():
 def test_dominant_photos_come_back_from_source_npz_not_from_colours(tmp_path):
     """The evaluation reads each texel's dominant photo from source.npz (numbers), whatever
     colours source.png uses; texels no photo saw, or outside the polygon, have none."""
-    from difftex.outputs import write_texture_outputs
+    from difftex.compose.outputs import write_texture_outputs
 
     names = ["a.jpg", "b.jpg", "c.jpg"]
     frame = uv_frame(poly(), UP, long_side=30)
     dom = np.random.default_rng(2).integers(-1, 3, frame.shape)
     mask = texel_mask(poly(), frame)
     seen = mask & (dom >= 0)
-    write_texture_outputs(tmp_path / "t", np.zeros((*frame.shape, 3), np.float32), mask, seen, dom, names, {"method": "frontal"})
+    write_texture_outputs(
+        tmp_path / "t", np.zeros((*frame.shape, 3), np.float32), mask, seen, dom, names, {"method": "frontal"}
+    )
     pt = PolygonTexture("front", np.zeros((*frame.shape, 3)), frame, mask, {"method": "frontal"}, tmp_path / "t")
     got_names, w, how = view_weights(pt, tmp_path)
     assert got_names == names and how == "dominant photo (source.npz)"
@@ -113,21 +133,26 @@ def test_map_metrics_known_answers(tmp_path, offset):
 
 
 def test_map_metrics_lpips_column_says_what_made_it(tmp_path, monkeypatch, caplog):
-    from difftex import metrics
+    from difftex.evaluation import metrics
 
     frame = uv_frame(poly(), UP, long_side=64)
     mask = texel_mask(poly(), frame)
     gt = np.round(linear_texture(frame) * 255) / 255
     gt_folder(tmp_path, frame, gt, mask)
     for kind in ("maps", "masks"):  # a second polygon with the same ground truth
-        (tmp_path / "ground_truth" / kind / "back.png").write_bytes((tmp_path / "ground_truth" / kind / "front.png").read_bytes())
+        (tmp_path / "ground_truth" / kind / "back.png").write_bytes(
+            (tmp_path / "ground_truth" / kind / "front.png").read_bytes()
+        )
     write_json(tmp_path / "ground_truth" / "frames" / "back.json", frame.to_dict())
-    tex = PolygonTexture("front", np.clip(gt + 0.05 * np.sin(np.arange(gt.shape[1]))[None, :, None], 0, 1),
-                         frame, mask, {}, tmp_path)
+    tex = PolygonTexture(
+        "front", np.clip(gt + 0.05 * np.sin(np.arange(gt.shape[1]))[None, :, None], 0, 1), frame, mask, {}, tmp_path
+    )
     textures = {"front": tex, "back": tex}
     monkeypatch.setenv("TORCH_HOME", str(tmp_path / "torch"))  # no torchvision AlexNet weights here
     o = evaluate_maps(tmp_path, textures, EvaluateConfig(lpips="lpips"))["overall"]
-    assert o["lpips"] is None and o["lpips_variant"].startswith("unavailable: classic LPIPS needs torchvision's AlexNet")
+    assert o["lpips"] is None and o["lpips_variant"].startswith(
+        "unavailable: classic LPIPS needs torchvision's AlexNet"
+    )
     assert caplog.text.count("unavailable") == 1  # once per evaluation, not per polygon
     o = evaluate_maps(tmp_path, textures, EvaluateConfig(lpips="none"))["overall"]
     assert (o["lpips"], o["lpips_variant"]) == (None, "none")
@@ -147,7 +172,7 @@ def test_map_metrics_at_another_resolution_resample_first(tmp_path):
 
 
 def test_render_proxy_reproduces_the_texture_at_each_pixel(tmp_path):
-    from difftex.scene import load_scene
+    from difftex.scene.loading import load_scene
 
     root = make_scene(tmp_path / "s", size=(96, 72))
     sc = load_scene(root)
@@ -168,7 +193,7 @@ def test_render_proxy_reproduces_the_texture_at_each_pixel(tmp_path):
 
 
 def test_prepare_holdout_removes_the_photos_from_the_model(tmp_path):
-    from difftex.scene import load_scene
+    from difftex.scene.loading import load_scene
 
     root = make_scene(tmp_path / "s", centers=((0, -6, 1), (2, -6, 1.5), (-2, -5, 0.5), (1, -7, 1)))
     info = prepare_holdout(root, 1, tmp_path / "copy")
@@ -188,7 +213,7 @@ def test_prepare_holdout_removes_the_photos_from_the_model(tmp_path):
 
 @pytest.mark.skipif(not (SHARED / "lund-door").is_dir(), reason="shared real scenes not present")
 def test_prepare_holdout_on_a_real_scene_keeps_tracks_consistent(tmp_path):
-    from difftex.camera import read_reconstruction
+    from difftex.scene.camera import read_reconstruction
 
     info = prepare_holdout(SHARED / "lund-door", 2, tmp_path / "copy")
     rec = read_reconstruction(tmp_path / "copy" / "sparse" / "0")
@@ -199,8 +224,9 @@ def test_prepare_holdout_on_a_real_scene_keeps_tracks_consistent(tmp_path):
 
 def test_textured_obj_reads_back_into_the_uv_frames(tmp_path):
     """texrecon's output is read back with import_obj; difftex's own assembled OBJ is a known answer."""
-    from difftex.assemble import AssembleConfig, PolygonTexture as AT, assemble
-    from difftex.texrecon import import_obj
+    from difftex.evaluation.peers.texrecon import import_obj
+    from difftex.export.assemble import AssembleConfig, assemble
+    from difftex.export.assemble import PolygonTexture as AT
 
     p = poly()
     frame = uv_frame(p, UP, long_side=64)
@@ -213,15 +239,19 @@ def test_textured_obj_reads_back_into_the_uv_frames(tmp_path):
 
 
 def test_texrecon_cam_file_encodes_the_camera(tmp_path):
-    from difftex.scene import load_scene
-    from difftex.texrecon import cam_file_text
+    from difftex.evaluation.peers.texrecon import cam_file_text
+    from difftex.scene.loading import load_scene
 
     ph = load_scene(make_scene(tmp_path / "s", size=(96, 72))).photos[0]
     l1, l2 = [list(map(float, ln.split())) for ln in cam_file_text(ph).splitlines()]
     np.testing.assert_allclose(l1[:3], ph.t, atol=1e-9)
     np.testing.assert_allclose(np.reshape(l1[3:], (3, 3)), ph.R, atol=1e-9)
     K = ph.K()
-    assert l2[0] * 96 == pytest.approx(K[0, 0]) and l2[4] * 96 == pytest.approx(K[0, 2]) and l2[5] * 72 == pytest.approx(K[1, 2])
+    assert (
+        l2[0] * 96 == pytest.approx(K[0, 0])
+        and l2[4] * 96 == pytest.approx(K[0, 2])
+        and l2[5] * 72 == pytest.approx(K[1, 2])
+    )
 
 
 @pytest.mark.slow
@@ -234,20 +264,70 @@ def test_evaluate_command_on_a_held_out_scene_copy(tmp_path):
     root = make_scene(tmp_path / "s", centers=((0, -6, 1), (2, -6, 1.5), (-2, -5, 0.5), (1, -7, 1)))
     prepare_holdout(root, ["img01.png"], tmp_path / "copy")
     cfg = tmp_path / "cfg.yaml"
-    cfg.write_text("texture: {long_side: 32}\nvisibility: {min_texels: 4}\ncompute: {device: cpu}\nevaluate: {lpips: none, render_long_side: 96}\n")
+    cfg.write_text(
+        "texture: {long_side: 32}\nvisibility: {min_texels: 4}\ncompute: {device: cpu}\nevaluate: {lpips: none, "
+        "render_long_side: 96}\n"
+    )
     R = tmp_path / "R"
-    assert main(["visibility", "--quiet", "--scene", str(tmp_path / "copy"), "--config", str(cfg), "--out-dir", str(R / "visibility")]) == 0
-    assert main(["baseline", "--scene", str(tmp_path / "copy"), "--visibility", str(R / "visibility" / "front.npz"),
-                 "--config", str(cfg), "--method", "frontal", "--out-dir", str(R / "textures" / "front")]) == 0
+    assert (
+        main(
+            [
+                "visibility",
+                "--quiet",
+                "--scene",
+                str(tmp_path / "copy"),
+                "--config",
+                str(cfg),
+                "--out-dir",
+                str(R / "visibility"),
+            ]
+        )
+        == 0
+    )
+    assert (
+        main(
+            [
+                "baseline",
+                "--scene",
+                str(tmp_path / "copy"),
+                "--visibility",
+                str(R / "visibility" / "front.npz"),
+                "--config",
+                str(cfg),
+                "--method",
+                "frontal",
+                "--out-dir",
+                str(R / "textures" / "front"),
+            ]
+        )
+        == 0
+    )
     out = R / "evaluation" / "metrics.json"
-    assert main(["evaluate", "--quiet", "--scene", str(tmp_path / "copy"), "--results", str(R), "--config", str(cfg),
-                 "--out", str(out)]) == 0
+    assert (
+        main(
+            [
+                "evaluate",
+                "--quiet",
+                "--scene",
+                str(tmp_path / "copy"),
+                "--results",
+                str(R),
+                "--config",
+                str(cfg),
+                "--out",
+                str(out),
+            ]
+        )
+        == 0
+    )
     m = json.loads(out.read_text())
     assert m["views"]["held_out"] == ["img01.png"] and m["views"]["overall"]["views"] == 1
     assert m["views"]["views"][0]["compared_pixels"] > 100
     # the photos are noise and the texture comes from other noise photos: no structure in common
     assert -0.2 < m["views"]["overall"]["ssim"] < 0.3
-    assert 0 < m["perspective"]["q_front"] <= 1 and m["perspective"]["polygons"]["front"]["q_source"].startswith("dominant")
+    assert 0 < m["perspective"]["q_front"] <= 1 and m["perspective"]["polygons"]["front"]["q_source"].startswith(
+        "dominant"
+    )
     assert (R / "evaluation" / "views" / "img01_render.png").is_file()
     # a bad scene is one line naming it
     assert main(["evaluate", "--scene", str(tmp_path / "nope"), "--results", str(R), "--out", str(out)]) == 2

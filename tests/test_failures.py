@@ -19,7 +19,8 @@ import numpy as np
 import pytest
 
 from difftex.cli import main
-from difftex.io import read_image, read_json, write_image
+from difftex.scene.files import read_image, read_json, write_image
+
 from tests import breakage as B
 
 
@@ -204,7 +205,12 @@ def _proxy_vertex(fn):
 
 CASES = [
     # cameras.txt
-    ("camera-unknown-model", _cam(0, _set(1, "FOO")), "error", ["cameras.txt:", "camera 1", "unknown camera model 'FOO'"]),
+    (
+        "camera-unknown-model",
+        _cam(0, _set(1, "FOO")),
+        "error",
+        ["cameras.txt:", "camera 1", "unknown camera model 'FOO'"],
+    ),
     ("camera-nan-param", _cam(0, _set(4, "nan")), "error", ["cameras.txt:", "camera 1", "not finite"]),
     ("camera-inf-param", _cam(0, _set(6, "inf")), "error", ["cameras.txt:", "camera 1", "not finite"]),
     ("camera-focal-zero", _cam(0, _set(4, "0")), "error", ["cameras.txt:", "camera 1", "focal length 0"]),
@@ -216,11 +222,20 @@ CASES = [
     ("camera-garbage-line", _append_text("sparse/0/cameras.txt", "garbage\n"), "error", ["cameras.txt:", "expected"]),
     ("camera-defined-twice", _duplicate_camera, "error", ["cameras.txt:", "camera 1 is defined twice"]),
     ("cameras-empty", _write_text("sparse/0/cameras.txt", "# nothing\n"), "error", ["cameras.txt", "no cameras"]),
-    ("camera-huge-distortion", _cam(0, lambda t: [t[0], "SIMPLE_RADIAL", t[2], t[3], t[4], t[6], t[7], "50"]),
-     "error", ["cameras.txt:", "camera 1", "distortion"]),
+    (
+        "camera-huge-distortion",
+        _cam(0, lambda t: [t[0], "SIMPLE_RADIAL", t[2], t[3], t[4], t[6], t[7], "50"]),
+        "error",
+        ["cameras.txt:", "camera 1", "distortion"],
+    ),
     # images.txt
     ("image-nan-pose", _img(0, _set(5, "nan")), "error", ["images.txt:", "not finite"]),
-    ("image-zero-quaternion", _img(1, lambda t: [t[0], "0", "0", "0", "0", *t[5:]]), "error", ["images.txt:", "quaternion is zero"]),
+    (
+        "image-zero-quaternion",
+        _img(1, lambda t: [t[0], "0", "0", "0", "0", *t[5:]]),
+        "error",
+        ["images.txt:", "quaternion is zero"],
+    ),
     ("image-listed-twice", _listed_twice, "error", ["images.txt:", "listed twice", "image ids"]),
     ("image-id-twice", _duplicate_image_id, "error", ["images.txt:", "is used twice"]),
     ("image-unknown-camera", _img(0, _set(8, "7")), "error", ["images.txt:", "uses camera 7"]),
@@ -236,7 +251,12 @@ CASES = [
     ("photo-corrupt-header", _image_bytes(lambda b: b"not a png at all"), "error", ["img_0003.png"]),
     ("photo-truncated", _image_bytes(lambda b: b[: len(b) // 2]), "error", ["img_0003.png"]),
     ("photo-empty-file", _image_bytes(lambda b: b""), "error", ["img_0003.png"]),
-    ("photo-not-in-model", _extra_photos(1), "warning", ["images", "1 photo is not in the COLMAP model", "zz_extra_0.png"]),
+    (
+        "photo-not-in-model",
+        _extra_photos(1),
+        "warning",
+        ["images", "1 photo is not in the COLMAP model", "zz_extra_0.png"],
+    ),
     ("photos-not-in-model", _extra_photos(3), "warning", ["images", "3 photos are not in the COLMAP model"]),
     # binary models
     ("binary-model", _binary_only, "ok", []),
@@ -253,21 +273,45 @@ CASES = [
     ("proxy-same-names", _same_names, "warning", ["proxy.obj", "'wall00' -> wall00_1, wall00_2"]),
     ("proxy-not-planar", _proxy_vertex(lambda ln: "v -6 -3 0"), "error", ["proxy.obj", "'wall00'", "not planar"]),
     ("proxy-empty", _proxy_text("# nothing\n"), "error", ["proxy.obj", "no usable polygons"]),
-    ("proxy-all-degenerate", _proxy_text("v 0 0 0\nv 1 0 0\nv 2 0 0\ng line\nf 1 2 3\n"), "error", ["proxy.obj", "no usable polygons"]),
+    (
+        "proxy-all-degenerate",
+        _proxy_text("v 0 0 0\nv 1 0 0\nv 2 0 0\ng line\nf 1 2 3\n"),
+        "error",
+        ["proxy.obj", "no usable polygons"],
+    ),
     ("proxy-bad-index", _append_text("proxy.obj", "g bad\nf 1 2 99\n"), "error", ["proxy.obj:", "vertex 99"]),
     ("proxy-malformed-vertex", _proxy_vertex(lambda ln: "v 1 two 3"), "error", ["proxy.obj:", "malformed OBJ line"]),
     ("proxy-nan-vertex", _proxy_vertex(lambda ln: "v nan 0 0"), "error", ["proxy.obj", "non-finite"]),
     ("proxy-missing", _unlink("proxy.obj"), "error", ["no proxy model"]),
-    ("proxy-corrupt-ply", lambda s: ((s / "proxy.obj").unlink(), (s / "proxy.ply").write_bytes(b"ply\ngarbage")), "error", ["proxy.ply"]),
+    (
+        "proxy-corrupt-ply",
+        lambda s: ((s / "proxy.obj").unlink(), (s / "proxy.ply").write_bytes(b"ply\ngarbage")),
+        "error",
+        ["proxy.ply"],
+    ),
     ("proxy-100x", lambda s: B.scale_proxy(s, 100), "error", ["proxy.obj", "does not fit the COLMAP model", "units"]),
     ("proxy-km-wide", lambda s: B.scale_proxy(s, 1000 / 18), "error", ["proxy.obj", "does not fit the COLMAP model"]),
     ("proxy-1mm", lambda s: B.scale_proxy(s, 0.001 / 18), "error", ["proxy.obj", "no usable polygons", "wrong units"]),
-    ("proxy-elsewhere", lambda s: B.transform_proxy(s, lambda V: V + [500.0, 0, 0]), "error", ["proxy.obj", "does not fit"]),
+    (
+        "proxy-elsewhere",
+        lambda s: B.transform_proxy(s, lambda V: V + [500.0, 0, 0]),
+        "error",
+        ["proxy.obj", "does not fit"],
+    ),
     ("proxy-10x-small", lambda s: B.scale_proxy(s, 0.1), "warning", ["proxy.obj", "far from the proxy"]),
     # what the photos see
-    ("polygon-behind-everything", _inside_wall, "warning",
-     ["proxy.obj", "no photo sees 1 of 7 polygons, untextured (grey): hidden (hidden behind other polygons in the"]),
-    ("camera-sees-nothing", lambda s: B.turn_camera_around(s, 4), "warning", ["images", "1 photo sees no proxy polygon"]),
+    (
+        "polygon-behind-everything",
+        _inside_wall,
+        "warning",
+        ["proxy.obj", "no photo sees 1 of 7 polygons, untextured (grey): hidden (hidden behind other polygons in the"],
+    ),
+    (
+        "camera-sees-nothing",
+        lambda s: B.turn_camera_around(s, 4),
+        "warning",
+        ["images", "1 photo sees no proxy polygon"],
+    ),
     ("every-photo-filtered-out", _turn_all, "error", ["images", "every photo was filtered out", "frame and units"]),
     ("all-photos-blurry", _blur_all, "ok", []),
 ]
@@ -396,7 +440,7 @@ def test_full_disk_during_a_write_leaves_nothing(tmp_path, monkeypatch):
     """A writer that fails with ENOSPC half-way: one line naming the final file, the temporary
     file removed, the previous version of the file untouched."""
     from difftex.errors import DifftexError
-    from difftex.io import atomic_path, write_json
+    from difftex.scene.files import atomic_path, write_json
 
     target = tmp_path / "r" / "stats.json"
     write_json(target, {"old": 1})
@@ -412,19 +456,20 @@ def test_full_disk_during_a_write_leaves_nothing(tmp_path, monkeypatch):
 
 def test_cli_turns_os_errors_into_one_line(small_synth_scene, tmp_path, capsys, monkeypatch):
     """An OS error outside the atomic writers (here: reading a photo) is one line naming the file."""
-    import difftex.filtering
+    import difftex.geometry.photo_filter
 
     def fail(path, *a, **k):
         raise PermissionError(errno.EACCES, os.strerror(errno.EACCES), str(path))
 
-    monkeypatch.setattr(difftex.filtering, "decode_photo", fail)
+    monkeypatch.setattr(difftex.geometry.photo_filter, "decode_photo", fail)
     code, err = run_filter(capsys, small_synth_scene, tmp_path)
     assert_error(code, err, "img_0000.png", "Permission denied")
 
 
 @pytest.mark.parametrize("umask, mode", [(0o022, 0o644), (0o002, 0o664), (0o077, 0o600)])
 def test_outputs_follow_the_umask(tmp_path, umask, mode):
-    from difftex.io import write_image as wi, write_json, write_npz
+    from difftex.scene.files import write_image as wi
+    from difftex.scene.files import write_json, write_npz
 
     old = os.umask(umask)
     try:

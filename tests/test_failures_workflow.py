@@ -162,7 +162,7 @@ def test_dry_run_changes_nothing(scene, tmp_path):
 
 def three_polygon_scene(small_synth_scene: Path, dst: Path) -> Path:
     """The small scene with three of its polygons, so that a whole run takes tens of seconds."""
-    from difftex.proxy import load_proxy, write_proxy_obj
+    from difftex.scene.proxy import load_proxy, write_proxy_obj
 
     scene = B.copy_scene(small_synth_scene, dst)
     proxy = load_proxy(scene / "proxy.obj")

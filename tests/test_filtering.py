@@ -6,9 +6,10 @@ import numpy as np
 from scipy.ndimage import gaussian_filter
 
 from difftex.config import FilterConfig
-from difftex.filtering import filter_photos, sharpness
-from difftex.io import write_image
-from difftex.scene import load_scene
+from difftex.geometry.photo_filter import filter_photos, sharpness
+from difftex.scene.files import write_image
+from difftex.scene.loading import load_scene
+
 from tests.scenes import make_scene
 
 

@@ -6,9 +6,10 @@ import numpy as np
 import pycolmap
 import pytest
 
-from difftex.camera import Photo
-from difftex.mapping import map_texels, pixel_to_texel, texel_mask, texel_to_pixel, uv_frame
-from difftex.proxy import Polygon, load_proxy
+from difftex.geometry.frames import map_texels, pixel_to_texel, texel_mask, texel_to_pixel, uv_frame
+from difftex.scene.camera import Photo
+from difftex.scene.proxy import Polygon, load_proxy
+
 from tests.scenes import look_at, wall, write_obj
 
 CAMERA_MODELS = [
@@ -114,7 +115,12 @@ def test_tiny_and_huge_polygons_have_finite_frames_and_masks(scale):
     m = texel_mask(poly, f)
     assert np.isfinite(f.A).all() and f.width == 256 and f.height == 128
     assert m.mean() > 0.98
-    photo = make_photo("PINHOLE", [500.0, 500.0, 320.0, 240.0], center=np.array([1.0, -3.0, 0.5]) * scale, target=np.array([1.0, 0, 0.5]) * scale)
+    photo = make_photo(
+        "PINHOLE",
+        [500.0, 500.0, 320.0, 240.0],
+        center=np.array([1.0, -3.0, 0.5]) * scale,
+        target=np.array([1.0, 0, 0.5]) * scale,
+    )
     mp = map_texels(f, photo)
     assert np.isfinite(mp.pix[mp.valid]).all() and mp.valid.mean() > 0.5
 

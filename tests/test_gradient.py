@@ -8,7 +8,7 @@ import dataclasses
 import pytest
 import torch
 
-from difftex import losses
+from difftex.method import losses
 from difftex.method.config import OptimizeConfig
 from difftex.method.gradient import Adam, texel_data, texel_value_and_grad
 from difftex.method.objective import objective
@@ -37,8 +37,18 @@ def random_level(K: int, H: int, W: int, photos: int, seed: int):
 
 
 @pytest.mark.parametrize("photos", [4, 7])
-@pytest.mark.parametrize("kw", [{}, {"ghost": 0.0}, {"ghost": 0.3, "para_eps": 0.0}, {"ghost_margin": 2.0}, {"use_para": False},
-                                {"use_render": False}, {"use_persp": False}])
+@pytest.mark.parametrize(
+    "kw",
+    [
+        {},
+        {"ghost": 0.0},
+        {"ghost": 0.3, "para_eps": 0.0},
+        {"ghost_margin": 2.0},
+        {"use_para": False},
+        {"use_render": False},
+        {"use_persp": False},
+    ],
+)
 def test_texel_gradient_matches_autograd(photos, kw):
     K, H, W = 4, 9, 11
     idx, visible, mask, colours, Q, cost, theta, G, fixed = random_level(K, H, W, photos, seed=photos)

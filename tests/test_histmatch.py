@@ -6,9 +6,12 @@ import numpy as np
 import pytest
 import torch
 
+from difftex.compose import histmatch
+from difftex.sampling import colour
+from difftex.sampling.photos import PhotoSet
+from difftex.sampling.texels import level_frame, resample_nearest
+
 from analytic import make_input, make_photo, render
-from difftex import colour, histmatch
-from difftex.sampling import PhotoSet, level_frame, resample_nearest
 
 torch.set_num_threads(1)
 
@@ -40,8 +43,9 @@ def matched_before_after(inp, reference: str):
     n = len(inp.photos)
     coarse = level_frame(inp.frame, min(64, max(inp.frame.shape)))
     mask = resample_nearest(inp.texel_mask, inp.frame, coarse)
-    tr, ref = histmatch.mapped_transfers({k: photos.map(k, coarse, mask) for k in range(n)}, n, reference,
-                                         names=[p.name for p in inp.photos])
+    tr, ref = histmatch.mapped_transfers(
+        {k: photos.map(k, coarse, mask) for k in range(n)}, n, reference, names=[p.name for p in inp.photos]
+    )
     before = [photos.map(k, inp.frame, inp.texel_mask) for k in range(n)]
     after = [photos.map(k, inp.frame, inp.texel_mask, tr[k]) for k in range(n)]
     return before, after, ref

@@ -8,8 +8,9 @@ import numpy as np
 import pytest
 
 from difftex.cli import main
-from difftex.io import write_image
-from difftex.proxy import load_proxy
+from difftex.scene.files import write_image
+from difftex.scene.proxy import load_proxy
+
 from tests.scenes import make_scene, wall, write_obj
 
 
@@ -52,7 +53,9 @@ def test_truncated_image_fails_when_read(scene, capsys, tmp_path):
     p = scene / "images" / "img02.png"
     data = p.read_bytes()
     p.write_bytes(data[: len(data) // 2])
-    code, err = run_cli(capsys, "filter", "--scene", str(scene), "--out", str(tmp_path / "out" / "photos.json"), "--quiet")
+    code, err = run_cli(
+        capsys, "filter", "--scene", str(scene), "--out", str(tmp_path / "out" / "photos.json"), "--quiet"
+    )
     assert_one_line_error(code, err, "img02.png")
     assert not (tmp_path / "out" / "photos.json").exists()  # no half-written output
 
@@ -111,7 +114,7 @@ def test_unsupported_proxy_format(scene, capsys):
 
 
 def test_camera_that_sees_nothing_is_dropped_with_its_reason(tmp_path, capsys):
-    from difftex.io import read_json
+    from difftex.scene.files import read_json
 
     root = make_scene(tmp_path / "s", centers=[(0.0, -6.0, 1.0), (0.5, -6.0, 1.0), (0.0, 6.0, 1.0)])
     out = tmp_path / "r" / "photos.json"
@@ -126,5 +129,7 @@ def test_camera_that_sees_nothing_is_dropped_with_its_reason(tmp_path, capsys):
 def test_bad_config_key(scene, capsys, tmp_path):
     cfg = tmp_path / "c.yaml"
     cfg.write_text("filter:\n  blurr_ratio: 0.2\n")
-    code, err = run_cli(capsys, "filter", "--scene", str(scene), "--config", str(cfg), "--out", str(tmp_path / "x.json"))
+    code, err = run_cli(
+        capsys, "filter", "--scene", str(scene), "--config", str(cfg), "--out", str(tmp_path / "x.json")
+    )
     assert_one_line_error(code, err, "blurr_ratio", "unknown key")

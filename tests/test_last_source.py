@@ -10,14 +10,15 @@ from types import SimpleNamespace
 import numpy as np
 import torch
 
-torch.set_num_threads(1)
+from difftex.config import FilterConfig
+from difftex.geometry.photo_filter import filter_photos
+from difftex.scene.files import read_image, read_json
+from difftex.scene.loading import load_scene
 
 from analytic import fast_cfg, gt_texture, make_input, make_photo, optimize, render, write_scene
-from difftex.config import FilterConfig
-from difftex.filtering import filter_photos
-from difftex.io import read_image, read_json
-from difftex.scene import load_scene
 from tests.scenes import make_scene, wall
+
+torch.set_num_threads(1)
 
 # ---------------------------------------------------------------------------------------------
 # The filter
@@ -28,28 +29,68 @@ def test_polygon_seen_only_at_85_degrees_is_textured_not_grey(tmp_path):
     keeps the oblique photos, the texture follows the wall's pattern, and the model summary
     and the end-of-run message say it was textured from oblique photos."""
     from difftex.cli import main
-    from difftex.workflow import format_summary, run_summary
+    from difftex.workflow.glue import format_summary, run_summary
 
-    photos = [make_photo("a.png", 85.0, dist=6.0), make_photo("b.png", -86.0, dist=6.0),
-              make_photo("c.png", 84.0, dist=7.0, pitch_deg=5.0)]
+    photos = [
+        make_photo("a.png", 85.0, dist=6.0),
+        make_photo("b.png", -86.0, dist=6.0),
+        make_photo("c.png", 84.0, dist=7.0, pitch_deg=5.0),
+    ]
     scene = tmp_path / "scene"
     write_scene(scene, photos, [render(ph) for ph in photos])
     cfg = tmp_path / "cfg.yaml"
-    cfg.write_text("texture:\n  density: null\n  long_side: 64\noptimize:\n  long_side_start: 32\n"
-                   "  max_iters_per_level: [40, 20]\ncompute:\n  device: cpu\n")
+    cfg.write_text(
+        "texture:\n  density: null\n  long_side: 64\noptimize:\n  long_side_start: 32\n"
+        "  max_iters_per_level: [40, 20]\ncompute:\n  device: cpu\n"
+    )
     R = tmp_path / "R"
-    assert main(["filter", "--scene", str(scene), "--config", str(cfg), "--out", str(R / "photos.json"), "--quiet"]) == 0
+    assert (
+        main(["filter", "--scene", str(scene), "--config", str(cfg), "--out", str(R / "photos.json"), "--quiet"]) == 0
+    )
     poly = read_json(R / "photos.json")["polygons"]["wall"]
     assert poly["textured_from_oblique"] and sorted(poly["kept"]) == ["a.png", "b.png", "c.png"]
     angles = poly["oblique_angles"]
     assert all(80 < a < 88 for a in angles.values()) and list(angles.values()) == sorted(angles.values())
-    assert main(["visibility", "--scene", str(scene), "--photos", str(R / "photos.json"), "--config", str(cfg),
-                 "--out-dir", str(R / "visibility"), "--quiet"]) == 0
+    assert (
+        main(
+            [
+                "visibility",
+                "--scene",
+                str(scene),
+                "--photos",
+                str(R / "photos.json"),
+                "--config",
+                str(cfg),
+                "--out-dir",
+                str(R / "visibility"),
+                "--quiet",
+            ]
+        )
+        == 0
+    )
     row = read_json(R / "visibility" / "summary.json")["polygons"][0]
     assert len(row["photos"]) == 3 and row["coverage"] > 0.9 and row["textured_from_oblique"]
-    assert main(["texture", "--scene", str(scene), "--visibility", str(R / "visibility" / "wall.npz"), "--config", str(cfg),
-                 "--threads", "1", "--out-dir", str(R / "optimized" / "wall"), "--png-dir", str(R / "textures" / "wall"),
-                 "--no-progress"]) == 0
+    assert (
+        main(
+            [
+                "texture",
+                "--scene",
+                str(scene),
+                "--visibility",
+                str(R / "visibility" / "wall.npz"),
+                "--config",
+                str(cfg),
+                "--threads",
+                "1",
+                "--out-dir",
+                str(R / "optimized" / "wall"),
+                "--png-dir",
+                str(R / "textures" / "wall"),
+                "--no-progress",
+            ]
+        )
+        == 0
+    )
     tex = read_image(R / "textures" / "wall" / "texture.png")
     inp = make_input(photos, [render(ph) for ph in photos], long_side=64)
     gt = gt_texture(inp)
@@ -58,8 +99,22 @@ def test_polygon_seen_only_at_85_degrees_is_textured_not_grey(tmp_path):
     rows_tex, rows_gt = tex[..., 2].mean(1), gt[..., 2].mean(1)
     assert np.corrcoef(rows_tex, rows_gt)[0, 1] > 0.9
     assert np.abs(tex - 0.5).max() > 0.2
-    assert main(["assemble", "--scene", str(scene), "--textures", str(R / "textures"), "--config", str(cfg),
-                 "--out-dir", str(R / "model")]) == 0
+    assert (
+        main(
+            [
+                "assemble",
+                "--scene",
+                str(scene),
+                "--textures",
+                str(R / "textures"),
+                "--config",
+                str(cfg),
+                "--out-dir",
+                str(R / "model"),
+            ]
+        )
+        == 0
+    )
     summary = read_json(R / "model" / "summary.json")
     assert summary["untextured"] == [] and set(summary["textured_from_oblique"]["wall"]) == {"a.png", "b.png", "c.png"}
     text = format_summary(run_summary(R))
@@ -102,15 +157,21 @@ def test_untextured_polygons_are_named_with_the_reason(tmp_path, caplog):
 def test_blurry_photos_are_the_reason_only_when_every_photo_of_it_is_blurry(tmp_path):
     from scipy.ndimage import gaussian_filter
 
-    from difftex.io import write_image
+    from difftex.scene.files import write_image
 
     # three cameras see the front wall, the fourth (to be blurred) only the side wall
-    root = make_scene(tmp_path / "s", polygons={"front": wall(-2, 2, 0, 2), "side": wall(8, 9, 0, 2)},
-                      centers=[(-1.0, -6.0, 1.0), (-0.5, -6.0, 1.0), (0.0, -6.0, 1.0), (8.5, -6.0, 1.0)],
-                      target=[(0.0, 0.0, 1.0)] * 3 + [(8.5, 0.0, 1.0)])
+    root = make_scene(
+        tmp_path / "s",
+        polygons={"front": wall(-2, 2, 0, 2), "side": wall(8, 9, 0, 2)},
+        centers=[(-1.0, -6.0, 1.0), (-0.5, -6.0, 1.0), (0.0, -6.0, 1.0), (8.5, -6.0, 1.0)],
+        target=[(0.0, 0.0, 1.0)] * 3 + [(8.5, 0.0, 1.0)],
+    )
     sc = load_scene(root)
-    seen_by = [ph.name for ph in sc.photos
-               if "side" in filter_photos(sc.proxy, [ph], FilterConfig(), progress=False)["photos"][0]["polygons"]]
+    seen_by = [
+        ph.name
+        for ph in sc.photos
+        if "side" in filter_photos(sc.proxy, [ph], FilterConfig(), progress=False)["photos"][0]["polygons"]
+    ]
     assert seen_by == ["img03.png"]
     img = read_image(root / "images" / "img03.png")
     write_image(root / "images" / "img03.png", gaussian_filter(img, (3, 3, 0)))
@@ -122,11 +183,15 @@ def test_blurry_photos_are_the_reason_only_when_every_photo_of_it_is_blurry(tmp_
 def test_angle_filter_keeps_the_frontal_photos_when_there_are_some(tmp_path):
     root = make_scene(tmp_path / "s", centers=[(0.0, -6.0, 1.0), (8.0, -0.6, 1.0)], target=(0.0, 0.0, 1.0))
     sc = load_scene(root)
-    poly = filter_photos(sc.proxy, sc.photos, FilterConfig(max_angle_deg=70.0, min_pixels=4), progress=False)["polygons"]["front"]
+    poly = filter_photos(sc.proxy, sc.photos, FilterConfig(max_angle_deg=70.0, min_pixels=4), progress=False)[
+        "polygons"
+    ]["front"]
     assert poly["kept"] == ["img00.png"] and not poly["textured_from_oblique"]
     assert list(poly["inclined"]) == ["img01.png"] and "inclined" in poly["dropped"]["img01.png"]
     # with every photo beyond the limit, all of them are kept, least oblique first in the record
-    poly = filter_photos(sc.proxy, sc.photos, FilterConfig(max_angle_deg=1.0, min_pixels=4), progress=False)["polygons"]["front"]
+    poly = filter_photos(sc.proxy, sc.photos, FilterConfig(max_angle_deg=1.0, min_pixels=4), progress=False)[
+        "polygons"
+    ]["front"]
     assert poly["textured_from_oblique"] and poly["kept"] == ["img00.png", "img01.png"] and poly["dropped"] == {}
     assert list(poly["oblique_angles"]) == ["img00.png", "img01.png"]
 
@@ -140,16 +205,18 @@ def _sighting(name, cos):
 
 
 def test_last_sources_rescue_only_photos_that_add_texels():
-    from difftex.visibility import last_sources
+    from difftex.geometry.visibility import last_sources
 
     mask = np.ones((4, 6), bool)
     left = np.zeros_like(mask)
     left[:, :3] = True
     right = ~left
     kept = [(_sighting("front", 0.9), None, left)]
-    spare = [(_sighting("copy", 0.3), None, left.copy(), "inclined (83 deg > 80)"),  # adds nothing
-             (_sighting("edge", 0.1), None, right, "inclined (85 deg > 80)"),
-             (_sighting("side", 0.2), None, right, "inclined (84 deg > 80)")]  # less oblique: tried first
+    spare = [
+        (_sighting("copy", 0.3), None, left.copy(), "inclined (83 deg > 80)"),  # adds nothing
+        (_sighting("edge", 0.1), None, right, "inclined (85 deg > 80)"),
+        (_sighting("side", 0.2), None, right, "inclined (84 deg > 80)"),
+    ]  # less oblique: tried first
     out, rescued = last_sources(kept, spare, mask)
     assert [k[0].name for k in out] == ["front", "side"]
     assert rescued == {"side": {"texels": 12, "why": "inclined (84 deg > 80)"}}
@@ -165,7 +232,7 @@ def test_inclined_photo_returns_for_the_texels_only_it_sees(tmp_path):
     """A frontal close-up sees the left part of the wall; an oblique photo sees all of it. The
     filter drops the oblique one (inclined), the visibility stage takes it back for the rest."""
     from difftex.config import TextureConfig
-    from difftex.visibility import scene_visibility
+    from difftex.geometry.visibility import scene_visibility
 
     root = make_scene(tmp_path / "s", centers=[(-1.2, -1.5, 1.0), (8.0, -1.0, 1.0)], target=(-1.2, 0.0, 1.0))
     sc = load_scene(root)
@@ -175,17 +242,26 @@ def test_inclined_photo_returns_for_the_texels_only_it_sees(tmp_path):
     tex = TextureConfig(density=None, long_side=64)
     cands = {"front": d["kept"]}
     alone = scene_visibility(sc.proxy, sc.photos, sc.up, cands, tex, progress=False)[0]
-    both = scene_visibility(sc.proxy, sc.photos, sc.up, cands, tex, progress=False,
-                            fallback={"front": {"img01.png": d["dropped"]["img01.png"]}})[0]
+    both = scene_visibility(
+        sc.proxy,
+        sc.photos,
+        sc.up,
+        cands,
+        tex,
+        progress=False,
+        fallback={"front": {"img01.png": d["dropped"]["img01.png"]}},
+    )[0]
     assert alone.photos == ["img00.png"] and 0.2 < alone.coverage < 0.9
     assert both.photos == ["img00.png", "img01.png"] and both.coverage > alone.coverage + 0.1
     assert both.rescued["img01.png"]["why"].startswith("inclined")
-    assert both.rescued["img01.png"]["texels"] == int((both.texel_visible.any(0) & ~alone.texel_visible[0] & both.texel_mask).sum())
+    assert both.rescued["img01.png"]["texels"] == int(
+        (both.texel_visible.any(0) & ~alone.texel_visible[0] & both.texel_mask).sum()
+    )
 
 
 def test_min_texels_does_not_take_a_polygons_only_photos(tmp_path):
     from difftex.config import TextureConfig
-    from difftex.visibility import scene_visibility
+    from difftex.geometry.visibility import scene_visibility
 
     root = make_scene(tmp_path / "s")
     sc = load_scene(root)
@@ -239,16 +315,23 @@ def test_photo_drop_keeps_the_texels_only_the_dropped_photo_sees():
 
 def test_model_summary_and_end_message_name_the_untextured_with_their_reason():
     from difftex.cli.assemble import polygon_notes
-    from difftex.workflow import format_summary
+    from difftex.workflow.glue import format_summary
 
-    rows = [{"id": "front", "textured": True, "coverage": 1.0, "photos": 3, "texture_size": [64, 32]},
-            {"id": "side", "textured": True, "coverage": 0.8, "photos": 1, "texture_size": [16, 32]},
-            {"id": "inner", "textured": False, "coverage": 0.0, "photos": 0, "texture_size": None},
-            {"id": "lost", "textured": False, "coverage": 0.0, "photos": 0, "texture_size": None}]
+    rows = [
+        {"id": "front", "textured": True, "coverage": 1.0, "photos": 3, "texture_size": [64, 32]},
+        {"id": "side", "textured": True, "coverage": 0.8, "photos": 1, "texture_size": [16, 32]},
+        {"id": "inner", "textured": False, "coverage": 0.0, "photos": 0, "texture_size": None},
+        {"id": "lost", "textured": False, "coverage": 0.0, "photos": 0, "texture_size": None},
+    ]
     summary = {"polygons": rows, "untextured": ["inner", "lost"]}
-    info = {"front": {"photos": ["a", "b", "c"]},
-            "side": {"photos": ["a"], "textured_from_oblique": True, "oblique_angles": {"a": 84.6}},
-            "inner": {"photos": [], "untextured_reason": "hidden behind other polygons in the 3 photo(s) that have it in view"}}
+    info = {
+        "front": {"photos": ["a", "b", "c"]},
+        "side": {"photos": ["a"], "textured_from_oblique": True, "oblique_angles": {"a": 84.6}},
+        "inner": {
+            "photos": [],
+            "untextured_reason": "hidden behind other polygons in the 3 photo(s) that have it in view",
+        },
+    }
     info["front"]["rescued"] = {"c": {"texels": 40, "why": "inclined (84.0 deg > 80.0)"}}
     polygon_notes(summary, info)
     assert summary["textured_from_oblique"] == {"side": {"a": 84.6}}
@@ -259,7 +342,9 @@ def test_model_summary_and_end_message_name_the_untextured_with_their_reason():
     assert lines[0] == "difftex: 2/4 polygons textured"
     assert any(ln.startswith("  side") and "oblique only (85 deg)" in ln for ln in lines)
     assert any(ln.startswith("  front") and "1 of them only for texels no other photo sees" in ln for ln in lines)
-    assert "textured from oblique photos only (every photo sees them beyond filter.max_angle_deg): side (85 deg)" in lines
+    assert (
+        "textured from oblique photos only (every photo sees them beyond filter.max_angle_deg): side (85 deg)" in lines
+    )
     i = lines.index("untextured (grey), no photo sees them:")
     assert lines[i + 1] == "  inner: hidden behind other polygons in the 3 photo(s) that have it in view"
     assert lines[i + 2].startswith("  lost: no visibility record")

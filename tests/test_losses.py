@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import torch
 
-from difftex import losses
+from difftex.method import losses
 
 torch.set_num_threads(1)
 

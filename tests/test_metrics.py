@@ -1,4 +1,4 @@
-"""Known-answer tests for difftex.metrics, and its metrics against piq / scikit-image / the reference
+"""Known-answer tests for difftex.evaluation.metrics, and its metrics against piq / scikit-image / the reference
 LPIPS packages on the same image pairs."""
 
 from __future__ import annotations
@@ -11,8 +11,8 @@ import pytest
 import torch
 from scipy import ndimage
 
-from difftex import metrics
 from difftex.errors import DifftexError
+from difftex.evaluation import metrics
 
 
 def texture(size=64, smooth=1.5, seed=0):
@@ -55,9 +55,15 @@ def test_ssim_full_mask_equals_skimage_mean():
     from skimage.metrics import structural_similarity
 
     img, ref = blur(texture(), 1.0), texture()
-    expected = structural_similarity(img.astype(np.float64), ref.astype(np.float64), data_range=1.0,
-                                     channel_axis=2, gaussian_weights=True, sigma=1.5,
-                                     use_sample_covariance=False)
+    expected = structural_similarity(
+        img.astype(np.float64),
+        ref.astype(np.float64),
+        data_range=1.0,
+        channel_axis=2,
+        gaussian_weights=True,
+        sigma=1.5,
+        use_sample_covariance=False,
+    )
     assert metrics.ssim(img, ref) == pytest.approx(expected, abs=1e-9)
     assert metrics.ssim(img, ref, np.ones(img.shape[:2], bool)) == pytest.approx(expected, abs=1e-9)
 
@@ -67,7 +73,7 @@ def test_ssim_mask_ignores_texels_outside():
     img = ref.copy()
     img[:, 32:] = np.random.default_rng(3).random((64, 32, 3))  # right half ruined
     mask = np.zeros((64, 64), bool)
-    mask[:, :32 - 5] = True  # 5 = half window: the SSIM windows there see only the intact half
+    mask[:, : 32 - 5] = True  # 5 = half window: the SSIM windows there see only the intact half
     assert metrics.ssim(img, ref, mask) == pytest.approx(1.0, abs=1e-9)
     assert metrics.ssim(img, ref) < 0.9
 
@@ -197,8 +203,6 @@ def test_view_directions_blend_and_dominant():
     assert not metrics.view_directions(pts, centres, w)[0, 0].any()
 
 
-
-
 # --- agreement with piq and scikit-image on known pairs -------------------------------------------
 #
 # The evaluation's SSIM is scikit-image's map averaged over a mask (piq has no map output, see the
@@ -224,16 +228,28 @@ def piq_ssim(a, b, **kw):
 def skimage_ssim(a, b):
     from skimage.metrics import structural_similarity
 
-    return structural_similarity(np.float64(a), np.float64(b), data_range=1.0, channel_axis=2,
-                                 gaussian_weights=True, sigma=1.5, use_sample_covariance=False)
+    return structural_similarity(
+        np.float64(a),
+        np.float64(b),
+        data_range=1.0,
+        channel_axis=2,
+        gaussian_weights=True,
+        sigma=1.5,
+        use_sample_covariance=False,
+    )
 
 
 def known_pairs():
     ref = texture(64, smooth=1.0, seed=5)
     noisy = np.clip(ref + np.random.default_rng(11).normal(0, 0.05, ref.shape), 0, 1).astype(np.float32)
-    return {"identical": (ref, ref), "noise": (noisy, ref), "blur": (blur(ref, 1.0), ref),
-            "shift": (np.roll(ref, 1, axis=1), ref), "black vs white": (np.zeros_like(ref), np.ones_like(ref)),
-            "constant 0.2 vs 0.7": (np.full_like(ref, 0.2), np.full_like(ref, 0.7))}
+    return {
+        "identical": (ref, ref),
+        "noise": (noisy, ref),
+        "blur": (blur(ref, 1.0), ref),
+        "shift": (np.roll(ref, 1, axis=1), ref),
+        "black vs white": (np.zeros_like(ref), np.ones_like(ref)),
+        "constant 0.2 vs 0.7": (np.full_like(ref, 0.2), np.full_like(ref, 0.7)),
+    }
 
 
 def triangle_mask(h, w):
@@ -282,7 +298,7 @@ def test_masked_ssim_equals_piq_per_window():
     img, ref = known_pairs()["noise"]
     mask = triangle_mask(64, 64)
     ys, xs = np.nonzero(mask & np.pad(np.ones((54, 54), bool), 5))
-    crops = lambda v: np.stack([v[y - 5:y + 6, x - 5:x + 6] for y, x in zip(ys, xs)])  # noqa: E731
+    crops = lambda v: np.stack([v[y - 5 : y + 6, x - 5 : x + 6] for y, x in zip(ys, xs)])  # noqa: E731
     per_window = piq_ssim(crops(img), crops(ref), downsample=False, reduction="none").numpy()
     assert metrics.ssim(img, ref, mask) == pytest.approx(float(per_window.mean()), abs=1e-12)
     # The naive per-region call, piq on the mask's bounding rectangle, averages other windows.
@@ -310,8 +326,9 @@ def test_psnr_against_piq_and_skimage():
     mask = triangle_mask(64, 64)
     ours = metrics.psnr(img, ref, mask)
     x, y = (as_batch(v[mask][:, None, None, :]).permute(2, 1, 0, 3) for v in (img, ref))  # (1, 3, n, 1)
-    assert ours == pytest.approx(peak_signal_noise_ratio(np.float64(ref[mask]), np.float64(img[mask]), data_range=1.0),
-                                 abs=1e-9)
+    assert ours == pytest.approx(
+        peak_signal_noise_ratio(np.float64(ref[mask]), np.float64(img[mask]), data_range=1.0), abs=1e-9
+    )
     # piq adds 1e-8 to the MSE, so it reads 10 log10(1 + 1e-8 / MSE) dB lower, and 80 dB for equal images.
     mse = 10 ** (-ours / 10)
     assert float(piq.psnr(x, y, data_range=1.0)) == pytest.approx(ours - 10 * math.log10(1 + 1e-8 / mse), abs=1e-9)
@@ -350,10 +367,14 @@ def test_stlpips_equals_reference_package():
     a, b = texture(48, seed=1)[:, :40], texture(48, seed=2)[:, :40]
     mask = triangle_mask(48, 40)
     with torch.no_grad():
-        plain = float(stlpips.LPIPS(net="alex", variant="shift_tolerant", verbose=False)(
-            as_tensor(a), as_tensor(b), normalize=True))
+        plain = float(
+            stlpips.LPIPS(net="alex", variant="shift_tolerant", verbose=False)(
+                as_tensor(a), as_tensor(b), normalize=True
+            )
+        )
         dmap = stlpips.LPIPS(net="alex", variant="shift_tolerant", spatial=True, verbose=False)(
-            as_tensor(a), as_tensor(b), normalize=True)[0, 0].numpy()
+            as_tensor(a), as_tensor(b), normalize=True
+        )[0, 0].numpy()
     value, label = metrics.lpips(a, b, variant="stlpips")
     assert value == pytest.approx(plain, rel=1e-6)
     assert metrics.lpips(a, b, mask, variant="stlpips")[0] == pytest.approx(float(dmap[mask].mean()), rel=1e-6)
@@ -372,14 +393,19 @@ def test_classic_lpips_equals_reference_package(hub_alexnet):
     for variant in ("lpips", "auto"):  # auto prefers classic LPIPS when its weights are on disk
         value, label = metrics.lpips(a, b, variant=variant)
         assert value == pytest.approx(expected, rel=1e-6)
-        assert label.startswith("LPIPS v0.1 (lpips 0.1.4, AlexNet: torchvision ImageNet weights alexnet-owt-7be5be79.pth")
+        assert label.startswith(
+            "LPIPS v0.1 (lpips 0.1.4, AlexNet: torchvision ImageNet weights alexnet-owt-7be5be79.pth"
+        )
 
 
 def test_classic_lpips_unavailable_without_hub_weights(tmp_path, monkeypatch, caplog):
     monkeypatch.setenv("TORCH_HOME", str(tmp_path))
     value, label = metrics.lpips(texture(), texture(seed=1), variant="lpips")
     assert value is None
-    assert label.startswith("unavailable: ") and str(tmp_path / "hub" / "checkpoints" / "alexnet-owt-7be5be79.pth") in label
+    assert (
+        label.startswith("unavailable: ")
+        and str(tmp_path / "hub" / "checkpoints" / "alexnet-owt-7be5be79.pth") in label
+    )
     assert label in caplog.text
     with pytest.raises(DifftexError, match="unavailable"):
         metrics.lpips(texture(), texture(), variant="lpips", required=True)

@@ -9,13 +9,13 @@ import numpy as np
 import pytest
 import torch
 
-torch.set_num_threads(1)
+from difftex.evaluation.mrf import MRFConfig, energy, level_gains, mrf_texture, patch_sums, run_polygon, solve_labels
+from difftex.geometry.frames import map_texels, texel_mask, uv_frame
+from difftex.sampling.photos import PolygonInput
+from difftex.scene.camera import Photo
+from difftex.scene.proxy import Polygon
 
-from difftex.camera import Photo
-from difftex.mapping import map_texels, texel_mask, uv_frame
-from difftex.mrf import MRFConfig, energy, level_gains, mrf_texture, patch_sums, run_polygon, solve_labels
-from difftex.sampling import PolygonInput
-from difftex.proxy import Polygon
+torch.set_num_threads(1)
 
 WALL_W, WALL_H = 4.0, 3.0
 UP = np.array([0.0, 0.0, 1.0])
@@ -82,7 +82,9 @@ def wall() -> Polygon:
 
 def pattern(x, z):
     chk = ((np.floor(x / 0.25) + np.floor(z / 0.25)) % 2).astype(np.float32)
-    return np.stack([0.2 + 0.6 * chk, 0.3 + 0.2 * np.sin(2.0 * x), 0.25 + 0.5 * chk * (z / WALL_H)], -1).astype(np.float32)
+    return np.stack([0.2 + 0.6 * chk, 0.3 + 0.2 * np.sin(2.0 * x), 0.25 + 0.5 * chk * (z / WALL_H)], -1).astype(
+        np.float32
+    )
 
 
 def make_photo(name, yaw_deg, dist=6.0, f=150.0, size=(160, 120)) -> Photo:
@@ -169,9 +171,11 @@ def test_leveling_removes_an_exposure_step_at_the_seam(tmp_path):
     U0, *_ = mrf_texture(inp, MRFConfig(patch=8, leveling=False, feather=0))
     ref = gt(inp)
     m = inp.texel_mask
+
     # mean colour ratio of the two halves after leveling is that of the truth (one gain off overall)
     def ratio(img):
         return img[m & left].mean() / img[m & ~left].mean()
+
     assert abs(ratio(U) - ratio(ref)) < 0.5 * abs(ratio(U0) - ratio(ref))
     rep = run_polygon(inp, tmp_path / "out", cfg)
     for f in ("texture.png", "source.png", "coverage.png", "report.json"):
@@ -189,7 +193,7 @@ def test_config_rejects_bad_values():
 
 
 def test_consistency_penalty_flags_the_odd_photo_out():
-    from difftex.mrf import consistency_penalty
+    from difftex.evaluation.mrf import consistency_penalty
 
     means = np.full((4, 2, 2, 3), 0.5)
     means[2, 0, 0] = [0.1, 0.6, 0.1]  # an occluder (a green tree) in photo 2, patch (0, 0)

@@ -10,14 +10,27 @@ import numpy as np
 import pytest
 import torch
 
-torch.set_num_threads(1)  # the CI machine has 2 shared cores; intra-op threads only contend
-
-from analytic import (UP, fast_cfg, gt_texture, make_input, make_photo, occluded_region, optimize, paint_occluder,
-                      photo_masks, render, wall, write_scene)
-from difftex.mapping import map_texels, sample_photo
+from difftex.geometry.frames import map_texels, sample_photo
 from difftex.method.config import OptimizeConfig
 from difftex.method.loop import photo_weight
-from difftex.sampling import level_sides
+from difftex.sampling.texels import level_sides
+
+from analytic import (
+    UP,
+    fast_cfg,
+    gt_texture,
+    make_input,
+    make_photo,
+    occluded_region,
+    optimize,
+    paint_occluder,
+    photo_masks,
+    render,
+    wall,
+    write_scene,
+)
+
+torch.set_num_threads(1)  # the CI machine has 2 shared cores; intra-op threads only contend
 
 # ------------------------------------------------------------------------------------------
 
@@ -47,7 +60,7 @@ def test_single_frontal_photo_gives_the_rectified_photo(mode):
     # 128 texels over 4 m: a texel (3.1 cm) is smaller than a pixel (4 cm), so level 0 is sampled
     inp = make_input([ph], [img], long_side=128)
     if mode == "render":
-        from difftex.visibility import id_buffer  # noqa: F401  (only the masks are needed)
+        from difftex.geometry.visibility import id_buffer  # noqa: F401  (only the masks are needed)
 
         inp.a_bbox, inp.a_masks = photo_masks(inp)
     res = optimize(inp, fast_cfg(loss_mode=mode))
@@ -187,7 +200,7 @@ def test_cuda_matches_cpu():
 
 
 def test_fill_holes_fills_everything_and_keeps_known_texels():
-    from difftex.texture import fill_holes
+    from difftex.compose.composite import fill_holes
 
     rng = np.random.default_rng(0)
     img = rng.random((40, 50, 3)).astype(np.float32)
@@ -204,7 +217,7 @@ def test_command_chain_on_the_analytic_wall(tmp_path):
     import json
 
     from difftex.cli import main
-    from difftex.io import read_image
+    from difftex.scene.files import read_image
 
     photos = [make_photo("a.png", -15.0), make_photo("b.png", 5.0), make_photo("c.png", 25.0)]
     imgs = [render(ph) for ph in photos]
@@ -212,21 +225,32 @@ def test_command_chain_on_the_analytic_wall(tmp_path):
     scene = tmp_path / "scene"
     write_scene(scene, photos, imgs)
     cfg = tmp_path / "cfg.yaml"
-    cfg.write_text("texture:\n  long_side: 64\noptimize:\n  long_side_start: 32\n  max_iters_per_level: [100, 60]\n"
-                   "compute:\n  device: cpu\n")
+    cfg.write_text(
+        "texture:\n  long_side: 64\noptimize:\n  long_side_start: 32\n  max_iters_per_level: [100, 60]\n"
+        "compute:\n  device: cpu\n"
+    )
     R = tmp_path / "R"
-    assert main(["visibility", "--scene", str(scene), "--config", str(cfg), "--out-dir", str(R / "visibility"), "--quiet"]) == 0
+    assert (
+        main(["visibility", "--scene", str(scene), "--config", str(cfg), "--out-dir", str(R / "visibility"), "--quiet"])
+        == 0
+    )
     vis = str(R / "visibility" / "wall.npz")
     common = ["--scene", str(scene), "--visibility", vis, "--config", str(cfg), "--threads", "1"]
     assert main(["texture", *common, "--out-dir", str(R / "opt"), "--png-dir", str(R / "tex"), "--no-progress"]) == 0
     assert main(["baseline", *common, "--method", "average", "--out-dir", str(R / "avg")]) == 0
     stats = json.loads((R / "opt" / "stats.json").read_text())
-    assert len(stats["levels"]) == 2 and set(stats["levels"][0]["loss"]) >= {"render", "ghost", "persp", "para", "total"}
+    assert len(stats["levels"]) == 2 and set(stats["levels"][0]["loss"]) >= {
+        "render",
+        "ghost",
+        "persp",
+        "para",
+        "total",
+    }
     report = json.loads((R / "tex" / "report.json").read_text())
     assert report["coverage"] == 1.0 and report["histogram_matching"]
     tex = read_image(R / "tex" / "texture.png")
     avg = read_image(R / "avg" / "texture.png")
-    from difftex.mapping import uv_frame
+    from difftex.geometry.frames import uv_frame
 
     frame = uv_frame(wall(), UP, long_side=64)
     inp = make_input(photos, imgs, long_side=64)

@@ -15,8 +15,9 @@ import numpy as np
 import pytest
 
 from difftex.errors import DifftexError
-from difftex.mapping import texel_mask, uv_frame
-from difftex.proxy import Polygon
+from difftex.geometry.frames import texel_mask, uv_frame
+from difftex.scene.proxy import Polygon
+
 from tests.scenes import look_at, make_scene, wall, write_colmap_text, write_obj
 
 REPO = Path(__file__).resolve().parents[1]
@@ -25,7 +26,7 @@ UP = np.array([0.0, 0.0, 1.0])
 
 
 def load_photo(tmp_path, model="SIMPLE_RADIAL", params=None, size=(160, 120)):
-    from difftex.scene import load_scene
+    from difftex.scene.loading import load_scene
 
     return load_scene(make_scene(tmp_path / "s", size=size, model=model, params=params)).photos[0]
 
@@ -48,7 +49,7 @@ def points_in_view(photo, n=200, seed=0) -> np.ndarray:
     ("OPENCV", [150.0, 148.0, 83.0, 57.0, -0.1, 0.02, 0.001, -0.002]),
 ])
 def test_ideal_camera_sees_each_point_where_the_photo_does(tmp_path, model, params):
-    from difftex.pinhole import ideal_camera, to_source_pixels
+    from difftex.geometry.pinhole import ideal_camera, to_source_pixels
 
     ph = load_photo(tmp_path, model, params)
     cam = ideal_camera(ph)
@@ -69,7 +70,7 @@ def test_ideal_camera_sees_each_point_where_the_photo_does(tmp_path, model, para
 
 
 def test_resampled_photo_shows_the_photo_content_at_the_same_rays(tmp_path):
-    from difftex.pinhole import ideal_camera, resample, to_source_pixels
+    from difftex.geometry.pinhole import ideal_camera, resample, to_source_pixels
 
     ph = load_photo(tmp_path, "SIMPLE_RADIAL", [150.0, 95.0, 50.0, -0.1])
 
@@ -132,16 +133,18 @@ def mve_project(cam_text: str, X: np.ndarray, width: int, height: int) -> np.nda
 @pytest.mark.parametrize("size,params", [((160, 120), [150.0, 95.0, 50.0, -0.1]),  # landscape
                                          ((90, 140), [120.0, 40.0, 80.0, 0.05])])  # portrait
 def test_bundler_and_texrecon_cameras_project_like_difftex(tmp_path, size, params):
-    from difftex.meshlab import bundler_text
-    from difftex.pinhole import ideal_camera, to_source_pixels
-    from difftex.texrecon import cam_file_text
+    from difftex.evaluation.peers.meshlab import bundler_text
+    from difftex.evaluation.peers.texrecon import cam_file_text
+    from difftex.geometry.pinhole import ideal_camera, to_source_pixels
 
     ph = load_photo(tmp_path, "SIMPLE_RADIAL", params, size=size)
     cam = ideal_camera(ph)
     X = points_in_view(ph)
     p_photo, _ = ph.project(X)
-    for p in (bundler_project(bundler_text([cam, cam]), 1, X, cam.width, cam.height),
-              mve_project(cam_file_text(cam), X, cam.width, cam.height)):
+    for p in (
+        bundler_project(bundler_text([cam, cam]), 1, X, cam.width, cam.height),
+        mve_project(cam_file_text(cam), X, cam.width, cam.height),
+    ):
         inside = (p >= 0).all(1) & (p <= [cam.width, cam.height]).all(1)
         assert inside.sum() > 50
         np.testing.assert_allclose(to_source_pixels(ph, cam, p[inside]), p_photo[inside], atol=1e-5)
@@ -150,9 +153,9 @@ def test_bundler_and_texrecon_cameras_project_like_difftex(tmp_path, size, param
 @pytest.mark.skipif(not (SHARED / "herzjesu-p8").is_dir(), reason="shared real scenes not present")
 def test_bundler_export_of_a_real_camera_with_off_centre_principal_point():
     """herzjesu-p8: fx != fy and the principal point 30 px off-centre, so the crop matters."""
-    from difftex.meshlab import bundler_text
-    from difftex.pinhole import ideal_camera, to_source_pixels
-    from difftex.scene import load_scene
+    from difftex.evaluation.peers.meshlab import bundler_text
+    from difftex.geometry.pinhole import ideal_camera, to_source_pixels
+    from difftex.scene.loading import load_scene
 
     sc = load_scene(SHARED / "herzjesu-p8", check_images=False)
     ph = sc.photos[3]
@@ -171,7 +174,9 @@ def test_bundler_export_of_a_real_camera_with_off_centre_principal_point():
 
 def u_with_hole() -> Polygon:
     """A U-shaped (non-convex) wall with a square window: a fan from any corner would cover the notch."""
-    outer = np.array([[0, 0, 0], [6, 0, 0], [6, 0, 4], [4, 0, 4], [4, 0, 1.5], [2, 0, 1.5], [2, 0, 4], [0, 0, 4]], float)
+    outer = np.array(
+        [[0, 0, 0], [6, 0, 0], [6, 0, 4], [4, 0, 4], [4, 0, 1.5], [2, 0, 1.5], [2, 0, 4], [0, 0, 4]], float
+    )
     outer = outer[::-1] if np.cross(outer[1] - outer[0], outer[2] - outer[0])[1] > 0 else outer
     hole = np.array([[4.5, 0, 0.5], [5.5, 0, 0.5], [5.5, 0, 1.0], [4.5, 0, 1.0]], float)
     p = Polygon("u", outer)
@@ -183,8 +188,8 @@ def u_with_hole() -> Polygon:
 def test_proxy_mesh_covers_exactly_the_polygon_with_no_flipped_triangle(max_edge):
     import shapely
 
-    from difftex.meshing import longest_edge, proxy_mesh
-    from difftex.proxy import Proxy
+    from difftex.geometry.meshing import longest_edge, proxy_mesh
+    from difftex.scene.proxy import Proxy
 
     poly = u_with_hole()
     mesh = proxy_mesh(Proxy([poly], Path("u.obj")), max_edge)
@@ -210,8 +215,8 @@ def test_proxy_mesh_covers_exactly_the_polygon_with_no_flipped_triangle(max_edge
 
 
 def test_proxy_mesh_refuses_an_absurd_edge_length():
-    from difftex.meshing import proxy_mesh
-    from difftex.proxy import Proxy
+    from difftex.geometry.meshing import proxy_mesh
+    from difftex.scene.proxy import Proxy
 
     with pytest.raises(DifftexError, match="edge length"):
         proxy_mesh(Proxy([u_with_hole()], Path("u.obj")), 1e-4)
@@ -220,9 +225,9 @@ def test_proxy_mesh_refuses_an_absurd_edge_length():
 
 
 def test_rasterized_mesh_reaches_every_texel_of_the_polygon():
-    from difftex.meshing import proxy_mesh
-    from difftex.objimport import polygon_face_map
-    from difftex.proxy import Proxy
+    from difftex.evaluation.peers.objimport import polygon_face_map
+    from difftex.geometry.meshing import proxy_mesh
+    from difftex.scene.proxy import Proxy
 
     poly = u_with_hole()
     mesh = proxy_mesh(Proxy([poly], Path("u.obj")), 0.3)
@@ -243,8 +248,8 @@ def test_rasterized_mesh_reaches_every_texel_of_the_polygon():
 def test_import_weights_the_atlas_by_its_coverage(tmp_path):
     """Half of the atlas is black (MeshLab's 'no photo'): those texels are uncovered, and the
     covered ones next to them keep their colour (no bleeding of black through bilinear lookups)."""
-    from difftex.io import write_image
-    from difftex.objimport import import_obj
+    from difftex.evaluation.peers.objimport import import_obj
+    from difftex.scene.files import write_image
 
     p = Polygon("front", wall(-2, 2, 0, 2))
     frame = uv_frame(p, UP, long_side=64)
@@ -256,11 +261,17 @@ def test_import_weights_the_atlas_by_its_coverage(tmp_path):
     V = p.outer
     t = frame.world_to_texel(V) / [frame.width, frame.height]  # the atlas spans the frame exactly
     uv = np.stack([t[:, 0], 1 - t[:, 1]], 1)
-    obj = ["mtllib m.mtl", *(f"v {x} {y} {z}" for x, y, z in V), *(f"vt {u} {v}" for u, v in uv), "usemtl m",
-           "f 1/1 2/2 3/3", "f 1/1 3/3 4/4"]
+    obj = [
+        "mtllib m.mtl",
+        *(f"v {x} {y} {z}" for x, y, z in V),
+        *(f"vt {u} {v}" for u, v in uv),
+        "usemtl m",
+        "f 1/1 2/2 3/3",
+        "f 1/1 3/3 4/4",
+    ]
     (tmp_path / "m.obj").write_text("\n".join(obj) + "\n")
     tex, cov = import_obj(tmp_path / "m.obj", {"front": frame}, {"front": mask}, coverage="nonblack")["front"]
-    assert not cov[:, : frame.width // 2 - 1].any() and cov[:, frame.width // 2 + 1:].all()
+    assert not cov[:, : frame.width // 2 - 1].any() and cov[:, frame.width // 2 + 1 :].all()
     np.testing.assert_allclose(tex[cov], np.broadcast_to([0.2, 0.6, 0.9], tex[cov].shape), atol=1 / 255)
     tex_uv, cov_uv = import_obj(tmp_path / "m.obj", {"front": frame}, {"front": mask}, coverage="uv")["front"]
     assert cov_uv[mask].all() and tex_uv[:, 0].max() == 0.0  # 'uv' takes the atlas as it is
@@ -272,22 +283,25 @@ def test_import_weights_the_atlas_by_its_coverage(tmp_path):
 
 def pattern(x, z):
     """The wall's true colour at (x, z): large asymmetric gradients plus stripes of ~0.25 units."""
-    return np.stack([0.15 + 0.18 * (x + 2), 0.15 + 0.3 * z + 0.15 * np.sin(x * 25.0),
-                     0.5 + 0.3 * np.sin(z * 19.0 + x * 3.0)], -1).clip(0, 1)
+    return np.stack(
+        [0.15 + 0.18 * (x + 2), 0.15 + 0.3 * z + 0.15 * np.sin(x * 25.0), 0.5 + 0.3 * np.sin(z * 19.0 + x * 3.0)], -1
+    ).clip(0, 1)
 
 
 def rendered_scene(root: Path) -> Path:
     """A 4 x 2 wall at y = 0 with :func:`pattern`, seen by four cameras, one distorted and off-centre."""
-    from difftex.camera import load_photos
-    from difftex.io import write_image
+    from difftex.scene.camera import load_photos
+    from difftex.scene.files import write_image
 
     centers = [(0.0, -6.0, 1.0), (2.0, -5.5, 1.5), (-2.0, -5.0, 0.5), (0.5, -4.5, 1.2)]
     images = []
     for i, c in enumerate(centers):
         R, t = look_at(c, (0.0, 0.0, 1.0))
         images.append((i + 1, f"img{i:02d}.png", 1 if i < 3 else 2, R, t))
-    cams = [(1, "PINHOLE", 240, 180, [216.0, 216.0, 120.0, 90.0]),
-            (2, "SIMPLE_RADIAL", 240, 180, [200.0, 131.0, 84.0, -0.08])]
+    cams = [
+        (1, "PINHOLE", 240, 180, [216.0, 216.0, 120.0, 90.0]),
+        (2, "SIMPLE_RADIAL", 240, 180, [200.0, 131.0, 84.0, -0.08]),
+    ]
     (root / "images").mkdir(parents=True)
     write_colmap_text(root / "sparse" / "0", cams, images)
     write_obj(root / "proxy.obj", {"front": wall(-2, 2, 0, 2)})
@@ -311,18 +325,52 @@ def run_and_compare(tmp_path, method):
     import json
 
     from difftex.cli import main
-    from difftex.io import read_image
-    from difftex.visibility import load_visibility
+    from difftex.geometry.visibility import load_visibility
+    from difftex.scene.files import read_image
 
     scene = rendered_scene(tmp_path / "scene")
     cfg = tmp_path / "cfg.yaml"
     cfg.write_text("texture: {long_side: 64}\nvisibility: {min_texels: 4}\ncompute: {device: cpu}\n")
     R = tmp_path / "R"
-    assert main(["visibility", "--quiet", "--scene", str(scene), "--config", str(cfg), "--out-dir", str(R / "vis")]) == 0
-    assert main(["baseline", "--scene", str(scene), "--visibility", str(R / "vis" / "front.npz"), "--config", str(cfg),
-                 "--method", "average", "--out-dir", str(R / "average" / "textures" / "front")]) == 0
-    assert main(["peer", "--method", method, "--scene", str(scene), "--visibility", str(R / "vis"),
-                 "--out", str(R / method), "--timeout", "300"]) == 0
+    assert (
+        main(["visibility", "--quiet", "--scene", str(scene), "--config", str(cfg), "--out-dir", str(R / "vis")]) == 0
+    )
+    assert (
+        main(
+            [
+                "baseline",
+                "--scene",
+                str(scene),
+                "--visibility",
+                str(R / "vis" / "front.npz"),
+                "--config",
+                str(cfg),
+                "--method",
+                "average",
+                "--out-dir",
+                str(R / "average" / "textures" / "front"),
+            ]
+        )
+        == 0
+    )
+    assert (
+        main(
+            [
+                "peer",
+                "--method",
+                method,
+                "--scene",
+                str(scene),
+                "--visibility",
+                str(R / "vis"),
+                "--out",
+                str(R / method),
+                "--timeout",
+                "300",
+            ]
+        )
+        == 0
+    )
     rec = json.loads((R / method / "peer.json").read_text())
     assert rec["peer"]["wall_s"] > 0 and rec["peer"]["cpu_s"] > 0 and rec["peer"]["peak_rss_mib"] > 1
     assert rec["polygons"]["front"] > 0.95
@@ -333,8 +381,23 @@ def run_and_compare(tmp_path, method):
     peer = read_image(R / method / "textures" / "front" / "texture.png")
     avg = read_image(R / "average" / "textures" / "front" / "texture.png")
     # the results folder is scored by difftex evaluate like any other
-    assert main(["evaluate", "--quiet", "--scene", str(scene), "--results", str(R / method), "--lpips", "none",
-                 "--out", str(R / method / "evaluation" / "metrics.json")]) == 0
+    assert (
+        main(
+            [
+                "evaluate",
+                "--quiet",
+                "--scene",
+                str(scene),
+                "--results",
+                str(R / method),
+                "--lpips",
+                "none",
+                "--out",
+                str(R / method / "evaluation" / "metrics.json"),
+            ]
+        )
+        == 0
+    )
     return peer, avg, truth, vis.texel_mask
 
 
@@ -367,16 +430,22 @@ def check_texture(peer, avg, truth, mask):
 
 
 @pytest.mark.slow
-@pytest.mark.skipif(__import__("difftex.meshlab", fromlist=["x"]).unavailable_reason() != "",
-                    reason="MeshLab unavailable: " + __import__("difftex.meshlab", fromlist=["x"]).unavailable_reason())
+@pytest.mark.skipif(
+    __import__("difftex.evaluation.peers.meshlab", fromlist=["x"]).unavailable_reason() != "",
+    reason="MeshLab unavailable: "
+    + __import__("difftex.evaluation.peers.meshlab", fromlist=["x"]).unavailable_reason(),
+)
 @pytest.mark.parametrize("method", ["meshlab-blend", "meshlab-face"])
 def test_meshlab_end_to_end_matches_the_photos(tmp_path, method):
     check_texture(*run_and_compare(tmp_path, method))
 
 
 @pytest.mark.slow
-@pytest.mark.skipif(not __import__("difftex.texrecon", fromlist=["x"]).available(),
-                    reason=__import__("difftex.texrecon", fromlist=["x"]).unavailable_reason() or "texrecon unavailable")
+@pytest.mark.skipif(
+    not __import__("difftex.evaluation.peers.texrecon", fromlist=["x"]).available(),
+    reason=__import__("difftex.evaluation.peers.texrecon", fromlist=["x"]).unavailable_reason()
+    or "texrecon unavailable",
+)
 def test_texrecon_end_to_end_matches_the_photos(tmp_path):
     check_texture(*run_and_compare(tmp_path, "texrecon"))
 
@@ -390,8 +459,10 @@ def test_failed_peer_leaves_no_results_folder_and_names_its_log(tmp_path, monkey
     fake.chmod(0o755)
     monkeypatch.setenv("DIFFTEX_TEXRECON", str(fake))
     scene = make_scene(tmp_path / "s")
-    assert main(["peer", "--method", "texrecon", "--scene", str(scene), "--out", str(tmp_path / "R"),
-                 "--long-side", "32"]) == 2
+    assert (
+        main(["peer", "--method", "texrecon", "--scene", str(scene), "--out", str(tmp_path / "R"), "--long-side", "32"])
+        == 2
+    )
     assert not (tmp_path / "R").exists()
     assert not [p for p in tmp_path.iterdir() if p.name.startswith(".R.")]
     log = tmp_path / "R.log"
@@ -402,7 +473,9 @@ def test_missing_texrecon_is_one_clear_line(tmp_path, monkeypatch, capsys):
     from difftex.cli import main
 
     monkeypatch.setenv("DIFFTEX_TEXRECON", str(tmp_path / "nope"))
-    assert main(["peer", "--method", "texrecon", "--scene", str(make_scene(tmp_path / "s")), "--out",
-                 str(tmp_path / "R")]) == 2
+    assert (
+        main(["peer", "--method", "texrecon", "--scene", str(make_scene(tmp_path / "s")), "--out", str(tmp_path / "R")])
+        == 2
+    )
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "DIFFTEX_TEXRECON" in err[0]

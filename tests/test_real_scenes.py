@@ -7,9 +7,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from difftex.mapping import uv_frame
-from difftex.scene import load_scene
-from difftex.visibility import id_buffer, prepare
+from difftex.geometry.frames import uv_frame
+from difftex.geometry.visibility import id_buffer, prepare
+from difftex.scene.loading import load_scene
 
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 SCENES = sorted(p.name for p in DATA.iterdir()) if DATA.is_dir() else []

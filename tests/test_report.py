@@ -12,9 +12,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from difftex.io import read_image, write_image, write_json
-from difftex.outputs import FILLED_GREY, palette, source_map, write_texture_outputs
-from difftex.report import comparison_page, markdown_table_html, write_report
+from difftex.compose.outputs import FILLED_GREY, palette, source_map, write_texture_outputs
+from difftex.evaluation.html import comparison_page, markdown_table_html
+from difftex.evaluation.report import write_report
+from difftex.scene.files import read_image, write_image, write_json
 
 CHROMIUM = Path("/usr/bin/chromium")
 
@@ -31,49 +32,128 @@ def fake_results(root: Path, method="difftex", held_out=True, maps=False) -> Pat
         dom = rng.integers(0, 12 if k == 0 else 2, (H, W))
         mask = np.ones((H, W), bool)
         seen = rng.random((H, W)) > 0.05
-        write_texture_outputs(d, rng.random((H, W, 3)).astype(np.float32), mask, seen, dom, names,
-                              {"method": method, "coverage": 0.95, "filled_texels": 3, "time_s": 1.5})
-        loss = {key: list(np.linspace(1, 0.1, 30) * s) for key, s in (("total", 3), ("render", 1), ("ghost", 1),
-                                                                        ("persp", 0.1), ("para", 0.0))}
-        level = {"shape": [24, 32], "candidates": 12, "iterations": 30, "cap": 40, "converged": True, "loss": loss,
-                 "final": {"total": 0.3, "render": 0.1}, "weight_change": [0.2, 0.05], "eliminated_pixels": 7,
-                 "dropped_photos": ["img3.jpg"], "time_s": 0.5, "effective_photos": 2.75}  # a diagnostic added later
-        write_json(root / "optimized" / pid / "stats.json", {
-            "levels": [level, dict(level, shape=[48, 64])], "time_stage_s": 2.0, "device": "cpu",
-            "dropped": [{"photo": "img3.jpg", "level": 0, "iteration": 12}], "used_photos": names[:11]})
+        write_texture_outputs(
+            d,
+            rng.random((H, W, 3)).astype(np.float32),
+            mask,
+            seen,
+            dom,
+            names,
+            {"method": method, "coverage": 0.95, "filled_texels": 3, "time_s": 1.5},
+        )
+        loss = {
+            key: list(np.linspace(1, 0.1, 30) * s)
+            for key, s in (("total", 3), ("render", 1), ("ghost", 1), ("persp", 0.1), ("para", 0.0))
+        }
+        level = {
+            "shape": [24, 32],
+            "candidates": 12,
+            "iterations": 30,
+            "cap": 40,
+            "converged": True,
+            "loss": loss,
+            "final": {"total": 0.3, "render": 0.1},
+            "weight_change": [0.2, 0.05],
+            "eliminated_pixels": 7,
+            "dropped_photos": ["img3.jpg"],
+            "time_s": 0.5,
+            "effective_photos": 2.75,
+        }  # a diagnostic added later
+        write_json(
+            root / "optimized" / pid / "stats.json",
+            {
+                "levels": [level, dict(level, shape=[48, 64])],
+                "time_stage_s": 2.0,
+                "device": "cpu",
+                "dropped": [{"photo": "img3.jpg", "level": 0, "iteration": 12}],
+                "used_photos": names[:11],
+            },
+        )
     polys = [
-        {"id": "wall00", "photos": names, "coverage": 0.95, "width": 64, "height": 48, "texel_size": 0.0123,
-         "photo_texel_size": 0.00307, "texel_size_bound": "photos",
-         "rescued": {"img11.jpg": {"texels": 433, "why": "inclined (83.8 deg > 80.0)"}}},
-        {"id": "roof00", "photos": names[:2], "coverage": 0.9, "width": 64, "height": 48, "texel_size": 0.0456,
-         "photo_texel_size": 0.004, "texel_size_bound": "max_long_side", "textured_from_oblique": True,
-         "oblique_angles": {"img0.jpg": 83.0, "img1.jpg": 88.8}},
-        {"id": "inner", "photos": [], "coverage": 0.0, "width": 8, "height": 8, "texel_size": 0.5,
-         "photo_texel_size": None, "texel_size_bound": "min_long_side",
-         "untextured_reason": "hidden behind other polygons in the 4 photo(s) that have it in view"},
+        {
+            "id": "wall00",
+            "photos": names,
+            "coverage": 0.95,
+            "width": 64,
+            "height": 48,
+            "texel_size": 0.0123,
+            "photo_texel_size": 0.00307,
+            "texel_size_bound": "photos",
+            "rescued": {"img11.jpg": {"texels": 433, "why": "inclined (83.8 deg > 80.0)"}},
+        },
+        {
+            "id": "roof00",
+            "photos": names[:2],
+            "coverage": 0.9,
+            "width": 64,
+            "height": 48,
+            "texel_size": 0.0456,
+            "photo_texel_size": 0.004,
+            "texel_size_bound": "max_long_side",
+            "textured_from_oblique": True,
+            "oblique_angles": {"img0.jpg": 83.0, "img1.jpg": 88.8},
+        },
+        {
+            "id": "inner",
+            "photos": [],
+            "coverage": 0.0,
+            "width": 8,
+            "height": 8,
+            "texel_size": 0.5,
+            "photo_texel_size": None,
+            "texel_size_bound": "min_long_side",
+            "untextured_reason": "hidden behind other polygons in the 4 photo(s) that have it in view",
+        },
     ]
     write_json(root / "visibility" / "summary.json", {"polygons": polys})
-    write_json(root / "photos.json", {
-        "config": {"blur_ratio": 0.3, "max_angle_deg": 80.0},
-        "photos": [{"name": n, "kept": n != "img5.jpg", "reason": "blurry (sharpness 0.12 x median < 0.3)" if n == "img5.jpg" else "",
-                    "sharpness_rel": 1.0, "polygons": {"wall00": {"pixels": 900, "angle_deg": 12.5}}} for n in names],
-        "polygons": {"wall00": {"kept": names[:11]}, "roof00": {"kept": names[:2]}, "inner": {"kept": []}}})
+    write_json(
+        root / "photos.json",
+        {
+            "config": {"blur_ratio": 0.3, "max_angle_deg": 80.0},
+            "photos": [
+                {
+                    "name": n,
+                    "kept": n != "img5.jpg",
+                    "reason": "blurry (sharpness 0.12 x median < 0.3)" if n == "img5.jpg" else "",
+                    "sharpness_rel": 1.0,
+                    "polygons": {"wall00": {"pixels": 900, "angle_deg": 12.5}},
+                }
+                for n in names
+            ],
+            "polygons": {"wall00": {"kept": names[:11]}, "roof00": {"kept": names[:2]}, "inner": {"kept": []}},
+        },
+    )
     write_image(root / "model" / "model_view.png", rng.random((40, 120, 3)).astype(np.float32))
-    write_json(root / "model" / "summary.json", {
-        "polygons": [], "untextured": ["inner"],
-        "untextured_reasons": {"inner": polys[2]["untextured_reason"]},
-        "view_check": {"photo": "img0.jpg", "image": "model_view.png", "mean_abs_diff": 0.0812}})
+    write_json(
+        root / "model" / "summary.json",
+        {
+            "polygons": [],
+            "untextured": ["inner"],
+            "untextured_reasons": {"inner": polys[2]["untextured_reason"]},
+            "view_check": {"photo": "img0.jpg", "image": "model_view.png", "mean_abs_diff": 0.0812},
+        },
+    )
     metrics = {"perspective": {"q_front": 0.9, "q_vc": 0.8, "polygons": {"wall00": {"q_front": 0.9, "q_vc": 0.8}}}}
     if held_out:
-        metrics["views"] = {"overall": {"ssim": 0.6543, "lpips": 0.2345, "psnr": 21.5, "views": 1, "lpips_variant": "stlpips"},
-                            "views": [{"photo": "held.jpg", "compared_pixels": 5000, "ssim": 0.6543, "lpips": 0.2345, "psnr": 21.5}],
-                            "held_out": ["held.jpg"]}
+        metrics["views"] = {
+            "overall": {"ssim": 0.6543, "lpips": 0.2345, "psnr": 21.5, "views": 1, "lpips_variant": "stlpips"},
+            "views": [{"photo": "held.jpg", "compared_pixels": 5000, "ssim": 0.6543, "lpips": 0.2345, "psnr": 21.5}],
+            "held_out": ["held.jpg"],
+        }
         for kind in ("render", "photo", "error"):
             write_image(root / "evaluation" / "views" / f"held_{kind}.png", rng.random((30, 40, 3)).astype(np.float32))
     if maps:
-        metrics["maps"] = {"overall": {"error90": 0.1, "error95": 0.2, "ssim": 0.8, "lpips": 0.3, "psnr": 25.0,
-                                       "lpips_variant": "stlpips"},
-                           "polygons": [{"polygon_id": "wall00", "error90": 0.1111, "error95": 0.2, "ssim": 0.8, "lpips": 0.3}]}
+        metrics["maps"] = {
+            "overall": {
+                "error90": 0.1,
+                "error95": 0.2,
+                "ssim": 0.8,
+                "lpips": 0.3,
+                "psnr": 25.0,
+                "lpips_variant": "stlpips",
+            },
+            "polygons": [{"polygon_id": "wall00", "error90": 0.1111, "error95": 0.2, "ssim": 0.8, "lpips": 0.3}],
+        }
         for pid in ("wall00", "roof00"):
             write_image(root / "evaluation" / "error_maps" / f"{pid}.png", rng.random((16, 24)).astype(np.float32))
     write_json(root / "evaluation" / "metrics.json", metrics)
@@ -130,15 +210,30 @@ def test_report_of_partial_results_shows_na(tmp_path):
     assert "No evaluation" in text
 
 
-@pytest.mark.skipif(not CHROMIUM.is_file(), reason="needs Debian's chromium at /usr/bin/chromium (apt-get install chromium; .ci/run installs it when root)")
+@pytest.mark.skipif(
+    not CHROMIUM.is_file(),
+    reason="needs Debian's chromium at /usr/bin/chromium (apt-get install chromium; .ci/run installs it when root)",
+)
 def test_report_screenshot_in_headless_chromium(tmp_path):
     """The page as a browser draws it: the source maps, their legend swatches and the loss curves
     reach the screen (colours only those images and swatches carry appear in the screenshot)."""
     out = write_report(fake_results(tmp_path / "R"))
     shot = tmp_path / "shot.png"
-    run = subprocess.run([str(CHROMIUM), "--headless", "--no-sandbox", "--disable-gpu", "--hide-scrollbars",
-                          f"--screenshot={shot}", "--window-size=1400,2600", out.resolve().as_uri()],
-                         capture_output=True, text=True, timeout=120)
+    run = subprocess.run(
+        [
+            str(CHROMIUM),
+            "--headless",
+            "--no-sandbox",
+            "--disable-gpu",
+            "--hide-scrollbars",
+            f"--screenshot={shot}",
+            "--window-size=1400,2600",
+            out.resolve().as_uri(),
+        ],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
     assert shot.is_file(), run.stderr[-2000:]
     img = (read_image(shot)[..., :3] * 255).round().astype(int)
     assert img.shape[:2] == (2600, 1400)

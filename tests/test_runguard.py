@@ -9,7 +9,7 @@ from pathlib import Path
 
 import pytest
 
-from difftex import runguard, runlog
+from difftex.workflow import runguard, runlog
 
 
 def test_second_guard_in_the_same_folder_is_refused(tmp_path, monkeypatch, capsys):
@@ -88,7 +88,10 @@ def test_job_error_lines(tmp_path):
     log.write_text("loading\ndifftex: warning: w\ndifftex: error: x.png: broken\n")
     assert runlog.job_error([log], "filter") == "difftex: error: x.png: broken"
     log.write_text("step 1\nKilled\n")  # no error line: the log's last line, and which job
-    assert runlog.job_error([log], "texture", "pid=wall") == f"difftex: error: {log}: job texture (pid=wall) failed: Killed"
+    assert (
+        runlog.job_error([log], "texture", "pid=wall")
+        == f"difftex: error: {log}: job texture (pid=wall) failed: Killed"
+    )
     log.write_text("")
     assert "empty log" in runlog.job_error([log], "texture")
     assert "has no log" in runlog.job_error([], "report")
@@ -96,7 +99,9 @@ def test_job_error_lines(tmp_path):
 
 def test_failure_report_ends_with_the_errors_and_merges_repeats(tmp_path):
     logs = []
-    for i, msg in enumerate(["difftex: error: S/proxy.obj: bad", "difftex: error: S/proxy.obj: bad", "difftex: error: y: other"]):
+    for i, msg in enumerate(
+        ["difftex: error: S/proxy.obj: bad", "difftex: error: S/proxy.obj: bad", "difftex: error: y: other"]
+    ):
         logs.append(tmp_path / "logs" / f"{i}.log")
         logs[-1].parent.mkdir(exist_ok=True)
         logs[-1].write_text(f"difftex: warning: S/images: note\n{msg}\n")

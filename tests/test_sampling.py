@@ -1,4 +1,4 @@
-"""Photo sampling on its own (difftex.sampling): f_k^i, pyramids, one decode per photo, convergence.
+"""Photo sampling on its own (difftex.sampling.photos): f_k^i, pyramids, one decode per photo, convergence.
 
 Expectations come from the analytic wall (tests/analytic.py): a pinhole camera frontal to the
 wall maps texels by a known scale, and a rendered photo mapped back gives the wall's pattern.
@@ -10,8 +10,10 @@ import numpy as np
 import pytest
 import torch
 
-from difftex.mapping import map_texels
-from difftex.sampling import PhotoSampler, PhotoSet, level_frame, resample_nearest, texel_map
+from difftex.geometry.frames import map_texels
+from difftex.sampling.photos import PhotoSampler, PhotoSet
+from difftex.sampling.texels import level_frame, resample_nearest, texel_map
+
 from tests.analytic import (
     fast_cfg,
     gt_texture,

@@ -15,7 +15,8 @@ import pytest
 
 pytest.importorskip("mitsuba")
 
-from difftex.io import read_image  # noqa: E402
+from difftex.errors import DifftexError  # noqa: E402
+from difftex.scene.files import read_image  # noqa: E402
 from difftex.synth import generate, get_preset  # noqa: E402
 
 CLEAN = dict(views=6, held_out_views=1, width=240, height=180, gt_long_side=384, points3d=40, occluders=False,
@@ -132,8 +133,8 @@ def test_ground_truth_map_matches_frontal_photos(clean_scene):
     """
     from scipy import ndimage
 
-    from difftex.mapping import UVFrame
-    from difftex.proxy import load_proxy
+    from difftex.geometry.frames import UVFrame
+    from difftex.scene.proxy import load_proxy
     from difftex.synth.pipeline import position_image
 
     root = clean_scene
@@ -168,7 +169,8 @@ def test_ground_truth_map_matches_frontal_photos(clean_scene):
             ph = photo[yy, xx]
             g = _bilinear(gtb, tex[:, 0], tex[:, 1])
             gs = _bilinear(gtb, tex[:, 0] + 4, tex[:, 1] + 3)
-            textured = ndimage.generic_filter(gt.mean(-1), np.std, size=5)[tex[:, 1].astype(int), tex[:, 0].astype(int)] > 0.04
+            local_std = ndimage.generic_filter(gt.mean(-1), np.std, size=5)
+            textured = local_std[tex[:, 1].astype(int), tex[:, 0].astype(int)] > 0.04
             errs.append(np.abs(g - ph).mean(-1))
             signed.append(ph - g)
             tex_err.append(np.abs(g - ph).mean(-1)[textured])
@@ -176,8 +178,10 @@ def test_ground_truth_map_matches_frontal_photos(clean_scene):
     assert errs, "no frontal view of a wall in the clean scene"
     e, b = np.concatenate(errs), np.concatenate(signed).mean(0)
     te, ts = np.concatenate(tex_err), np.concatenate(tex_shift)
-    print(f"GT vs photo: {len(errs)} wall views, {len(e)} px, mean {e.mean():.4f}, bias {b.round(4)}, "
-          f"textured {te.mean():.4f} vs shifted {ts.mean():.4f} ({len(te)} px)")
+    print(
+        f"GT vs photo: {len(errs)} wall views, {len(e)} px, mean {e.mean():.4f}, bias {b.round(4)}, "
+        f"textured {te.mean():.4f} vs shifted {ts.mean():.4f} ({len(te)} px)"
+    )
     assert e.mean() < 0.03
     assert np.abs(b).max() < 0.01
     assert len(te) > 500 and te.mean() < 0.6 * ts.mean()
@@ -185,8 +189,8 @@ def test_ground_truth_map_matches_frontal_photos(clean_scene):
 
 def test_frames_match_difftex_uv_frames(tiny_scene):
     """The written frames are the ones difftex computes from the scene (same up, same frame)."""
-    from difftex.mapping import UVFrame, uv_frame
-    from difftex.scene import load_scene
+    from difftex.geometry.frames import UVFrame, uv_frame
+    from difftex.scene.loading import load_scene
 
     scene = load_scene(tiny_scene)
     assert len(scene.photos) == get_preset("tiny").views and len(scene.proxy.polygons) >= 6
@@ -224,7 +228,7 @@ def test_layout_and_pictures(tiny_scene):
 def test_polygon_ids_agree_with_rendered_geometry(tiny_scene):
     """The id image says which proxy polygon a held-out pixel sees; Mitsuba's surface point there
     (occluder-free) must lie on that polygon's plane, up to the relief depth."""
-    from difftex.proxy import load_proxy
+    from difftex.scene.proxy import load_proxy
     from difftex.synth.pipeline import position_image
 
     man = _manifest(tiny_scene)
@@ -232,20 +236,32 @@ def test_polygon_ids_agree_with_rendered_geometry(tiny_scene):
     polys = load_proxy(tiny_scene / "proxy.obj").polygons
     v = man["held_out_views"][0]
     intr = _intrinsics(man, v["camera_id"])
-    pos = position_image(cfg, cfg.buildings[0], man["seed"], 0, np.array(v["R"]), np.array(v["t"]), intr,
-                         occluders=False)
+    pos = position_image(
+        cfg, cfg.buildings[0], man["seed"], 0, np.array(v["R"]), np.array(v["t"]), intr, occluders=False
+    )
     ids = np.round(read_image(tiny_scene / "ground_truth" / "views" / "polygon_ids" / v["name"])[..., 0] * 65535)
     ok = _smooth(pos) & (ids > 0)
     yy, xx = np.nonzero(ok)
-    dist = np.array([abs(polys[int(ids[y, x]) - 1].normal @ pos[y, x] - polys[int(ids[y, x]) - 1].offset)
-                     for y, x in zip(yy, xx)])
+    dist = np.array(
+        [abs(polys[int(ids[y, x]) - 1].normal @ pos[y, x] - polys[int(ids[y, x]) - 1].offset) for y, x in zip(yy, xx)]
+    )
     assert np.mean(dist < cfg.relief_depth * 1.5 + 0.05) > 0.97
 
 
 def test_same_seed_same_scene(tmp_path):
     """Same seed: identical manifest and identical bytes for a photo; another seed differs."""
-    kw = dict(views=2, held_out_views=1, width=64, height=48, gt_long_side=32, points3d=10, previews=False, spp=4,
-              gt_spp=4, progress=False)
+    kw = dict(
+        views=2,
+        held_out_views=1,
+        width=64,
+        height=48,
+        gt_long_side=32,
+        points3d=10,
+        previews=False,
+        spp=4,
+        gt_spp=4,
+        progress=False,
+    )
     a = generate("tiny", tmp_path / "a", seed=11, **kw)
     b = generate("tiny", tmp_path / "b", seed=11, **kw)
     c = generate("tiny", tmp_path / "c", seed=12, **kw)
@@ -254,7 +270,9 @@ def test_same_seed_same_scene(tmp_path):
     name = _manifest(a)["views"][0]["name"]
     assert (a / "images" / name).read_bytes() == (b / "images" / name).read_bytes()
     assert (a / "proxy.obj").read_bytes() == (b / "proxy.obj").read_bytes()
-    assert (a / "ground_truth" / "maps" / "wall00.png").read_bytes() == (b / "ground_truth" / "maps" / "wall00.png").read_bytes()
+    assert (a / "ground_truth" / "maps" / "wall00.png").read_bytes() == (
+        b / "ground_truth" / "maps" / "wall00.png"
+    ).read_bytes()
 
 
 def test_building_styles_have_sane_proxies():
@@ -284,5 +302,5 @@ def test_cli_rejects_bad_values(tmp_path, capsys):
 
     assert main(["synth", "--out", str(tmp_path / "x"), "--views", "0", "--quiet"]) == 2
     assert "views" in capsys.readouterr().err
-    with pytest.raises(Exception):
+    with pytest.raises(DifftexError):
         get_preset("nope")

@@ -5,13 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from difftex.scene import load_scene
-from difftex.visibility import (
-    id_buffer,
-    load_visibility,
-    save_visibility,
-    scene_visibility,
-)
+from difftex.geometry.visibility import id_buffer, load_visibility, save_visibility, scene_visibility
+from difftex.scene.loading import load_scene
+
 from tests.scenes import make_scene, wall
 
 
@@ -86,7 +82,7 @@ def test_polygon_without_photos_saves_and_loads(occlusion_scene, tmp_path):
 def test_mitsuba_and_numpy_casting_agree(occlusion_scene, tmp_path):
     """The two ray-casting backends give the same id buffer (up to a few pixels grazing a polygon
     edge, where float32 and float64 round differently), on a pinhole and a distorted camera."""
-    from difftex.raycast import ProxyCaster, id_buffer, mitsuba_available
+    from difftex.geometry.raycast import ProxyCaster, id_buffer, mitsuba_available
 
     if not mitsuba_available():
         pytest.skip("Mitsuba's LLVM variant is not available (libLLVM)")

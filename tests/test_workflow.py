@@ -13,8 +13,8 @@ from pathlib import Path
 
 import pytest
 
-from difftex import workflow as wf
 from difftex.errors import DifftexError
+from difftex.workflow import glue as wf
 
 REPO = Path(__file__).resolve().parents[1]
 SNAKEFILE = REPO / "Snakefile"
@@ -162,13 +162,16 @@ def test_workflow_end_to_end(tiny_scene, tmp_path):
     import numpy as np
     import trimesh
 
-    from difftex.io import read_json
-    from difftex.proxy import load_proxy
+    from difftex.scene.files import read_json
+    from difftex.scene.proxy import load_proxy
 
     work = tmp_path / "work"
     # smaller than the fast preset: the test checks the plumbing, not the texture quality
-    small = ("texture={long_side: 128}", "optimize={long_side_start: 64, max_iters_per_level: [15, 8]}",
-             "evaluate={lpips: none, render_long_side: 256}")
+    small = (
+        "texture={long_side: 128}",
+        "optimize={long_side_start: 64, max_iters_per_level: [15, 8]}",
+        "evaluate={lpips: none, render_long_side: 256}",
+    )
     args = ("--cores", "2", "--config", f"scene={tiny_scene}", "preset=fast", *small)
     r = snakemake(work, *args)
     assert r.returncode == 0, r.stdout[-3000:] + r.stderr[-3000:]
@@ -238,12 +241,11 @@ def test_config_yaml_mirrors_the_stage_dataclasses():
 
     import yaml
 
-    from difftex.assemble import AssembleConfig
+    from difftex.compose.outputs import OutputConfig
     from difftex.config import FilterConfig, TextureConfig, VisibilityConfig
-
-    from difftex.evaluate import EvaluateConfig
+    from difftex.evaluation.evaluate import EvaluateConfig
+    from difftex.export.assemble import AssembleConfig
     from difftex.method.config import ComputeConfig, OptimizeConfig
-    from difftex.outputs import OutputConfig
 
     classes = {
         "texture": TextureConfig,

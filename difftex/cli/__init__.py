@@ -35,7 +35,9 @@ def _commands() -> list:
 
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="difftex", description=__doc__.splitlines()[0])
-    parser.add_argument("--version", action=_Version, nargs=0, help="print the versions, the torch build and its device")
+    parser.add_argument(
+        "--version", action=_Version, nargs=0, help="print the versions, the torch build and its device"
+    )
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     for mod in _commands():
         p = sub.add_parser(mod.NAME, help=mod.HELP, description=mod.HELP)
@@ -58,7 +60,9 @@ class _Version(argparse.Action):
         if torch.cuda.is_available():
             device = f"cuda ({torch.cuda.get_device_name(0)})"
         else:
-            device = "cpu" + (" (this torch has CUDA " + cuda + " but sees no GPU)" if cuda else " (CPU-only torch build)")
+            device = "cpu" + (
+                " (this torch has CUDA " + cuda + " but sees no GPU)" if cuda else " (CPU-only torch build)"
+            )
         print(f"difftex {__version__}\ntorch {torch.__version__}\ndevice: {device}")
         parser.exit()
 
@@ -113,14 +117,19 @@ def main(argv: list[str] | None = None) -> int:
         print(ERROR_PREFIX + os_error_message(exc), file=sys.stderr)
         return 2
     except MemoryError:
-        print(ERROR_PREFIX + f"{args.command}: out of memory (give the job more memory: run.base_mem_mb)", file=sys.stderr)
+        print(
+            ERROR_PREFIX + f"{args.command}: out of memory (give the job more memory: run.base_mem_mb)", file=sys.stderr
+        )
         return 2
     except KeyboardInterrupt:
         print("difftex: interrupted", file=sys.stderr)
         return 130
     except Exception as exc:  # noqa: BLE001 -- a bug: keep its traceback, but end in the one line
         traceback.print_exc()
-        print(ERROR_PREFIX + one_line(f"{args.command}: internal error {type(exc).__name__}: {exc} (traceback above)"), file=sys.stderr)
+        print(
+            ERROR_PREFIX + one_line(f"{args.command}: internal error {type(exc).__name__}: {exc} (traceback above)"),
+            file=sys.stderr,
+        )
         return 3
     finally:
         logging.getLogger("difftex").removeHandler(handler)

@@ -7,8 +7,12 @@ def add_common(parser, config=True) -> None:
     parser.add_argument("--scene", required=True, help="scene folder (images/, sparse/0/, proxy)")
     parser.add_argument("--visibility", required=True, help="the polygon's visibility .npz (difftex visibility)")
     if config:
-        parser.add_argument("--config", default=None, help="YAML config; its 'optimize:' and 'compute:' sections are read")
-    parser.add_argument("--compute-config", default=None, help="YAML whose 'compute:' section is read instead of --config's")
+        parser.add_argument(
+            "--config", default=None, help="YAML config; its 'optimize:' and 'compute:' sections are read"
+        )
+    parser.add_argument(
+        "--compute-config", default=None, help="YAML whose 'compute:' section is read instead of --config's"
+    )
     parser.add_argument("--threads", type=int, default=0, help="torch CPU threads (0: torch's default)")
     parser.add_argument("--device", default=None, choices=["auto", "cpu", "cuda"], help="overrides compute.device")
     parser.add_argument("--compile", default=None, choices=["auto", "on", "off"], help="overrides compute.compile")
@@ -22,10 +26,10 @@ def load(args):
     import torch
 
     from difftex.config import section
+    from difftex.geometry.visibility import load_visibility
     from difftex.method.config import ComputeConfig, OptimizeConfig
-    from difftex.sampling import polygon_input_from_visibility
-    from difftex.scene import load_scene
-    from difftex.visibility import load_visibility
+    from difftex.sampling.photos import polygon_input_from_visibility
+    from difftex.scene.loading import load_scene
 
     if args.threads and args.threads > 0:
         torch.set_num_threads(args.threads)

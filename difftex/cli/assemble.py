@@ -14,7 +14,9 @@ def add_arguments(parser) -> None:
         help="folder with <polygon id>.npz (UV frames) and summary.json (default: visibility/ beside --textures)",
     )
     parser.add_argument("--config", help="YAML config; section 'assemble' is read")
-    parser.add_argument("--out-dir", required=True, help="output folder (model.obj/.mtl, atlas PNGs, model.glb, summary.json)")
+    parser.add_argument(
+        "--out-dir", required=True, help="output folder (model.obj/.mtl, atlas PNGs, model.glb, summary.json)"
+    )
     parser.add_argument("--name", default="model", help="base name of the output files (default: model)")
 
 
@@ -25,7 +27,7 @@ def _read_frame_and_mask(path):
     import numpy as np
 
     from difftex.errors import DifftexError
-    from difftex.mapping import UVFrame
+    from difftex.geometry.frames import UVFrame
 
     try:
         with np.load(path, allow_pickle=False) as d:
@@ -44,11 +46,11 @@ def _view_check(scene_dir, proxy, info, glb, out_png) -> dict | None:
 
     import numpy as np
 
-    from difftex.assemble import render_view
-    from difftex.camera import load_photos
-    from difftex.io import read_image, write_image
-    from difftex.mapping import sample_photo
-    from difftex.scene import find_sparse
+    from difftex.export.assemble import render_view
+    from difftex.geometry.frames import sample_photo
+    from difftex.scene.camera import load_photos
+    from difftex.scene.files import read_image, write_image
+    from difftex.scene.loading import find_sparse
 
     counts = Counter(name for row in info.values() for name in row.get("photos", []))
     if not counts:
@@ -62,8 +64,12 @@ def _view_check(scene_dir, proxy, info, glb, out_png) -> dict | None:
     shot = sample_photo(read_image(scene_dir / "images" / name), pix)
     write_image(out_png, np.concatenate([shot, np.where(covered[..., None], render, 0.0)], axis=1))
     diff = float(np.abs(render - shot)[covered].mean()) if covered.any() else None
-    return {"photo": name, "image": out_png.name, "covered_share": round(float(covered.mean()), 4),
-            "mean_abs_diff": None if diff is None else round(diff, 4)}
+    return {
+        "photo": name,
+        "image": out_png.name,
+        "covered_share": round(float(covered.mean()), 4),
+        "mean_abs_diff": None if diff is None else round(diff, 4),
+    }
 
 
 def polygon_notes(summary: dict, info: dict) -> None:
@@ -74,8 +80,9 @@ def polygon_notes(summary: dict, info: dict) -> None:
     for row in summary["polygons"]:
         meta = info.get(row["id"], {})
         if not row["textured"]:
-            why = meta.get("untextured_reason") or ("no visibility record (not in the visibility summary)" if not meta
-                                                    else "no texture was written for it")
+            why = meta.get("untextured_reason") or (
+                "no visibility record (not in the visibility summary)" if not meta else "no texture was written for it"
+            )
             row["untextured_reason"] = summary["untextured_reasons"][row["id"]] = why
             continue
         if meta.get("textured_from_oblique"):
@@ -94,13 +101,13 @@ def run(args) -> int:
     from rich.console import Console
     from rich.progress import track
 
-    from difftex.assemble import AssembleConfig, PolygonTexture, assemble
+    from difftex.compose.outputs import OutputConfig
     from difftex.config import section
     from difftex.errors import DifftexError
-    from difftex.io import read_image, read_json, write_json
-    from difftex.proxy import load_proxy
-    from difftex.outputs import OutputConfig
-    from difftex.scene import find_proxy
+    from difftex.export.assemble import AssembleConfig, PolygonTexture, assemble
+    from difftex.scene.files import read_image, read_json, write_json
+    from difftex.scene.loading import find_proxy
+    from difftex.scene.proxy import load_proxy
 
     t0 = time.time()
     console = Console(stderr=True)
@@ -138,8 +145,19 @@ def run(args) -> int:
                 # a texture at another resolution than the visibility level: resample the mask
                 iy = (np.arange(tex.shape[0]) + 0.5) * mask.shape[0] / tex.shape[0]
                 ix = (np.arange(tex.shape[1]) + 0.5) * mask.shape[1] / tex.shape[1]
-                mask = mask[np.minimum(iy.astype(int), mask.shape[0] - 1)][:, np.minimum(ix.astype(int), mask.shape[1] - 1)]
-        items.append(PolygonTexture(polygon=poly, frame=frame, texture=tex, mask=mask if tex is not None else None, coverage=coverage if tex is not None else 0.0, photos=n_photos))
+                mask = mask[np.minimum(iy.astype(int), mask.shape[0] - 1)][
+                    :, np.minimum(ix.astype(int), mask.shape[1] - 1)
+                ]
+        items.append(
+            PolygonTexture(
+                polygon=poly,
+                frame=frame,
+                texture=tex,
+                mask=mask if tex is not None else None,
+                coverage=coverage if tex is not None else 0.0,
+                photos=n_photos,
+            )
+        )
 
     out_dir = Path(args.out_dir)
     with console.status(f"packing {len(items)} textures and writing the model"):
@@ -147,14 +165,23 @@ def run(args) -> int:
     polygon_notes(summary, info)
     if cfg.glb and cfg.verify:
         with console.status("rendering a view of the model"):
-            summary["view_check"] = _view_check(scene, proxy, info, out_dir / summary["glb"], out_dir / f"{args.name}_view.png")
-    summary = {"scene": scene.resolve().name, "scene_path": str(scene.resolve()), **summary, "seconds": round(time.time() - t0, 2)}
+            summary["view_check"] = _view_check(
+                scene, proxy, info, out_dir / summary["glb"], out_dir / f"{args.name}_view.png"
+            )
+    summary = {
+        "scene": scene.resolve().name,
+        "scene_path": str(scene.resolve()),
+        **summary,
+        "seconds": round(time.time() - t0, 2),
+    }
     write_json(out_dir / "summary.json", summary)
 
     n_tex = sum(1 for p in summary["polygons"] if p["textured"])
     console.print(f"{n_tex}/{len(items)} polygons textured, {len(summary['atlas_pages'])} atlas page(s)")
     for pid, angles in summary["textured_from_oblique"].items():
-        console.print(f"textured from oblique photos only: {pid} ({', '.join(f'{n} {a:.0f} deg' for n, a in angles.items())})")
+        console.print(
+            f"textured from oblique photos only: {pid} ({', '.join(f'{n} {a:.0f} deg' for n, a in angles.items())})"
+        )
     for pid, why in summary["untextured_reasons"].items():
         console.print(f"untextured (grey): {pid}: {why}")
     chk = summary.get("check")

@@ -20,8 +20,8 @@ def run(args) -> int:
     from pathlib import Path
 
     from difftex.config import section
-    from difftex.evaluate import EvaluateConfig, evaluate_results, summary_line, to_json
-    from difftex.io import write_json
+    from difftex.evaluation.evaluate import EvaluateConfig, evaluate_results, summary_line, to_json
+    from difftex.scene.files import write_json
 
     cfg = section(args.config, "evaluate", EvaluateConfig)
     if args.lpips:

@@ -17,8 +17,8 @@ def run(args) -> int:
     from pathlib import Path
 
     from difftex.config import FilterConfig, section
-    from difftex.filtering import filter_photos, write_table
-    from difftex.scene import load_scene
+    from difftex.geometry.photo_filter import filter_photos, write_table
+    from difftex.scene.loading import load_scene
 
     cfg = section(args.config, "filter", FilterConfig)
     scene = load_scene(args.scene)
@@ -26,10 +26,19 @@ def run(args) -> int:
     out = Path(args.out)
     write_table(result, out, out.with_suffix(".csv"))
     kept = sum(r["kept"] for r in result["photos"])
-    print(f"{scene.name}: {len(scene.photos)} photos, {kept} kept; {len(scene.proxy)} polygons; {result['seconds']:.1f} s")
+    print(
+        f"{scene.name}: {len(scene.photos)} photos, {kept} kept; {len(scene.proxy)} polygons; {result['seconds']:.1f} s"
+    )
     for pid, d in result["polygons"].items():
-        note = ("; oblique photos only" if d.get("textured_from_oblique") else "; from glimpses" if d.get("textured_from_glimpses")
-                else f"; untextured: {d['untextured_reason']}" if d.get("untextured_reason") else "")
+        note = (
+            "; oblique photos only"
+            if d.get("textured_from_oblique")
+            else "; from glimpses"
+            if d.get("textured_from_glimpses")
+            else f"; untextured: {d['untextured_reason']}"
+            if d.get("untextured_reason")
+            else ""
+        )
         print(f"  {pid}: {len(d['kept'])} photos kept, {len(d['dropped'])} dropped{note}")
     print(f"table: {out}")
     return 0

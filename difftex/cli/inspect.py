@@ -19,18 +19,24 @@ def run(args) -> int:
 
     import numpy as np
 
-    from difftex.io import read_image, write_image
-    from difftex.mapping import uv_frame
-    from difftex.overlay import proxy_overlay
-    from difftex.scene import load_scene
+    from difftex.export.overlay import proxy_overlay
+    from difftex.geometry.frames import uv_frame
+    from difftex.scene.files import read_image, write_image
+    from difftex.scene.loading import load_scene
 
     t0 = time.perf_counter()
     scene = load_scene(args.scene)
     models = sorted({p.model for p in scene.photos})
-    print(f"{scene.name}: {len(scene.photos)} photos ({', '.join(models)}), {len(scene.proxy)} polygons, up {np.round(scene.up, 3).tolist()}")
+    print(
+        f"{scene.name}: {len(scene.photos)} photos ({', '.join(models)}), {len(scene.proxy)} polygons, up "
+        f"{np.round(scene.up, 3).tolist()}"
+    )
     for poly in scene.proxy.polygons:
         f = uv_frame(poly, scene.up, long_side=args.long_side)
-        print(f"  {poly.id:28s} area {poly.area:9.3f}  {len(poly.outer):3d} vertices  {f.width}x{f.height} texels at long side {args.long_side}")
+        print(
+            f"  {poly.id:28s} area {poly.area:9.3f}  {len(poly.outer):3d} vertices  {f.width}x{f.height} texels at "
+            f"long side {args.long_side}"
+        )
     if args.overlays:
         out = Path(args.overlays)
         n = min(args.max_overlays, len(scene.photos))

@@ -10,7 +10,11 @@ def add_arguments(parser) -> None:
     from difftex.cli._polygon import add_common
 
     add_common(parser)
-    parser.add_argument("--out-dir", required=True, help="output folder for texture.png, source.png, source.npz, coverage.png, report.json")
+    parser.add_argument(
+        "--out-dir",
+        required=True,
+        help="output folder for texture.png, source.png, source.npz, coverage.png, report.json",
+    )
     parser.add_argument("--patch", type=int, help="patch side in texels (overrides mrf.patch)")
     parser.add_argument("--smoothness", type=float, help="Potts weight (overrides mrf.smoothness)")
 
@@ -20,7 +24,7 @@ def run(args) -> int:
 
     from difftex.cli._polygon import load
     from difftex.config import section
-    from difftex.mrf import MRFConfig, run_polygon
+    from difftex.evaluation.mrf import MRFConfig, run_polygon
 
     _, compute, inp = load(args)
     mcfg = section(args.config, "mrf", MRFConfig)
@@ -29,6 +33,8 @@ def run(args) -> int:
     if args.smoothness is not None:
         mcfg = dataclasses.replace(mcfg, smoothness=args.smoothness)
     rep = run_polygon(inp, args.out_dir, mcfg, compute.device)
-    print(f"mrf {inp.polygon_id}: {rep['labels']} photos, {len(rep['photos_used'])} used, "
-          f"coverage {rep['coverage']:.3f}, {rep['time_s']:.1f}s")
+    print(
+        f"mrf {inp.polygon_id}: {rep['labels']} photos, {len(rep['photos_used'])} used, "
+        f"coverage {rep['coverage']:.3f}, {rep['time_s']:.1f}s"
+    )
     return 0

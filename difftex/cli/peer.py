@@ -7,7 +7,7 @@ HELP = "texture a scene with a peer program (texrecon, MeshLab per-face or per-t
 
 
 def add_arguments(p) -> None:
-    from difftex.peer import PEERS
+    from difftex.evaluation.peers.run import PEERS
 
     p.add_argument("--method", required=True, choices=PEERS)
     p.add_argument("--scene", required=True, help="scene folder (images/, sparse/0/, proxy)")
@@ -19,7 +19,9 @@ def add_arguments(p) -> None:
     p.add_argument("--long-side", type=int, help="texels on each map's long side (overrides texture.long_side)")
     p.add_argument("--density", type=float, help="texels per scene unit (overrides texture.density)")
     p.add_argument("--photo-long-side", type=int, help="resample the photos to this long side (default: full size)")
-    p.add_argument("--max-edge", type=float, help="mesh edge bound in scene units (default: 1/20 of the camera distance)")
+    p.add_argument(
+        "--max-edge", type=float, help="mesh edge bound in scene units (default: 1/20 of the camera distance)"
+    )
     p.add_argument("--oversample", type=int, default=2, help="MeshLab atlas texels per map texel along each axis")
     p.add_argument("--threads", type=int, default=0, help="the peer's threads (texrecon); 0: its default")
     p.add_argument("--timeout", type=float, default=3600.0, help="seconds before the peer is killed")
@@ -29,7 +31,7 @@ def add_arguments(p) -> None:
 def run(args) -> int:
     from difftex.config import TextureConfig, section
     from difftex.errors import DifftexError
-    from difftex.peer import PeerConfig, run_peer
+    from difftex.evaluation.peers.run import PeerConfig, run_peer
 
     tex = section(args.config, "texture", TextureConfig)
     long_side, density = tex.long_side, tex.density  # density wins when set, as in difftex visibility
@@ -38,16 +40,34 @@ def run(args) -> int:
     if args.density is not None:
         density = args.density
     try:
-        cfg = PeerConfig(photo_long_side=args.photo_long_side, max_edge=args.max_edge, oversample=args.oversample,
-                         threads=args.threads, timeout_s=args.timeout, keep_inputs=args.keep_inputs)
+        cfg = PeerConfig(
+            photo_long_side=args.photo_long_side,
+            max_edge=args.max_edge,
+            oversample=args.oversample,
+            threads=args.threads,
+            timeout_s=args.timeout,
+            keep_inputs=args.keep_inputs,
+        )
     except ValueError as exc:
         raise DifftexError(f"difftex peer: {exc}") from None
     polygons = [p for p in args.polygons.split(",") if p] if args.polygons else None
-    rec = run_peer(args.method, args.scene, args.out, cfg, visibility=args.visibility, polygons=polygons,
-                   long_side=long_side, density=density, photos_table=args.photos)
+    rec = run_peer(
+        args.method,
+        args.scene,
+        args.out,
+        cfg,
+        visibility=args.visibility,
+        polygons=polygons,
+        long_side=long_side,
+        density=density,
+        photos_table=args.photos,
+    )
     cov = rec["polygons"]
-    print(f"peer {args.method}: {len(cov)} polygons, mean coverage {sum(cov.values()) / max(len(cov), 1):.3f}; "
-          f"prepare {rec['prepare']['wall_s']:.1f} s, {rec['peer_program']['program']} {rec['peer']['wall_s']:.1f} s "
-          f"({rec['peer']['cpu_s']:.1f} CPU s, {rec['peer']['peak_rss_mib']:.0f} MiB), import {rec['import']['wall_s']:.1f} s "
-          f"-> {args.out}")
+    print(
+        f"peer {args.method}: {len(cov)} polygons, mean coverage {sum(cov.values()) / max(len(cov), 1):.3f}; "
+        f"prepare {rec['prepare']['wall_s']:.1f} s, {rec['peer_program']['program']} {rec['peer']['wall_s']:.1f} s "
+        f"({rec['peer']['cpu_s']:.1f} CPU s, {rec['peer']['peak_rss_mib']:.0f} MiB), import "
+        f"{rec['import']['wall_s']:.1f} s "
+        f"-> {args.out}"
+    )
     return 0

@@ -13,7 +13,7 @@ def add_arguments(p) -> None:
 
 
 def run(args) -> int:
-    from difftex.report import write_report
+    from difftex.evaluation.report import write_report
 
     out = write_report(args.results, args.out, args.scene)
     print(f"report: {out}")

@@ -19,7 +19,7 @@ def polygon_notes(filtered: dict, vis) -> dict:
 
     Args:
         filtered: the filter table's record of the polygon (may be empty).
-        vis: its difftex.visibility.PolygonVisibility.
+        vis: its difftex.geometry.visibility.PolygonVisibility.
     """
     out: dict = {}
     for key in ("textured_from_oblique", "oblique_angles", "textured_from_glimpses", "glimpses"):
@@ -38,11 +38,11 @@ def run(args) -> int:
     import time
     from pathlib import Path
 
-    from difftex.errors import DifftexError
     from difftex.config import TextureConfig, VisibilityConfig, read_config, section
-    from difftex.io import read_json, write_json
-    from difftex.scene import load_scene
-    from difftex.visibility import save_visibility, scene_visibility
+    from difftex.errors import DifftexError
+    from difftex.geometry.visibility import save_visibility, scene_visibility
+    from difftex.scene.files import read_json, write_json
+    from difftex.scene.loading import load_scene
 
     t0 = time.perf_counter()
     tex = section(args.config, "texture", TextureConfig)
@@ -55,7 +55,9 @@ def run(args) -> int:
             filtered = dict(table["polygons"])
             cands = {pid: d["kept"] for pid, d in filtered.items()}
             # photos dropped as inclined: back only as the last source of some texels
-            later = {pid: {n: d["dropped"].get(n, "inclined") for n in d.get("inclined", {})} for pid, d in filtered.items()}
+            later = {
+                pid: {n: d["dropped"].get(n, "inclined") for n in d.get("inclined", {})} for pid, d in filtered.items()
+            }
         except (KeyError, AttributeError, TypeError):
             raise DifftexError(f"{args.photos}: not a difftex filter table") from None
     else:
@@ -63,8 +65,16 @@ def run(args) -> int:
         later = {}
     top_k = int((read_config(args.config).get("optimize") or {}).get("top_k", 8))
     vis = scene_visibility(
-        scene.proxy, scene.photos, scene.up, cands, tex,
-        min_texels=vcfg.min_texels, max_photos=vcfg.max_photos, progress=not args.quiet, top_k=top_k, fallback=later,
+        scene.proxy,
+        scene.photos,
+        scene.up,
+        cands,
+        tex,
+        min_texels=vcfg.min_texels,
+        max_photos=vcfg.max_photos,
+        progress=not args.quiet,
+        top_k=top_k,
+        fallback=later,
     )
     out = Path(args.out_dir)
     out.mkdir(parents=True, exist_ok=True)
@@ -72,17 +82,27 @@ def run(args) -> int:
     for v in vis:
         save_visibility(out / f"{v.polygon_id}.npz", v)
         ts = v.texel_size or {}
-        rows.append({
-            "id": v.polygon_id, "photos": v.photos, "coverage": round(v.coverage, 4),
-            "width": v.frame.width, "height": v.frame.height, "texels": int(v.texel_mask.sum()),
-            "texel_size": v.frame.texel_size, "photo_texel_size": ts.get("photo_texel_size"),
-            "texel_size_bound": ts.get("bound"),
-            **polygon_notes(filtered.get(v.polygon_id, {}), v),
-        })
-        print(f"  {v.polygon_id}: {len(v.photos)} photos, coverage {100 * v.coverage:.1f}%, {v.frame.width}x{v.frame.height} "
-              f"texels of {v.frame.texel_size:.4g} units (set by {ts.get('bound')})"
-              + (f"; {rows[-1]['untextured_reason']}" if "untextured_reason" in rows[-1] else "")
-              + (f"; last source of some texels: {', '.join(v.rescued)}" if v.rescued else ""))
+        rows.append(
+            {
+                "id": v.polygon_id,
+                "photos": v.photos,
+                "coverage": round(v.coverage, 4),
+                "width": v.frame.width,
+                "height": v.frame.height,
+                "texels": int(v.texel_mask.sum()),
+                "texel_size": v.frame.texel_size,
+                "photo_texel_size": ts.get("photo_texel_size"),
+                "texel_size_bound": ts.get("bound"),
+                **polygon_notes(filtered.get(v.polygon_id, {}), v),
+            }
+        )
+        print(
+            f"  {v.polygon_id}: {len(v.photos)} photos, coverage {100 * v.coverage:.1f}%, "
+            f"{v.frame.width}x{v.frame.height} "
+            f"texels of {v.frame.texel_size:.4g} units (set by {ts.get('bound')})"
+            + (f"; {rows[-1]['untextured_reason']}" if "untextured_reason" in rows[-1] else "")
+            + (f"; last source of some texels: {', '.join(v.rescued)}" if v.rescued else "")
+        )
     secs = time.perf_counter() - t0
     write_json(out / "summary.json", {"scene": str(scene.root), "polygons": rows, "seconds": round(secs, 2)})
     print(f"{scene.name}: visibility of {len(vis)} polygons in {secs:.1f} s -> {out}")

@@ -9,7 +9,7 @@ each level are optimized, every candidate photo's mapping is corrected in its ow
 six parameters (translation d, affine part M normalised to the polygon's extent s in the photo)
 found by Gauss-Newton (Lucas-Kanade) against the consensus texture: the previous level's
 optimized texture, or at the first level the per-texel median of the photos. The photo is
-sampled through the same trilinear pyramid sampling as everywhere (difftex.sampling); its
+sampled through the same trilinear pyramid sampling as everywhere (difftex.sampling.photos); its
 gradient by central differences. A robust (Cauchy) weight ignores occluded texels, and a
 Gaussian prior of ``align_prior_px`` keeps corrections small where the texture says little
 (flat walls). The corrections accumulate from coarse to fine levels.
@@ -28,9 +28,10 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from difftex.colour import apply_transfer_torch
-from difftex.mapping import UVFrame
-from difftex.sampling import Correction, PhotoSet, resample_nearest, texel_map
+from difftex.geometry.frames import UVFrame
+from difftex.sampling.colour import apply_transfer_torch
+from difftex.sampling.photos import Correction, PhotoSet
+from difftex.sampling.texels import resample_nearest, texel_map
 
 MAX_POINTS = 65536  # texels per photo and Gauss-Newton step (a strided subset above it)
 
@@ -60,8 +61,17 @@ def _sample(photos: PhotoSet, n: int, pix: torch.Tensor, fp: torch.Tensor, trans
     return apply_transfer_torch(col[:, :, None], transfer)[:, :, 0] if transfer is not None else col
 
 
-def gauss_newton(photos: PhotoSet, n: int, pix0: torch.Tensor, fp: torch.Tensor, target: torch.Tensor,
-                 weight: torch.Tensor, corr: Correction, transfer, st: AlignSettings) -> Correction:
+def gauss_newton(
+    photos: PhotoSet,
+    n: int,
+    pix0: torch.Tensor,
+    fp: torch.Tensor,
+    target: torch.Tensor,
+    weight: torch.Tensor,
+    corr: Correction,
+    transfer,
+    st: AlignSettings,
+) -> Correction:
     """``st.iterations`` Gauss-Newton steps of photo n's correction against ``target``.
 
     Args:
@@ -87,8 +97,12 @@ def gauss_newton(photos: PhotoSet, n: int, pix0: torch.Tensor, fp: torch.Tensor,
         ey = torch.zeros_like(pix)
         ey[:, 1] = 1.0
         col = _sample(photos, n, pix, fp, transfer)
-        gx = (_sample(photos, n, pix + h * ex, fp, transfer) - _sample(photos, n, pix - h * ex, fp, transfer)) / (2 * h.T)
-        gy = (_sample(photos, n, pix + h * ey, fp, transfer) - _sample(photos, n, pix - h * ey, fp, transfer)) / (2 * h.T)
+        gx = (_sample(photos, n, pix + h * ex, fp, transfer) - _sample(photos, n, pix - h * ex, fp, transfer)) / (
+            2 * h.T
+        )
+        gy = (_sample(photos, n, pix + h * ey, fp, transfer) - _sample(photos, n, pix - h * ey, fp, transfer)) / (
+            2 * h.T
+        )
         r = (col - target).double()  # (3, m)
         grad = torch.stack([gx, gy], -1).double()  # (3, m, 2)
         J = torch.einsum("cmk,mkp->cmp", grad, B)  # (3, m, 6)
@@ -110,10 +124,12 @@ def gauss_newton(photos: PhotoSet, n: int, pix0: torch.Tensor, fp: torch.Tensor,
     return Correction(params, corr.centre, corr.scale)
 
 
-def consensus_median(photos: PhotoSet, frame: UVFrame, mask: np.ndarray, transfers: list | None) -> tuple[torch.Tensor, torch.Tensor]:
+def consensus_median(
+    photos: PhotoSet, frame: UVFrame, mask: np.ndarray, transfers: list | None
+) -> tuple[torch.Tensor, torch.Tensor]:
     """Per-texel median of the mapped photos ((3, h, w)) and where two or more define it."""
-    maps = {n: photos.map(n, frame, mask, transfers[n] if transfers else None) for n in sorted(photos.samplers)}
-    maps = {n: mp for n, mp in maps.items() if mp is not None}
+    mapped = {n: photos.map(n, frame, mask, transfers[n] if transfers else None) for n in sorted(photos.samplers)}
+    maps = {n: mp for n, mp in mapped.items() if mp is not None}
     if not maps:
         h, w = frame.shape
         return torch.zeros(3, h, w, device=photos.device), torch.zeros(h, w, dtype=torch.bool, device=photos.device)
@@ -124,8 +140,15 @@ def consensus_median(photos: PhotoSet, frame: UVFrame, mask: np.ndarray, transfe
     return torch.nan_to_num(med), vis.sum(0) >= 2
 
 
-def align_level(photos: PhotoSet, frame: UVFrame, mask: np.ndarray, transfers: list | None, consensus: torch.Tensor,
-                defined: torch.Tensor, st: AlignSettings) -> dict:
+def align_level(
+    photos: PhotoSet,
+    frame: UVFrame,
+    mask: np.ndarray,
+    transfers: list | None,
+    consensus: torch.Tensor,
+    defined: torch.Tensor,
+    st: AlignSettings,
+) -> dict:
     """Refine every candidate photo's correction against ``consensus`` (3, h, w) at ``frame``.
 
     Returns per photo name: the correction's largest displacement at the polygon's extent
@@ -166,8 +189,11 @@ def align_level(photos: PhotoSet, frame: UVFrame, mask: np.ndarray, transfers: l
     for name, n in report.items():
         c = photos.corrections.get(n)
         edge = max_shift(c) if c is not None else 0.0
-        out[name] = {"max_shift_px": round(edge, 3), "kept": c is not None and edge <= st.max_px,
-                     "params": [round(float(v), 4) for v in c.params] if c is not None else None}
+        out[name] = {
+            "max_shift_px": round(edge, 3),
+            "kept": c is not None and edge <= st.max_px,
+            "params": [round(float(v), 4) for v in c.params] if c is not None else None,
+        }
         if c is not None and edge > st.max_px:
             del photos.corrections[n]
     return out
@@ -176,8 +202,9 @@ def align_level(photos: PhotoSet, frame: UVFrame, mask: np.ndarray, transfers: l
 def max_shift(c: Correction) -> float:
     """The correction's largest displacement at the corners of the polygon's extent, pixels."""
     s = c.scale
-    corners = torch.tensor([[c.centre[0] + a * s, c.centre[1] + b * s] for a in (-1, 1) for b in (-1, 1)],
-                           dtype=torch.float64)
+    corners = torch.tensor(
+        [[c.centre[0] + a * s, c.centre[1] + b * s] for a in (-1, 1) for b in (-1, 1)], dtype=torch.float64
+    )
     return float(c.displacement(corners).norm(dim=1).max())
 
 

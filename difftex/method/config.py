@@ -37,9 +37,9 @@ class OptimizeConfig:
     omega: float = 10.0  # L_Para
     lambda_s: float = 0.5
     para_eps: float = 0.01  # Charbonnier smoothing of |.| in L_Para (0: exact L1)
-    render_units: RenderUnits = "noise"  # L_Render in units of the photometric noise ("noise") or raw ("raw": the paper)
+    render_units: RenderUnits = "noise"
     ghost_margin: float = 1.0  # squared differences below this many sigma_c^2 cost little in the ghost term (0: all)
-    ghost: float = 1.0  # weight of the blend's spread next to L_Render (0: the paper's L_Render alone; see losses.ghost_loss)
+    ghost: float = 1.0
     lr: float = 0.1  # Adam step on the logits of the weights (paper: 0.005 on the weights)
     betas: tuple[float, float] = (0.9, 0.99)
     tau: float = 0.01  # activation threshold on normalised weights
@@ -96,7 +96,7 @@ class OptimizeConfig:
         object.__setattr__(self, "betas", tuple(float(b) for b in self.betas))
 
     @classmethod
-    def from_dict(cls, data: dict | None, where: str = "optimize") -> "OptimizeConfig":
+    def from_dict(cls, data: dict | None, where: str = "optimize") -> OptimizeConfig:
         from difftex.config import from_dict
 
         return from_dict(cls, data, where=where)
@@ -125,7 +125,7 @@ class ComputeConfig:
             raise ValueError("compile_min_slots must be >= 0")
 
     @classmethod
-    def from_dict(cls, data: dict | None, where: str = "compute") -> "ComputeConfig":
+    def from_dict(cls, data: dict | None, where: str = "compute") -> ComputeConfig:
         from difftex.config import from_dict
 
         return from_dict(cls, data, where=where)

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import torch
 
-from difftex import losses
+from difftex.method import losses
 from difftex.method.config import OptimizeConfig
 from difftex.method.levels import Level
 
@@ -88,13 +88,17 @@ def photo_zero_share(lv: Level, base: torch.Tensor, W: torch.Tensor, tau: float,
     return torch.where(tot > 0, zero / tot.clamp_min(1), torch.full_like(tot, -1.0))
 
 
-def photos_to_drop(lv: Level, base: torch.Tensor, W: torch.Tensor, tau: float, tau_w: float, n_photos: int) -> list[int]:
+def photos_to_drop(
+    lv: Level, base: torch.Tensor, W: torch.Tensor, tau: float, tau_w: float, n_photos: int
+) -> list[int]:
     """Photos whose weight is zero (<= tau) on more than tau_w of the texels they could serve."""
     share = photo_zero_share(lv, base, W, tau, n_photos)
     return [int(k) for k in torch.nonzero(share > tau_w).flatten().tolist()]
 
 
-def dropped_slot_mask(lv: Level, eliminated: torch.Tensor, dropped: set[int], W: torch.Tensor | None = None) -> torch.Tensor:
+def dropped_slot_mask(
+    lv: Level, eliminated: torch.Tensor, dropped: set[int], W: torch.Tensor | None = None
+) -> torch.Tensor:
     """Slots of dropped photos, except the best one of a texel that no other photo serves.
 
     Removing a texel's last source would leave a hole the optimization cannot fill (paper:

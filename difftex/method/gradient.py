@@ -16,8 +16,8 @@ from dataclasses import dataclass
 
 import torch
 
-from difftex import losses
-from difftex.losses import NeighbourMatch, crop_pair, para_edge_cost, smooth_abs
+from difftex.method import losses
+from difftex.method.losses import NeighbourMatch, crop_pair, para_edge_cost, smooth_abs
 
 
 @dataclass
@@ -43,8 +43,14 @@ def _smooth_abs_grad(x: torch.Tensor, eps: float) -> torch.Tensor:
     return x / (x * x + eps * eps).sqrt() if eps > 0 else torch.sign(x)
 
 
-def para_value_and_grad(W: torch.Tensor, active: torch.Tensor, D: dict[int, torch.Tensor],
-                        matches: dict[int, NeighbourMatch], lambda_s: float, eps: float) -> tuple[torch.Tensor, torch.Tensor]:
+def para_value_and_grad(
+    W: torch.Tensor,
+    active: torch.Tensor,
+    D: dict[int, torch.Tensor],
+    matches: dict[int, NeighbourMatch],
+    lambda_s: float,
+    eps: float,
+) -> tuple[torch.Tensor, torch.Tensor]:
     """L_Para (eq. 8-10, times n_tex) and its gradient with respect to W, (K, H, W).
 
     Mirrors losses.para_loss: the slot j of texel o meets the slot of its neighbour q that holds
@@ -71,15 +77,16 @@ def para_value_and_grad(W: torch.Tensor, active: torch.Tensor, D: dict[int, torc
             gd = C * _smooth_abs_grad(d, eps)
             go += gd
             gq.scatter_add_(0, idx, -gd * has)
-            alone = nm.q_alone.to(W.dtype) * nm.pair_ok.to(W.dtype)
+            alone = nm.q_alone.to(W.dtype) * nm.pair_ok.to(W.dtype)  # type: ignore[union-attr]  # set unless fixed
             x = Wq * alone
             total = total + lambda_s * smooth_abs(x, eps).sum()
             gq += lambda_s * _smooth_abs_grad(x, eps) * alone
     return total, g
 
 
-def texel_value_and_grad(z: torch.Tensor, active: torch.Tensor, data: TexelData, D: dict | None,
-                         matches: dict, cfg) -> tuple[dict[str, torch.Tensor], torch.Tensor]:
+def texel_value_and_grad(
+    z: torch.Tensor, active: torch.Tensor, data: TexelData, D: dict | None, matches: dict, cfg
+) -> tuple[dict[str, torch.Tensor], torch.Tensor]:
     """Every term of L in texel space (as difftex.method.objective.objective computes them) and
     dL/dz, (K, H, W). ``cfg``: an OptimizeConfig."""
     W = losses.blend_weights(z, active)
@@ -153,6 +160,7 @@ class Adam:
             self.m = torch.zeros_like(param)
             self.v = torch.zeros_like(param)
         b1, b2 = self.betas
+        assert self.m is not None and self.v is not None  # set above on the first step
         self.step_count += 1
         self.m.lerp_(grad, 1 - b1)
         self.v.mul_(b2).addcmul_(grad, grad, value=1 - b2)

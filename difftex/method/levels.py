@@ -16,10 +16,11 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from difftex import losses
-from difftex.mapping import UVFrame
+from difftex.geometry.frames import UVFrame
+from difftex.method import losses
 from difftex.method.config import OptimizeConfig
-from difftex.sampling import MappedPhoto, PhotoSet, Region, resample_nearest
+from difftex.sampling.photos import MappedPhoto, PhotoSet
+from difftex.sampling.texels import Region, resample_nearest
 
 MAP_CACHE_BYTES = 1 << 30  # mapped photos held at once while a level is built
 
@@ -42,7 +43,7 @@ class Level:
     z0: torch.Tensor  # (K, h, w) initial logits of the weights
     v_tilde: np.ndarray
     n_candidates: int  # photos that see at least one texel at this level
-    pixel_sets: "losses.PixelBatch | None" = None  # render mode
+    pixel_sets: losses.PixelBatch | None = None  # render mode
     fixed_slots: bool = False  # slot j holds the same photo at every texel (all candidates fit in K)
     maps: int = 0  # photo mappings made to build the level
     noise: float = 1.0  # typical colour disagreement of the candidates (sigma_c): L_Render's unit
@@ -72,8 +73,16 @@ def gradient_magnitude(col: torch.Tensor, vis: torch.Tensor) -> torch.Tensor:
     return (gx * gx + gy * gy).sqrt().mean(0)
 
 
-def quality(cos: torch.Tensor, colour: torch.Tensor, mu: torch.Tensor, msd: torch.Tensor, visible: torch.Tensor,
-            sigma_min: float, footprint: torch.Tensor | None = None, resolution_weight: float = 0.0) -> torch.Tensor:
+def quality(
+    cos: torch.Tensor,
+    colour: torch.Tensor,
+    mu: torch.Tensor,
+    msd: torch.Tensor,
+    visible: torch.Tensor,
+    sigma_min: float,
+    footprint: torch.Tensor | None = None,
+    resolution_weight: float = 0.0,
+) -> torch.Tensor:
     """The initial weight Q = Q_a Q_c (Q_r) of one photo at every texel (Sec. 3.2).
 
     Q_a is the frontality (cosine between the texel-to-camera direction and the normal); Q_c a
@@ -129,8 +138,9 @@ def _scatter_photo_field(idx: torch.Tensor, values: torch.Tensor, n: int) -> tup
     return (values * sel).sum(0), sel.any(0)
 
 
-def upsample_photo_weight(prev_level: Level, prev_W: torch.Tensor, n: int, frame: UVFrame,
-                          region: Region | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+def upsample_photo_weight(
+    prev_level: Level, prev_W: torch.Tensor, n: int, frame: UVFrame, region: Region | None = None
+) -> tuple[torch.Tensor, torch.Tensor]:
     """Bilinear upsampling of photo n's blend weight from the previous level (paper: W upsampled).
 
     Args:
@@ -162,9 +172,12 @@ def upsample_field(field: torch.Tensor, src: UVFrame, frame: UVFrame) -> torch.T
     ``frame`` (the same rectangle at another resolution)."""
     tx, ty = frame.centres()
     r = frame.texel_size / src.texel_size
-    grid = torch.from_numpy(np.stack([(tx * r) / src.width * 2 - 1, (ty * r) / src.height * 2 - 1], -1).astype(np.float32))
-    return F.grid_sample(field[None].float(), grid.to(field.device)[None], mode="bilinear", padding_mode="border",
-                         align_corners=False)[0]
+    grid = torch.from_numpy(
+        np.stack([(tx * r) / src.width * 2 - 1, (ty * r) / src.height * 2 - 1], -1).astype(np.float32)
+    )
+    return F.grid_sample(
+        field[None].float(), grid.to(field.device)[None], mode="bilinear", padding_mode="border", align_corners=False
+    )[0]
 
 
 def upsample_known(prev_level: Level, frame: UVFrame) -> torch.Tensor:
@@ -175,13 +188,24 @@ def upsample_known(prev_level: Level, frame: UVFrame) -> torch.Tensor:
     src = prev_level.frame
     tx, ty = frame.centres()
     r = frame.texel_size / src.texel_size
-    grid = torch.from_numpy(np.stack([(tx * r) / src.width * 2 - 1, (ty * r) / src.height * 2 - 1], -1).astype(np.float32))
-    up = F.grid_sample(known[None, None], grid.to(known.device)[None], mode="nearest", padding_mode="border", align_corners=False)
+    grid = torch.from_numpy(
+        np.stack([(tx * r) / src.width * 2 - 1, (ty * r) / src.height * 2 - 1], -1).astype(np.float32)
+    )
+    up = F.grid_sample(
+        known[None, None], grid.to(known.device)[None], mode="nearest", padding_mode="border", align_corners=False
+    )
     return up[0, 0] > 0.5
 
 
-def photo_regions(photos: PhotoSet, frame: UVFrame, mask: np.ndarray, prev: tuple[Level, torch.Tensor] | None,
-                  prev_known: torch.Tensor | None, tau: float, pad: int = 2) -> dict[int, Region]:
+def photo_regions(
+    photos: PhotoSet,
+    frame: UVFrame,
+    mask: np.ndarray,
+    prev: tuple[Level, torch.Tensor] | None,
+    prev_known: torch.Tensor | None,
+    tau: float,
+    pad: int = 2,
+) -> dict[int, Region]:
     """The rectangle of ``frame`` each photo must be mapped over: all of it at the first level;
     after it, around the texels where the photo held weight (> tau) at the coarser level, plus
     any texels the coarser level knew nothing about. Photos without either are not mapped.
@@ -193,6 +217,7 @@ def photo_regions(photos: PhotoSet, frame: UVFrame, mask: np.ndarray, prev: tupl
     if prev is None:
         return {n: (0, h, 0, w) for n in sorted(photos.samplers)}
     plv, pW = prev
+    assert prev_known is not None  # given with prev
     r = frame.texel_size / plv.frame.texel_size  # a fine texel in coarse texels
     unknown = torch.from_numpy(mask).to(prev_known.device) & ~prev_known
     ubox = _bbox(unknown) if bool(unknown.any()) else None
@@ -203,14 +228,25 @@ def photo_regions(photos: PhotoSet, frame: UVFrame, mask: np.ndarray, prev: tupl
         boxes = []
         if bool(sup.any()):
             cy0, cy1, cx0, cx1 = _bbox(sup)
-            boxes.append((int(np.floor(cy0 / r)) - pad, int(np.ceil(cy1 / r)) + pad,
-                          int(np.floor(cx0 / r)) - pad, int(np.ceil(cx1 / r)) + pad))
+            boxes.append(
+                (
+                    int(np.floor(cy0 / r)) - pad,
+                    int(np.ceil(cy1 / r)) + pad,
+                    int(np.floor(cx0 / r)) - pad,
+                    int(np.ceil(cx1 / r)) + pad,
+                )
+            )
         if ubox is not None and resample_nearest(photos.inp.texel_visible[n], photos.inp.frame, frame, ubox).any():
             boxes.append(ubox)
         if not boxes:
             continue
         b = np.array(boxes)
-        out[n] = (max(0, int(b[:, 0].min())), min(h, int(b[:, 1].max())), max(0, int(b[:, 2].min())), min(w, int(b[:, 3].max())))
+        out[n] = (
+            max(0, int(b[:, 0].min())),
+            min(h, int(b[:, 1].max())),
+            max(0, int(b[:, 2].min())),
+            min(w, int(b[:, 3].max())),
+        )
     return out
 
 
@@ -221,9 +257,15 @@ def _bbox(m: torch.Tensor) -> Region:
     return int(ys[0]), int(ys[-1]) + 1, int(xs[0]), int(xs[-1]) + 1
 
 
-def build_level(photos: PhotoSet, frame: UVFrame, cfg: OptimizeConfig, transfers: list | None = None,
-                prev: tuple[Level, torch.Tensor] | None = None, dropped: set[int] | None = None,
-                mapped: dict[int, MappedPhoto | None] | None = None) -> Level:
+def build_level(
+    photos: PhotoSet,
+    frame: UVFrame,
+    cfg: OptimizeConfig,
+    transfers: list | None = None,
+    prev: tuple[Level, torch.Tensor] | None = None,
+    dropped: set[int] | None = None,
+    mapped: dict[int, MappedPhoto | None] | None = None,
+) -> Level:
     """Map the candidates into texel space, compute Q and the persp cost, keep the top-K per texel.
 
     Args:
@@ -311,8 +353,16 @@ def build_level(photos: PhotoSet, frame: UVFrame, cfg: OptimizeConfig, transfers
         reg = regions[n] if mapped is None else (0, h, 0, w)
         y0, y1, x0, x1 = reg
         sl = (slice(y0, y1), slice(x0, x1))
-        q = quality(mp.cos, mp.colour, mu[:, y0:y1, x0:x1], msd[sl], mp.visible, cfg.sigma_min, mp.footprint,
-                    cfg.resolution_weight)
+        q = quality(
+            mp.cos,
+            mp.colour,
+            mu[:, y0:y1, x0:x1],
+            msd[sl],
+            mp.visible,
+            cfg.sigma_min,
+            mp.footprint,
+            cfg.resolution_weight,
+        )
         pc = losses.persp_cost(mp.view[None], v_tilde)[0]
         weight = q  # the paper's initialisation: W proportional to Q
         if prev is not None:
@@ -321,10 +371,16 @@ def build_level(photos: PhotoSet, frame: UVFrame, cfg: OptimizeConfig, transfers
             # photo was outranked there: it starts at zero, not at Q (which would bring back
             # the photos the coarser levels left out). Only texels the coarser level did not
             # see at all start from Q.
-            weight = torch.where(cov, w_up, torch.where(prev_known[sl], torch.zeros_like(q), q))
+            weight = torch.where(cov, w_up, torch.where(prev_known[sl], torch.zeros_like(q), q))  # type: ignore[index]  # set with prev
         if fixed:
             idx[j][sl] = n
-            vis[j][sl], cols[j][:, y0:y1, x0:x1], Q[j][sl], cost[j][sl], w0[j][sl] = mp.visible, mp.colour, q, pc, weight
+            vis[j][sl], cols[j][:, y0:y1, x0:x1], Q[j][sl], cost[j][sl], w0[j][sl] = (
+                mp.visible,
+                mp.colour,
+                q,
+                pc,
+                weight,
+            )
             continue
         # Rank: upsampled weight (or Q where the coarse level had no data); the small Q term
         # breaks ties between photos that were both deactivated at the coarse level.
@@ -334,19 +390,35 @@ def build_level(photos: PhotoSet, frame: UVFrame, cfg: OptimizeConfig, transfers
         top = torch.topk(all_score, K, dim=0)
         sel = top.indices
 
-        def pick(old, new):
+        def pick(old, new, sel=sel):
             allv = torch.cat([old, new[None]])
             if allv.dim() == 4:
                 return torch.gather(allv, 0, sel[:, None].expand(-1, allv.shape[1], -1, -1))
             return torch.gather(allv, 0, sel)
 
         best_score[:, y0:y1, x0:x1] = top.values
-        idx[:, y0:y1, x0:x1] = pick(idx[:, y0:y1, x0:x1], torch.full((y1 - y0, x1 - x0), n, dtype=torch.long, device=device))
+        idx[:, y0:y1, x0:x1] = pick(
+            idx[:, y0:y1, x0:x1], torch.full((y1 - y0, x1 - x0), n, dtype=torch.long, device=device)
+        )
         vis[:, y0:y1, x0:x1] = pick(vis[:, y0:y1, x0:x1], mp.visible)
         cols[:, :, y0:y1, x0:x1] = pick(cols[:, :, y0:y1, x0:x1], mp.colour)
         Q[:, y0:y1, x0:x1] = pick(Q[:, y0:y1, x0:x1], q)
         cost[:, y0:y1, x0:x1] = pick(cost[:, y0:y1, x0:x1], pc)
         w0[:, y0:y1, x0:x1] = pick(w0[:, y0:y1, x0:x1], weight)
     idx = torch.where(vis, idx, torch.full_like(idx, -1))
-    return Level(frame=frame, mask=mask, idx=idx, visible=vis, colours=cols, Q=Q, cost=cost, G=G, z0=init_logits(w0 * vis),
-                 v_tilde=v_tilde.cpu().numpy(), n_candidates=len(seen), fixed_slots=fixed, maps=maps, noise=noise)
+    return Level(
+        frame=frame,
+        mask=mask,
+        idx=idx,
+        visible=vis,
+        colours=cols,
+        Q=Q,
+        cost=cost,
+        G=G,
+        z0=init_logits(w0 * vis),
+        v_tilde=v_tilde.cpu().numpy(),
+        n_candidates=len(seen),
+        fixed_slots=fixed,
+        maps=maps,
+        noise=noise,
+    )

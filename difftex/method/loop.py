@@ -15,16 +15,28 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from difftex import losses
-from difftex.method import alignment, diagnostics
+from difftex.method import alignment, diagnostics, losses
 from difftex.method.config import ComputeConfig, OptimizeConfig
-from difftex.method.elimination import (base_mask, dropped_slot_mask, eliminate_pixels, photo_zero_share,
-                                        photos_to_drop, update_activation)
-from difftex.method.levels import Level, build_level, upsample_field
+from difftex.method.elimination import (
+    base_mask,
+    dropped_slot_mask,
+    eliminate_pixels,
+    photo_zero_share,
+    photos_to_drop,
+    update_activation,
+)
 from difftex.method.gradient import Adam
-from difftex.method.objective import LevelState, compiled_objective, compiled_texel_gradient, objective, value_and_grad
+from difftex.method.levels import Level, build_level, upsample_field
+from difftex.method.objective import (
+    LevelState,
+    compiled_objective,
+    compiled_texel_gradient,
+    objective,
+    value_and_grad,
+)
 from difftex.method.render import build_pixel_sets
-from difftex.sampling import MappedPhoto, PhotoSet, level_frame, level_sides, resample_nearest
+from difftex.sampling.photos import MappedPhoto, PhotoSet
+from difftex.sampling.texels import level_frame, level_sides, resample_nearest
 
 LOSS_KEYS = ("total", "render", "ghost", "persp", "para")
 
@@ -50,9 +62,14 @@ def weight_change(W: torch.Tensor, W_old: torch.Tensor, mask: torch.Tensor, q: f
     return float(torch.quantile(d.float(), q))
 
 
-def optimize_polygon(photos: PhotoSet, cfg: OptimizeConfig, compute: ComputeConfig = ComputeConfig(),
-                     transfers: list | None = None, first: dict[int, MappedPhoto | None] | None = None,
-                     progress: bool = False) -> Result:
+def optimize_polygon(
+    photos: PhotoSet,
+    cfg: OptimizeConfig,
+    compute: ComputeConfig = ComputeConfig(),
+    transfers: list | None = None,
+    first: dict[int, MappedPhoto | None] | None = None,
+    progress: bool = False,
+) -> Result:
     """Run DiffTex for one polygon; returns weights and texture at the target resolution.
 
     Args:
@@ -63,9 +80,14 @@ def optimize_polygon(photos: PhotoSet, cfg: OptimizeConfig, compute: ComputeConf
     torch.manual_seed(cfg.seed)
     inp, device = photos.inp, photos.device
     t_start = time.perf_counter()
-    N = len(inp.photos)
-    stats: dict = {"polygon_id": inp.polygon_id, "device": str(device), "photos": [p.name for p in inp.photos],
-                   "levels": [], "dropped": [], "config": cfg.to_dict()}
+    stats: dict = {
+        "polygon_id": inp.polygon_id,
+        "device": str(device),
+        "photos": [p.name for p in inp.photos],
+        "levels": [],
+        "dropped": [],
+        "config": cfg.to_dict(),
+    }
     sides = level_sides(max(inp.frame.shape), cfg.long_side_start, cfg.coarse_to_fine)
     dropped: set[int] = set()
     prev: LevelState | None = None
@@ -82,14 +104,22 @@ def optimize_polygon(photos: PhotoSet, cfg: OptimizeConfig, compute: ComputeConf
         if cfg.align and side <= cfg.align_max_long_side:
             stats["alignment"].append(_align(photos, frame, transfers, prev, cfg))
             aligned = True
-        lv = build_level(photos, frame, cfg, transfers, dropped=dropped, mapped=first if li == 0 and not aligned else None,
-                         prev=(prev.level, losses.blend_weights(prev.z, prev.active)) if prev is not None else None)
+        lv = build_level(
+            photos,
+            frame,
+            cfg,
+            transfers,
+            dropped=dropped,
+            mapped=first if li == 0 and not aligned else None,
+            prev=(prev.level, losses.blend_weights(prev.z, prev.active)) if prev is not None else None,
+        )
         if cfg.use_render and cfg.loss_mode == "render":
             lv.pixel_sets = build_pixel_sets(photos, lv, transfers)
         t_setup = time.perf_counter() - tl
         st, lvl_stats = _run_level(lv, li, cfg, compute, dropped, stats, bar)
-        lvl_stats.update({"long_side": side, "time_setup_s": t_setup, "time_s": time.perf_counter() - tl,
-                          "photo_maps": lv.maps})
+        lvl_stats.update(
+            {"long_side": side, "time_setup_s": t_setup, "time_s": time.perf_counter() - tl, "photo_maps": lv.maps}
+        )
         stats["levels"].append(lvl_stats)
         prev = st
     if bar is not None:
@@ -119,8 +149,12 @@ def optimize_polygon(photos: PhotoSet, cfg: OptimizeConfig, compute: ComputeConf
     stats["time_total_s"] = time.perf_counter() - t_start
     if device.type == "cuda":
         stats["cuda_peak_bytes"] = int(torch.cuda.max_memory_allocated(device))
-    return Result(idx=lv.idx.cpu().numpy().astype(np.int32), W=W.cpu().numpy().astype(np.float32),
-                  U=U.permute(1, 2, 0).cpu().numpy(), stats=stats)
+    return Result(
+        idx=lv.idx.cpu().numpy().astype(np.int32),
+        W=W.cpu().numpy().astype(np.float32),
+        U=U.permute(1, 2, 0).cpu().numpy(),
+        stats=stats,
+    )
 
 
 def _align(photos: PhotoSet, frame, transfers, prev: LevelState | None, cfg: OptimizeConfig) -> dict:
@@ -138,13 +172,18 @@ def _align(photos: PhotoSet, frame, transfers, prev: LevelState | None, cfg: Opt
         consensus = upsample_field(U, plv.frame, frame)
         defined = upsample_field((plv.visible.sum(0) >= 2).float()[None], plv.frame, frame)[0] > 0.99
         noise = plv.noise
-    st = alignment.AlignSettings(cfg.align_model, cfg.align_iterations, cfg.align_prior_px, cfg.align_max_px, max(noise, cfg.sigma_min))
-    report = alignment.align_level(photos, frame, mask, transfers, consensus, defined & torch.from_numpy(mask).to(defined.device), st)
+    st = alignment.AlignSettings(
+        cfg.align_model, cfg.align_iterations, cfg.align_prior_px, cfg.align_max_px, max(noise, cfg.sigma_min)
+    )
+    report = alignment.align_level(
+        photos, frame, mask, transfers, consensus, defined & torch.from_numpy(mask).to(defined.device), st
+    )
     return {"long_side": max(frame.shape), "photos": report, "time_s": time.perf_counter() - t0}
 
 
-def _run_level(lv: Level, li: int, cfg: OptimizeConfig, compute: ComputeConfig, dropped: set[int], stats: dict,
-               bar) -> tuple[LevelState, dict]:
+def _run_level(
+    lv: Level, li: int, cfg: OptimizeConfig, compute: ComputeConfig, dropped: set[int], stats: dict, bar
+) -> tuple[LevelState, dict]:
     """Adam iterations at one level with activation updates, pixel elimination and photo drop."""
     N = len(stats["photos"])
     eliminated = torch.zeros_like(lv.visible)
@@ -155,7 +194,10 @@ def _run_level(lv: Level, li: int, cfg: OptimizeConfig, compute: ComputeConfig, 
     if cfg.use_para:
         st.matches = {a: losses.neighbour_match(lv.idx, lv.mask, a, fixed=lv.fixed_slots) for a in (1, 2)}
     adam = Adam(lr=cfg.lr, betas=cfg.betas)
-    fn = (compiled_objective(lv, compute) or objective) if cfg.loss_mode == "render" else compiled_texel_gradient(lv, compute)
+    if cfg.loss_mode == "render":
+        fn = compiled_objective(lv, compute) or objective
+    else:
+        fn = compiled_texel_gradient(lv, compute)
     hist: dict[str, list] = {k: [] for k in LOSS_KEYS}
     n_elim = 0
     dropped_here: list[str] = []
@@ -184,14 +226,14 @@ def _run_level(lv: Level, li: int, cfg: OptimizeConfig, compute: ComputeConfig, 
             if fn is None or fn is objective:
                 raise
             reason = f"{type(e).__name__}: {str(e).splitlines()[0][:200]}"
-            warnings.warn(f"torch.compile failed ({reason}); running eagerly")
+            warnings.warn(f"torch.compile failed ({reason}); running eagerly", stacklevel=2)
             stats["compile_failed"] = reason
             fn = objective if cfg.loss_mode == "render" else None
             terms, grad = value_and_grad(st, cfg, fn)
         for k in hist:
             hist[k].append(float(terms[k]) if k in terms else 0.0)
         with torch.no_grad():
-            adam.step(st.z, grad)
+            adam.step(st.z, grad)  # type: ignore[arg-type]  # fn is set, so grad is
             W = losses.blend_weights(st.z, base)
             if cfg.data_elimination:
                 if it >= cfg.min_iters_per_level // 2:
@@ -205,9 +247,9 @@ def _run_level(lv: Level, li: int, cfg: OptimizeConfig, compute: ComputeConfig, 
                         stats["dropped"].append({"photo": stats["photos"][n], "level": li, "iteration": it})
                         drop_slots = dropped_slot_mask(lv, st.eliminated, dropped, W)
                 if it % max(cfg.eliminate_every, 1) == 0:
-                    e = eliminate_pixels(lv, st.active, losses.blend_weights(st.z, st.active), cfg)
-                    st.eliminated |= e
-                    n_elim += int(e.sum())
+                    elim = eliminate_pixels(lv, st.active, losses.blend_weights(st.z, st.active), cfg)
+                    st.eliminated |= elim
+                    n_elim += int(elim.sum())
                     if dropped:
                         drop_slots = dropped_slot_mask(lv, st.eliminated, dropped, W)
             base = base_mask(lv, st.eliminated, drop_slots)
@@ -229,24 +271,37 @@ def _run_level(lv: Level, li: int, cfg: OptimizeConfig, compute: ComputeConfig, 
     final_terms = {k: float(v) for k, v in value_and_grad(st, cfg)[0].items()}
     W_end = losses.blend_weights(st.z, st.active)
     lvl_stats = {
-        "level": li, "shape": list(lv.frame.shape), "top_k": lv.idx.shape[0],
-        "candidates": lv.n_candidates, "iterations": it if anything else 0, "cap": cap,
+        "level": li,
+        "shape": list(lv.frame.shape),
+        "top_k": lv.idx.shape[0],
+        "candidates": lv.n_candidates,
+        "iterations": it if anything else 0,
+        "cap": cap,
         "converged": converged,
         # the first iteration carries torch.compile's cost; the median of the rest is the steady rate
         "time_first_iter_s": iter_times[0] if iter_times else 0.0,
-        "time_per_iter_s": float(np.median(iter_times[1:])) if len(iter_times) > 1 else (iter_times[0] if iter_times else 0.0),
-        "eliminated_pixels": n_elim, "dropped_photos": dropped_here,
+        "time_per_iter_s": float(np.median(iter_times[1:]))
+        if len(iter_times) > 1
+        else (iter_times[0] if iter_times else 0.0),
+        "eliminated_pixels": n_elim,
+        "dropped_photos": dropped_here,
         "active_slots_mean": float(st.active.sum(0).float()[lv.mask].mean()) if bool(lv.mask.any()) else 0.0,
-        "tensor_bytes": lv.nbytes(), "final": final_terms, "loss": hist,
-        "v_tilde": lv.v_tilde.tolist(), "compiled": fn is not None and fn is not objective,
+        "tensor_bytes": lv.nbytes(),
+        "final": final_terms,
+        "loss": hist,
+        "v_tilde": lv.v_tilde.tolist(),
+        "compiled": fn is not None and fn is not objective,
         "weight_change": changes,
         **diagnostics.effective_photos(W_end, lv.mask),
-        "dominant_changed": diagnostics.changed_share(dominant_start, diagnostics.dominant_photo(lv.idx, W_end), lv.mask),
+        "dominant_changed": diagnostics.changed_share(
+            dominant_start, diagnostics.dominant_photo(lv.idx, W_end), lv.mask
+        ),
     }
     if lv.pixel_sets is not None:
         lvl_stats["render_pixels"] = lv.pixel_sets.n
-        lvl_stats["render_bytes"] = int(sum(t.element_size() * t.numel() for t in vars(lv.pixel_sets).values()
-                                            if isinstance(t, torch.Tensor)))
+        lvl_stats["render_bytes"] = int(
+            sum(t.element_size() * t.numel() for t in vars(lv.pixel_sets).values() if isinstance(t, torch.Tensor))
+        )
     return st, lvl_stats
 
 

@@ -1,5 +1,5 @@
 """The objective L = alpha L_Render + beta L_Persp + omega L_Para of one level (eq. 4) and its
-gradient. The terms themselves are in difftex.losses, one function per equation.
+gradient. The terms themselves are in difftex.method.losses, one function per equation.
 """
 
 from __future__ import annotations
@@ -8,7 +8,7 @@ from dataclasses import dataclass, field
 
 import torch
 
-from difftex import losses
+from difftex.method import losses
 from difftex.method.config import ComputeConfig, OptimizeConfig
 from difftex.method.gradient import TexelData, texel_data, texel_value_and_grad
 from difftex.method.levels import Level

@@ -13,12 +13,12 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from difftex import losses
-from difftex.colour import apply_transfer_torch
 from difftex.errors import DifftexError
-from difftex.mapping import pixel_to_texel
+from difftex.geometry.frames import pixel_to_texel
+from difftex.method import losses
 from difftex.method.levels import Level
-from difftex.sampling import PhotoSet
+from difftex.sampling.colour import apply_transfer_torch
+from difftex.sampling.photos import PhotoSet
 
 
 def render_support(lv: Level) -> torch.Tensor:
@@ -34,7 +34,9 @@ def build_pixel_sets(photos: PhotoSet, lv: Level, transfers: list | None) -> los
     """Per photo: its a_k^i pixels at the pyramid level matching the texel size, their texel coords."""
     inp, device = photos.inp, photos.device
     if inp.a_bbox is None or inp.a_masks is None:
-        raise DifftexError(f"polygon '{inp.polygon_id}': loss_mode 'render' needs the photo-space masks a_k^i (visibility file)")
+        raise DifftexError(
+            f"polygon '{inp.polygon_id}': loss_mode 'render' needs the photo-space masks a_k^i (visibility file)"
+        )
     frame = lv.frame
     h, w = frame.shape
     K = lv.idx.shape[0]
@@ -59,7 +61,9 @@ def build_pixel_sets(photos: PhotoSet, lv: Level, transfers: list | None) -> los
         ax1, ay1 = min(x1, cx0 + ww * s), min(y1, cy0 + hh * s)
         if ax1 <= ax0 or ay1 <= ay0:
             continue
-        full[ay0 - cy0 : ay1 - cy0, ax0 - cx0 : ax1 - cx0] = torch.from_numpy(a[ay0 - y0 : ay1 - y0, ax0 - x0 : ax1 - x0].astype(np.float32))
+        full[ay0 - cy0 : ay1 - cy0, ax0 - cx0 : ax1 - cx0] = torch.from_numpy(
+            a[ay0 - y0 : ay1 - y0, ax0 - x0 : ax1 - x0].astype(np.float32)
+        )
         m = (F.avg_pool2d(full[None, None], s)[0, 0] > 0.5) if s > 1 else full > 0.5
         rows, cols_ = torch.nonzero(m, as_tuple=True)
         if len(rows) == 0:

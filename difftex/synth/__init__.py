@@ -10,8 +10,6 @@ from __future__ import annotations
 import time
 from pathlib import Path
 
-import numpy as np
-
 from difftex.synth.presets import PRESETS, BuildingSpec, SynthConfig, get_preset
 
 __all__ = ["generate", "generate_scene", "PRESETS", "SynthConfig", "BuildingSpec", "get_preset"]
@@ -23,7 +21,7 @@ def generate(preset: str | SynthConfig, out_dir: str | Path, seed: int = 0, prog
     one scene per building under ``out_dir/<name>``. ``buildings`` picks a subset by name.
     Returns ``out_dir``."""
     from difftex.errors import DifftexError
-    from difftex.io import write_json
+    from difftex.scene.files import write_json
 
     cfg = preset if isinstance(preset, SynthConfig) else get_preset(preset)
     cfg = cfg.replace(**overrides) if overrides else cfg

@@ -77,7 +77,9 @@ class Building:
 
 def _rect(cx: float, cy: float, w: float, d: float) -> np.ndarray:
     """Axis-aligned rectangle, counter-clockwise from above."""
-    return np.array([[cx - w / 2, cy - d / 2], [cx + w / 2, cy - d / 2], [cx + w / 2, cy + d / 2], [cx - w / 2, cy + d / 2]])
+    return np.array(
+        [[cx - w / 2, cy - d / 2], [cx + w / 2, cy - d / 2], [cx + w / 2, cy + d / 2], [cx - w / 2, cy + d / 2]]
+    )
 
 
 def _wall(fid: str, p0, p1, z0: float, z1: float) -> Face:
@@ -139,7 +141,7 @@ def _stack(name, spec, blocks) -> Building:
         for ring in [outer, *inners]:
             for i in range(len(ring)):
                 faces.append(_wall("", ring[i], ring[(i + 1) % len(ring)], z0, z1))
-    for bi, (outer, inners, z0, z1) in enumerate(blocks):
+    for outer, inners, _z0, z1 in blocks:
         region = shapely.Polygon(outer, [r[::-1] for r in inners])
         for other in blocks:
             if abs(other[2] - z1) < 1e-9:
@@ -174,7 +176,11 @@ def make_building(spec: BuildingSpec, rng: np.random.Generator) -> Building:
     if spec.style == "tower":
         tw, td = w * rng.uniform(0.45, 0.55), d * rng.uniform(0.45, 0.55)
         tx, ty = rng.uniform(-0.08, 0.08) * w, rng.uniform(-0.08, 0.08) * d
-        return _stack(spec.name, spec, [(_rect(0, 0, w, d), [], 0.0, h), (_rect(tx, ty, tw, td), [], h, h * rng.uniform(2.6, 3.2))])
+        return _stack(
+            spec.name,
+            spec,
+            [(_rect(0, 0, w, d), [], 0.0, h), (_rect(tx, ty, tw, td), [], h, h * rng.uniform(2.6, 3.2))],
+        )
     if spec.style == "lshape":
         fw, fd = w * rng.uniform(0.4, 0.5), d * rng.uniform(0.4, 0.5)
         x0, y0, x1, y1 = -w / 2, -d / 2, w / 2, d / 2

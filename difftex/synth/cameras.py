@@ -88,7 +88,11 @@ def make_views(building: Building, n: int, street_fraction: float, rng: np.rando
         dist = radius_xy * ring[0] * rng.uniform(0.9, 1.1) + 6.0
         h = max(6.0, top * ring[1] + rng.uniform(2.0, 8.0))
         C = np.array([centre[0] + dist * np.cos(az), centre[1] + dist * np.sin(az), h])
-        target = np.array([centre[0], centre[1], top * 0.35]) + rng.uniform(-0.25, 0.25, 3) * [radius_xy, radius_xy, top * 0.5]
+        target = np.array([centre[0], centre[1], top * 0.35]) + rng.uniform(-0.25, 0.25, 3) * [
+            radius_xy,
+            radius_xy,
+            top * 0.5,
+        ]
         views.append(("drone", *look_at(C, target)))
     walls = [w for w in building.walls if w.outer[:, 2].min() < 1e-6]
     lengths = np.array([w.length for w in walls])
@@ -122,7 +126,9 @@ def perturb(R: np.ndarray, t: np.ndarray, rot_deg: float, trans: float, rng: np.
     return Rn, -Rn @ Cn
 
 
-def write_colmap(sparse_dir: Path, intr: list[Intrinsics], views: list[View], points=None, written: bool = True) -> None:
+def write_colmap(
+    sparse_dir: Path, intr: list[Intrinsics], views: list[View], points=None, written: bool = True
+) -> None:
     """COLMAP text model (pycolmap 4.x: each camera gets a trivial rig, each image a trivial frame).
 
     points: optional (xyz (P,3), rgb (P,3) uint8, observations {view index: [(point index, xy)]}).
@@ -174,8 +180,14 @@ def undistort_canvas(intr: Intrinsics) -> tuple[int, int]:
     cam = intr.pycolmap()
     xs = np.linspace(0, intr.width, 65)
     ys = np.linspace(0, intr.height, 49)
-    border = np.concatenate([np.stack([xs, np.zeros_like(xs)], 1), np.stack([xs, np.full_like(xs, intr.height)], 1),
-                             np.stack([np.zeros_like(ys), ys], 1), np.stack([np.full_like(ys, intr.width), ys], 1)])
+    border = np.concatenate(
+        [
+            np.stack([xs, np.zeros_like(xs)], 1),
+            np.stack([xs, np.full_like(xs, intr.height)], 1),
+            np.stack([np.zeros_like(ys), ys], 1),
+            np.stack([np.full_like(ys, intr.width), ys], 1),
+        ]
+    )
     n = np.asarray(cam.cam_from_img(border))
     half_w = np.abs(n[:, 0]).max() * intr.f
     half_h = np.abs(n[:, 1]).max() * intr.f

@@ -12,6 +12,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from difftex.scene.planar import triangulate_rings
 from difftex.synth.buildings import Building, Face
 from difftex.synth.facades import Bitmap, Layout
 
@@ -76,17 +77,6 @@ class _Soup:
                     np.concatenate(self.uv) if self.uv else None, **mat)
 
 
-def _triangulate(outer2d: np.ndarray, holes2d: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
-    # mapbox_earcut handles holes robustly; shapely's triangulation would need constrained Delaunay.
-    import mapbox_earcut as earcut
-
-    rings = [outer2d] + holes2d
-    verts = np.concatenate(rings).astype(np.float64)
-    ends = np.cumsum([len(r) for r in rings]).astype(np.uint32)
-    tris = np.asarray(earcut.triangulate_float64(verts, ends), np.int64).reshape(-1, 3)
-    return verts, tris
-
-
 def build_detail(building: Building, layouts: dict[str, Layout], bitmaps: dict[str, Bitmap],
                  relief: float, rng: np.random.Generator, occluders: bool, occluder_count: int) -> DetailedModel:
     model = DetailedModel()
@@ -101,7 +91,8 @@ def build_detail(building: Building, layouts: dict[str, Layout], bitmaps: dict[s
             for u0, v0, u1, v1 in lay.openings():
                 openings.append((u0, max(v0, 0.02), u1, v1))
         holes = [np.array([[u0, v0], [u0, v1], [u1, v1], [u1, v0]]) for u0, v0, u1, v1 in openings]  # clockwise
-        verts2, tris = _triangulate(p2, holes)
+        verts2 = np.concatenate([p2, *holes]).astype(np.float64)
+        tris = triangulate_rings([p2, *holes])
         soup.add(face.to3d(verts2), tris, bm.uv(verts2))
         prot = 0.0
         for u0, v0, u1, v1 in openings:
@@ -205,7 +196,8 @@ def _occluder(kind, c, along, rng) -> list[Primitive]:
     # car: body and cabin boxes oriented along the wall, four wheels
     a = np.array([along[0], along[1], 0.0])
     b = np.cross([0, 0, 1.0], a)
-    color = tuple(np.clip(np.array([0.6, 0.05, 0.05]) if rng.random() < 0.3 else rng.uniform(0.05, 0.7, 3), 0.02, 0.9).tolist())
+    base = np.array([0.6, 0.05, 0.05]) if rng.random() < 0.3 else rng.uniform(0.05, 0.7, 3)
+    color = tuple(np.clip(base, 0.02, 0.9).tolist())
 
     def box(cx, cy, cz, sx, sy, sz):
         M = np.eye(4)
@@ -213,11 +205,18 @@ def _occluder(kind, c, along, rng) -> list[Primitive]:
         M[:3, 3] = np.array([x, y, 0.0]) + a * cx + b * cy + [0, 0, cz]
         return {"to_world": M.tolist()}
 
-    out = [Primitive("cube", box(0, 0, 0.7, 4.3, 1.8, 0.8), color),
-           Primitive("cube", box(-0.2, 0, 1.4, 2.3, 1.6, 0.6), tuple(np.array(color) * 0.8))]
+    out = [
+        Primitive("cube", box(0, 0, 0.7, 4.3, 1.8, 0.8), color),
+        Primitive("cube", box(-0.2, 0, 1.4, 2.3, 1.6, 0.6), tuple(np.array(color) * 0.8)),
+    ]
     for su in (-1.4, 1.4):
         for sv in (-0.9, 0.9):
             p = np.array([x, y, 0.33]) + a * su + b * sv
-            out.append(Primitive("cylinder", {"p0": (p - b * 0.12).tolist(), "p1": (p + b * 0.12).tolist(), "radius": 0.33},
-                                 (0.03, 0.03, 0.03)))
+            out.append(
+                Primitive(
+                    "cylinder",
+                    {"p0": (p - b * 0.12).tolist(), "p1": (p + b * 0.12).tolist(), "radius": 0.33},
+                    (0.03, 0.03, 0.03),
+                )
+            )
     return out

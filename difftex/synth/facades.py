@@ -302,7 +302,8 @@ def paint_face(face: Face, layout: Layout, rng: np.random.Generator, density: fl
         for v in layout.courses:
             _fill(img, U, V, (umin - 1, v - 0.2, umax + 1, v + 0.05), np.asarray(st["trim_color"], np.float32))
         if layout.cornice:
-            _fill(img, U, V, (umin - 1, face.eave - 0.45, umax + 1, face.eave + 1e-3), np.asarray(st["trim_color"], np.float32))
+            trim = np.asarray(st["trim_color"], np.float32)
+            _fill(img, U, V, (umin - 1, face.eave - 0.45, umax + 1, face.eave + 1e-3), trim)
         frame = np.asarray(st["frame_color"], np.float32)
         for r in layout.windows:
             _window(img, U, V, r, frame, rng, st["mullions"])

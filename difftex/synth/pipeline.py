@@ -9,6 +9,7 @@ from pathlib import Path
 
 import numpy as np
 
+from difftex.scene.planar import triangulate_rings
 from difftex.synth.presets import BuildingSpec, SynthConfig
 
 EXPOSURE = 1.0  # linear scale of the reference exposure (ground truth); photos vary around it
@@ -43,7 +44,9 @@ def build_model(cfg: SynthConfig, spec: BuildingSpec, seed: int, building_index:
     trim = np.clip(np.array([0.62, 0.6, 0.55]) * r_layout.uniform(0.8, 1.15, 3), 0.05, 0.9).tolist()
     for lay in layouts.values():
         lay.style["trim_color"] = trim  # one trim colour per building: painted bands match the relief boxes
-    bitmaps = {f.id: paint_face(f, layouts[f.id], r_paint, cfg.texture_density, cfg.texture_max_side) for f in building.faces}
+    bitmaps = {
+        f.id: paint_face(f, layouts[f.id], r_paint, cfg.texture_density, cfg.texture_max_side) for f in building.faces
+    }
     model = build_detail(building, layouts, bitmaps, cfg.relief_depth, r_detail, cfg.occluders, cfg.occluder_count)
     lo, hi = building.bounds()
     ground_size = float(max(300.0, 8 * np.linalg.norm(hi - lo)))
@@ -52,26 +55,36 @@ def build_model(cfg: SynthConfig, spec: BuildingSpec, seed: int, building_index:
     return building, layouts, bitmaps, model, ground, ground_size, lighting, r_cam, r_photo
 
 
-def run_scene(cfg: SynthConfig, spec: BuildingSpec, out: Path, seed: int, building_index: int, progress: bool,
-              preset_name: str) -> dict:
+def run_scene(
+    cfg: SynthConfig, spec: BuildingSpec, out: Path, seed: int, building_index: int, progress: bool, preset_name: str
+) -> dict:
     import mitsuba
     from tqdm import tqdm
 
-    from difftex.io import write_image, write_json
-    from difftex.proxy import Polygon, write_proxy_obj
+    from difftex.scene.files import write_image, write_json
+    from difftex.scene.proxy import Polygon, write_proxy_obj
     from difftex.synth import cameras as cams
     from difftex.synth import render as rd
 
     timing: dict[str, float] = {}
     t0 = time.perf_counter()
     variant = rd.choose_variant(cfg.variant)
-    building, layouts, bitmaps, model, ground, ground_size, lighting, r_cam, r_photo = build_model(cfg, spec, seed, building_index)
+    building, layouts, bitmaps, model, ground, ground_size, lighting, r_cam, r_photo = build_model(
+        cfg, spec, seed, building_index
+    )
     timing["model_s"] = time.perf_counter() - t0
 
     # --- cameras ------------------------------------------------------------------------------
     train = cams.make_views(building, cfg.views, cfg.street_fraction, r_cam, prefix="img_")
-    held = cams.make_views(building, cfg.held_out_views, 0.5, r_cam, prefix="heldout_", kind_prefix="heldout",
-                           azimuth_offset=np.pi / max(cfg.views, 1) + 0.37)
+    held = cams.make_views(
+        building,
+        cfg.held_out_views,
+        0.5,
+        r_cam,
+        prefix="heldout_",
+        kind_prefix="heldout",
+        azimuth_offset=np.pi / max(cfg.views, 1) + 0.37,
+    )
     intr = [
         cams.Intrinsics(1, cfg.width, cfg.height, cfg.width / 2 / np.tan(np.deg2rad(65) / 2), cfg.distortion),
         cams.Intrinsics(2, cfg.width, cfg.height, cfg.width / 2 / np.tan(np.deg2rad(75) / 2), cfg.distortion),
@@ -112,7 +125,9 @@ def run_scene(cfg: SynthConfig, spec: BuildingSpec, out: Path, seed: int, buildi
     points = _sample_points(cfg, building, layouts, bitmaps, train, intr_by_id, scene, variant, r_cam)
     cams.write_colmap(out / "sparse" / "0", intr, train, points)
     polygons = [Polygon(id=f.id, outer=f.outer.copy()) for f in building.faces]
-    write_proxy_obj(out / "proxy.obj", polygons, header=f"difftex synth: building '{spec.name}' ({spec.style}), seed {seed}")
+    write_proxy_obj(
+        out / "proxy.obj", polygons, header=f"difftex synth: building '{spec.name}' ({spec.style}), seed {seed}"
+    )
     timing["colmap_s"] = time.perf_counter() - t2
     del scene
 
@@ -122,7 +137,7 @@ def run_scene(cfg: SynthConfig, spec: BuildingSpec, out: Path, seed: int, buildi
     gscene = rd.build_scene(variant, model, ground, ground_size, lighting, occluders=False)
     # The frame must be the one difftex will compute: it takes 'up' from the written cameras (~+z;
     # the exact vector matters for flat roofs, whose e_v comes from up's tiny horizontal part).
-    from difftex.camera import load_photos, scene_up
+    from difftex.scene.camera import load_photos, scene_up
 
     up = scene_up(load_photos(out / "sparse" / "0", out / "images", check_images=False))
     frames = _render_gt_maps(cfg, building, model, polygons, gscene, variant, gt, bar, up)
@@ -144,31 +159,75 @@ def run_scene(cfg: SynthConfig, spec: BuildingSpec, out: Path, seed: int, buildi
     bar.close()
     del gscene
 
-    write_json(gt / "polygons.json", {
-        "ids": [p.id for p in polygons],
-        "polygon_id_encoding": "ground_truth/views/polygon_ids/*.png: 16-bit, value = 1 + index into ids, 0 = no polygon",
-        "frames": {p.id: frames[p.id] for p in polygons},
-    })
+    write_json(
+        gt / "polygons.json",
+        {
+            "ids": [p.id for p in polygons],
+            "polygon_id_encoding": "ground_truth/views/polygon_ids/*.png: 16-bit, value = 1 + index into ids, 0 = no "
+            "polygon",
+            "frames": {p.id: frames[p.id] for p in polygons},
+        },
+    )
     timing["total_s"] = time.perf_counter() - t0
     manifest = {
         "generator": "difftex synth",
         "preset": preset_name,
         "seed": int(seed),
         "building_index": int(building_index),
-        "building": {"name": spec.name, "style": spec.style, "width": spec.width, "depth": spec.depth,
-                     "height": spec.height, "character": spec.character, "top": building.top,
-                     "polygons": [{"id": f.id, "kind": f.kind, "vertices": f.outer.round(6).tolist(),
-                                   "relief_protrusion": model.protrusion[f.id]} for f in building.faces],
-                     "occluder_primitives": len(model.occluders)},
+        "building": {
+            "name": spec.name,
+            "style": spec.style,
+            "width": spec.width,
+            "depth": spec.depth,
+            "height": spec.height,
+            "character": spec.character,
+            "top": building.top,
+            "polygons": [
+                {
+                    "id": f.id,
+                    "kind": f.kind,
+                    "vertices": f.outer.round(6).tolist(),
+                    "relief_protrusion": model.protrusion[f.id],
+                }
+                for f in building.faces
+            ],
+            "occluder_primitives": len(model.occluders),
+        },
         "config": cfg.to_dict(),
-        "renderer": {"mitsuba": mitsuba.__version__, "variant": variant, "exposure_reference": EXPOSURE,
-                     "tonemap": "linear * gain * white_balance (+ noise), then sRGB OETF, 8-bit PNG"},
+        "renderer": {
+            "mitsuba": mitsuba.__version__,
+            "variant": variant,
+            "exposure_reference": EXPOSURE,
+            "tonemap": "linear * gain * white_balance (+ noise), then sRGB OETF, 8-bit PNG",
+        },
         "lighting": lighting,
-        "cameras": [{"camera_id": c.camera_id, "model": c.model, "width": c.width, "height": c.height, "f": c.f,
-                     "k": c.k, "render_canvas": list(canv[c.camera_id])} for c in intr],
-        "views": [{"name": v.name, "kind": v.kind, "camera_id": v.camera_id, "gain": v.gain, "white_balance": list(v.wb),
-                   "R_true": v.R.tolist(), "t_true": v.t.tolist()} for v in train],
-        "held_out_views": [{"name": v.name, "camera_id": v.camera_id, "R": v.R.tolist(), "t": v.t.tolist()} for v in held],
+        "cameras": [
+            {
+                "camera_id": c.camera_id,
+                "model": c.model,
+                "width": c.width,
+                "height": c.height,
+                "f": c.f,
+                "k": c.k,
+                "render_canvas": list(canv[c.camera_id]),
+            }
+            for c in intr
+        ],
+        "views": [
+            {
+                "name": v.name,
+                "kind": v.kind,
+                "camera_id": v.camera_id,
+                "gain": v.gain,
+                "white_balance": list(v.wb),
+                "R_true": v.R.tolist(),
+                "t_true": v.t.tolist(),
+            }
+            for v in train
+        ],
+        "held_out_views": [
+            {"name": v.name, "camera_id": v.camera_id, "R": v.R.tolist(), "t": v.t.tolist()} for v in held
+        ],
         "points3D": int(len(points[0])) if points else 0,
         "timing": {k: round(float(x), 3) for k, x in timing.items()},
         "machine": {"python": platform.python_version(), "platform": platform.platform()},
@@ -176,8 +235,17 @@ def run_scene(cfg: SynthConfig, spec: BuildingSpec, out: Path, seed: int, buildi
     # Timings and the machine differ between runs; keep them out of the deterministic manifest.
     det = {k: v for k, v in manifest.items() if k not in ("timing", "machine")}
     write_json(out / "synth.json", det)
-    write_json(out / "synth_timing.json", {"timing": manifest["timing"], "machine": manifest["machine"],
-                                           "views": len(train), "width": cfg.width, "height": cfg.height, "spp": cfg.spp})
+    write_json(
+        out / "synth_timing.json",
+        {
+            "timing": manifest["timing"],
+            "machine": manifest["machine"],
+            "views": len(train),
+            "width": cfg.width,
+            "height": cfg.height,
+            "spp": cfg.spp,
+        },
+    )
     if cfg.previews:
         from difftex.synth.preview import write_previews
 
@@ -186,8 +254,8 @@ def run_scene(cfg: SynthConfig, spec: BuildingSpec, out: Path, seed: int, buildi
 
 
 def _render_gt_maps(cfg, building, model, polygons, gscene, variant, gt: Path, bar, up) -> dict:
-    from difftex.io import write_image, write_json
-    from difftex.mapping import texel_mask, uv_frame
+    from difftex.geometry.frames import texel_mask, uv_frame
+    from difftex.scene.files import write_image, write_json
     from difftex.synth import render as rd
 
     frames = {}
@@ -212,8 +280,6 @@ def _render_gt_maps(cfg, building, model, polygons, gscene, variant, gt: Path, b
 
 def polygon_id_image(polygons, R, t, intr) -> np.ndarray:
     """Per pixel: 1 + index of the first proxy polygon its ray hits, 0 for none (numpy ray casting)."""
-    from difftex.synth.detail import _triangulate
-
     cam = intr.pycolmap()
     H, W = intr.height, intr.width
     yy, xx = np.mgrid[0:H, 0:W].astype(np.float64) + 0.5
@@ -224,7 +290,8 @@ def polygon_id_image(polygons, R, t, intr) -> np.ndarray:
     ids = np.zeros(len(d), np.uint16)
     for k, poly in enumerate(polygons):
         o, b1, b2 = poly.plane_basis()
-        v2, tris = _triangulate(poly.to_plane(poly.outer), [])
+        v2 = poly.to_plane(poly.outer).astype(np.float64)
+        tris = triangulate_rings([v2])
         V = o + v2[:, :1] * b1 + v2[:, 1:2] * b2
         for tri in tris:
             p0, p1, p2 = V[tri]
@@ -295,8 +362,17 @@ def _sample_points(cfg, building, layouts, bitmaps, views, intr_by_id, scene, va
     return X, rgb, obs
 
 
-def position_image(cfg: SynthConfig, spec: BuildingSpec, seed: int, building_index: int, R, t, intr,
-                   occluders: bool | None = None, spp: int = 16) -> np.ndarray:
+def position_image(
+    cfg: SynthConfig,
+    spec: BuildingSpec,
+    seed: int,
+    building_index: int,
+    R,
+    t,
+    intr,
+    occluders: bool | None = None,
+    spp: int = 16,
+) -> np.ndarray:
     """World position seen by each pixel of a photo taken with pose (R, t) and ``intr``, ray traced
     by Mitsuba through the same sensor (and distortion warp) as the photos. For tests."""
     from difftex.synth import cameras as cams
@@ -319,5 +395,12 @@ def _position_scene(cfg, spec, seed, building_index, occluders, variant):
     from difftex.synth import render as rd
 
     _, _, _, model, ground, ground_size, lighting, _, _ = build_model(cfg, spec, seed, building_index)
-    return rd.build_scene(variant, model, ground, ground_size, lighting, occluders=occluders,
-                          integrator={"type": "aov", "aovs": "pp:position"})
+    return rd.build_scene(
+        variant,
+        model,
+        ground,
+        ground_size,
+        lighting,
+        occluders=occluders,
+        integrator={"type": "aov", "aovs": "pp:position"},
+    )

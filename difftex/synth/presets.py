@@ -51,7 +51,7 @@ class SynthConfig:
     previews: bool = True
     variant: str = "auto"  # auto | llvm_ad_rgb | scalar_rgb
 
-    def replace(self, **changes) -> "SynthConfig":
+    def replace(self, **changes) -> SynthConfig:
         names = {f.name for f in dataclasses.fields(self)}
         bad = sorted(set(changes) - names)
         if bad:

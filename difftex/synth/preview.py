@@ -8,7 +8,7 @@ import numpy as np
 
 
 def _savefig(fig, path: Path) -> None:
-    from difftex.io import atomic_path
+    from difftex.scene.files import atomic_path
 
     with atomic_path(path) as tmp:
         fig.savefig(tmp, dpi=100)
@@ -20,7 +20,7 @@ def write_previews(scene_dir: Path, views, intr_by_id, polygons, max_photos: int
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from difftex.io import read_image
+    from difftex.scene.files import read_image
 
     out = scene_dir / "preview"
     step = max(1, len(views) // max_photos)
@@ -39,7 +39,6 @@ def write_previews(scene_dir: Path, views, intr_by_id, polygons, max_photos: int
 
     # proxy overlay on the photo that sees most polygons, drawn with the *written* camera
     def n_seen(v):
-        c = intr_by_id[v.camera_id]
         return sum(((p.outer @ v.R_written.T + v.t_written)[:, 2] > 0).all() for p in polygons)
 
     v = max(views, key=n_seen)

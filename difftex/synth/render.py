@@ -18,13 +18,14 @@ from difftex.synth.detail import DetailedModel
 
 _PROBE = (
     "import mitsuba as mi; mi.set_variant('{v}'); "
-    "s = mi.load_dict({{'type': 'scene', 'integrator': {{'type': 'path'}}, 'e': {{'type': 'constant'}}, 'r': {{'type': 'sphere'}}, "
+    "s = mi.load_dict({{'type': 'scene', 'integrator': {{'type': 'path'}}, 'e': {{'type': 'constant'}}, 'r': "
+    "{{'type': 'sphere'}}, "
     "'sensor': {{'type': 'perspective', 'to_world': mi.ScalarTransform4f().translate([0, 0, -4]), "
     "'film': {{'type': 'hdrfilm', 'width': 8, 'height': 8}}}}}}); mi.render(s, spp=4)"
 )
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def choose_variant(requested: str = "auto") -> str:
     """llvm_ad_rgb when it works here, else scalar_rgb.
 
@@ -64,38 +65,63 @@ def _mesh(mi, part):
         p["vertex_texcoords"] = part.uv.astype(np.float32).ravel()
     p.update()
     if part.bitmap is not None:
-        refl = {"type": "bitmap", "bitmap": mi.Bitmap(part.bitmap), "raw": True, "filter_type": "bilinear",
-                "wrap_mode": "clamp"}
+        refl = {
+            "type": "bitmap",
+            "bitmap": mi.Bitmap(part.bitmap),
+            "raw": True,
+            "filter_type": "bilinear",
+            "wrap_mode": "clamp",
+        }
     else:
         refl = {"type": "rgb", "value": list(part.color)}
     m.set_bsdf(mi.load_dict({"type": "twosided", "b": {"type": "diffuse", "reflectance": refl}}))
     return m
 
 
-def build_scene(variant: str, model: DetailedModel, ground: np.ndarray, ground_size: float, lighting: dict,
-                occluders: bool, integrator: dict | None = None):
+def build_scene(
+    variant: str,
+    model: DetailedModel,
+    ground: np.ndarray,
+    ground_size: float,
+    lighting: dict,
+    occluders: bool,
+    integrator: dict | None = None,
+):
     """A Mitsuba scene of the detailed model (+ occluders), ground plane, sky and sun."""
     mi = _mi(variant)
     T = mi.ScalarTransform4f
     d: dict = {"type": "scene", "integrator": integrator or {"type": "path", "max_depth": lighting["max_depth"]}}
     d["sky"] = {"type": "constant", "radiance": {"type": "rgb", "value": lighting["sky"]}}
     if max(lighting.get("sun_irradiance", [0.0])) > 0:
-        d["sun"] = {"type": "directional", "direction": list(-np.asarray(lighting["sun_dir"])),
-                    "irradiance": {"type": "rgb", "value": lighting["sun_irradiance"]}}
+        d["sun"] = {
+            "type": "directional",
+            "direction": list(-np.asarray(lighting["sun_dir"])),
+            "irradiance": {"type": "rgb", "value": lighting["sun_irradiance"]},
+        }
     for i, part in enumerate(model.parts):
         d[f"part{i:03d}"] = _mesh(mi, part)
     d["ground"] = {
         "type": "rectangle",
         "to_world": T().scale([ground_size / 2, ground_size / 2, 1.0]),
-        "bsdf": {"type": "diffuse", "reflectance": {"type": "bitmap", "bitmap": mi.Bitmap(ground), "raw": True,
-                                                    "to_uv": T().scale([ground_size / 6, ground_size / 6, 1])}},
+        "bsdf": {
+            "type": "diffuse",
+            "reflectance": {
+                "type": "bitmap",
+                "bitmap": mi.Bitmap(ground),
+                "raw": True,
+                "to_uv": T().scale([ground_size / 6, ground_size / 6, 1]),
+            },
+        },
     }
     if occluders:
         for i, prim in enumerate(model.occluders):
             s = {"type": prim.kind}
             for k, v in prim.params.items():
                 s[k] = T(v) if k == "to_world" else v
-            s["bsdf"] = {"type": "twosided", "b": {"type": "diffuse", "reflectance": {"type": "rgb", "value": list(prim.color)}}}
+            s["bsdf"] = {
+                "type": "twosided",
+                "b": {"type": "diffuse", "reflectance": {"type": "rgb", "value": list(prim.color)}},
+            }
             d[f"occ{i:03d}"] = s
     return mi.load_dict(d)
 
@@ -107,13 +133,24 @@ def perspective_sensor(variant: str, R: np.ndarray, t: np.ndarray, f: float, wid
     M = np.eye(4)
     M[:3, 0], M[:3, 1], M[:3, 2], M[:3, 3] = -R[0], -R[1], R[2], C
     fov = float(np.degrees(2 * np.arctan(width / 2 / f)))
-    return mi.load_dict({
-        "type": "perspective", "fov": fov, "fov_axis": "x", "to_world": mi.ScalarTransform4f(M.tolist()),
-        "near_clip": 0.05, "far_clip": 1e5,
-        "film": {"type": "hdrfilm", "width": int(width), "height": int(height), "rfilter": {"type": "box"},
-                 "pixel_format": "rgba" if False else "rgb"},
-        "sampler": {"type": "independent", "sample_count": int(spp)},
-    })
+    return mi.load_dict(
+        {
+            "type": "perspective",
+            "fov": fov,
+            "fov_axis": "x",
+            "to_world": mi.ScalarTransform4f(M.tolist()),
+            "near_clip": 0.05,
+            "far_clip": 1e5,
+            "film": {
+                "type": "hdrfilm",
+                "width": int(width),
+                "height": int(height),
+                "rfilter": {"type": "box"},
+                "pixel_format": "rgba" if False else "rgb",
+            },
+            "sampler": {"type": "independent", "sample_count": int(spp)},
+        }
+    )
 
 
 def ortho_sensor(variant: str, frame, standoff: float, spp: int):
@@ -131,11 +168,16 @@ def ortho_sensor(variant: str, frame, standoff: float, spp: int):
     M[:3, 1] = -(s * W / 2) * frame.e_v
     M[:3, 2] = -frame.normal
     M[:3, 3] = centre + standoff * frame.normal
-    return mi.load_dict({
-        "type": "orthographic", "to_world": mi.ScalarTransform4f(M.tolist()), "near_clip": 1e-3, "far_clip": 1e5,
-        "film": {"type": "hdrfilm", "width": int(W), "height": int(H), "rfilter": {"type": "box"}},
-        "sampler": {"type": "independent", "sample_count": int(spp)},
-    })
+    return mi.load_dict(
+        {
+            "type": "orthographic",
+            "to_world": mi.ScalarTransform4f(M.tolist()),
+            "near_clip": 1e-3,
+            "far_clip": 1e5,
+            "film": {"type": "hdrfilm", "width": int(W), "height": int(H), "rfilter": {"type": "box"}},
+            "sampler": {"type": "independent", "sample_count": int(spp)},
+        }
+    )
 
 
 def render(variant: str, scene, sensor, spp: int, seed: int) -> np.ndarray:
@@ -155,8 +197,10 @@ def ray_hit_distance(variant: str, scene, origins: np.ndarray, dirs: np.ndarray)
             if si.is_valid():
                 out[i] = float(si.t)
         return out
-    ray = mi.Ray3f(mi.Point3f(*[origins[:, k].astype(np.float32) for k in range(3)]),
-                   mi.Vector3f(*[dirs[:, k].astype(np.float32) for k in range(3)]))
+    ray = mi.Ray3f(
+        mi.Point3f(*[origins[:, k].astype(np.float32) for k in range(3)]),
+        mi.Vector3f(*[dirs[:, k].astype(np.float32) for k in range(3)]),
+    )
     si = scene.ray_intersect(ray)
     t = np.array(si.t, dtype=np.float64)
     t[~np.array(si.is_valid())] = np.inf

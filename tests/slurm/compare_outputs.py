@@ -18,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
-from difftex.io import read_image
+from difftex.scene.files import read_image
 
 SKIP = {".snakemake", "benchmarks", "logs"}
 

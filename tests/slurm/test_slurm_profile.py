@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from difftex.io import write_image, write_npz
+from difftex.scene.files import write_image, write_npz
 
 REPO = Path(__file__).resolve().parents[2]
 HERE = Path(__file__).resolve().parent

@@ -11,8 +11,8 @@ sys.path.insert(0, str(Path(workflow.basedir)))
 # works without activating the environment (and cluster jobs use the same environment).
 shell.prefix(f"set -euo pipefail; export PATH={shlex.quote(str(Path(sys.executable).parent))}:$PATH; ")
 
-import difftex.workflow as wf
-from difftex import runguard, runlog
+import difftex.workflow.glue as wf
+from difftex.workflow import runguard, runlog
 from difftex.errors import DifftexError
 
 
@@ -35,7 +35,7 @@ try:
         [f"{SCENE}/proxy.obj", f"{SCENE}/synth.json"] if EXAMPLE else wf.scene_inputs(SCENE)
     )
     # What per-polygon jobs read of the scene besides their candidate photos.
-    SCENE_MODEL = [p for p in SCENE_INPUTS if Path(p).suffix.lower() not in wf.IMAGE_EXTS]
+    SCENE_MODEL = [p for p in SCENE_INPUTS if Path(p).suffix.lower() not in wf.IMAGE_SUFFIXES]
     # One small file per stage with only that stage's sections, named by its content and made
     # by the stage_config rule (nothing is written while the Snakefile is read, so a dry run
     # changes nothing): editing an optimization parameter reruns optimization and what
@@ -50,7 +50,7 @@ except DifftexError as exc:
 
 RUN = config["run"]
 # One real run per working directory; a run killed earlier leaves stale locks that this one
-# clears (difftex/runguard.py). Called as an input function, when the kind of run is known.
+# clears (difftex/workflow/runguard.py). Called as an input function, when the kind of run is known.
 RUN_GUARD = runguard.RunGuard(R)
 
 

@@ -2,7 +2,7 @@
 
 import sys
 
-from difftex.workflow import write_report
+from difftex.workflow.glue import write_report
 
 with open(snakemake.log[0], "w") as log:  # noqa: F821 -- injected by Snakemake
     sys.stderr = sys.stdout = log

@@ -1,0 +1,194 @@
+"""The per-polygon output files: texture.png (8 or 16 bit), source.png (the texel source map),
+source.npz (the dominant photo per texel, as numbers), coverage.png, report.json, and
+composite.npz, the float texture that the texturing stage hands to them.
+
+No torch here: the workflow's per-polygon ``finish`` rule runs this inside Snakemake itself.
+"""
+
+from __future__ import annotations
+
+import colorsys
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+FILLED_GREY = 0.5  # source map: texels no photo sees, filled from their neighbours
+
+
+def palette(n: int) -> list[tuple[float, float, float]]:
+    """``n`` distinguishable colours: matplotlib's qualitative ``tab10`` (Tableau 10) without its
+    grey, which would read as a filled texel (FILLED_GREY); then rounds of the same nine hues,
+    alternately lighter and darker, each round further from the base (half-way to white, 40 %
+    darker, three quarters to white, ...), all distinct in 8 bits for the first 90 or so.
+
+    Returns:
+        n (r, g, b) tuples in [0, 1].
+    """
+    from matplotlib import colormaps
+
+    base = [c for c in colormaps["tab10"].colors if not (c[0] == c[1] == c[2])]
+    out = []
+    for i in range(n):
+        h, light, s = colorsys.rgb_to_hls(*base[i % len(base)])
+        rnd = i // len(base)
+        if rnd % 2:  # lighter: l -> 1 - (1 - l) / 2, / 4, ...
+            light = 1 - (1 - light) * 0.5 ** ((rnd + 1) // 2)
+        elif rnd:  # darker: l -> 0.6 l, 0.36 l, ...
+            light = light * 0.6 ** (rnd // 2)
+        out.append(tuple(float(v) for v in colorsys.hls_to_rgb(h, light, s)))
+    return out
+
+
+def source_colours(dominant: np.ndarray, names: list[str]) -> dict[str, tuple[float, float, float]]:
+    """Colour of each photo that is the dominant one of some texel, in photo order.
+
+    Only the photos the map shows get a colour, so a polygon's map uses the palette's most
+    distinct colours first; the legend (report.json's ``source_colours``) names them. The same
+    photo may therefore have another colour in another polygon's map.
+    """
+    present = [int(k) for k in np.unique(dominant[dominant >= 0])]
+    if present and present[-1] >= len(names):
+        raise ValueError(f"dominant photo index {present[-1]} but only {len(names)} photo names")
+    return dict(zip((names[k] for k in present), palette(len(present))))
+
+
+def source_map(dominant: np.ndarray, names: list[str], mask: np.ndarray, filled: np.ndarray | None = None,
+               colours: dict[str, tuple] | None = None) -> np.ndarray:
+    """The paper's texel source map: each texel coloured by its dominant photo (Fig. 5).
+
+    Args:
+        dominant: (H, W) photo index into ``names`` (-1: none).
+        mask: (H, W) the polygon's texels; outside them the map is black.
+        filled: (H, W) texels filled from their neighbours, shown grey (FILLED_GREY).
+        colours: photo name -> colour (default: :func:`source_colours`).
+    Returns:
+        (H, W, 3) float32 image.
+    """
+    colours = source_colours(dominant, names) if colours is None else colours
+    out = np.zeros((*dominant.shape, 3), np.float32)
+    for n, name in enumerate(names):
+        if name in colours:
+            out[dominant == n] = colours[name]
+    if filled is not None:
+        out[filled] = FILLED_GREY
+    out[~mask] = 0.0
+    return out
+
+
+def coverage_image(mask: np.ndarray, seen: np.ndarray) -> np.ndarray:
+    """Grey image: 255 texel seen by a photo, 128 filled from neighbours, 0 outside the polygon."""
+    img = np.zeros(mask.shape, np.float32)
+    img[mask & ~seen] = 128 / 255
+    img[mask & seen] = 1.0
+    return img
+
+
+def write_texture_outputs(
+    out_dir: str | Path,
+    U: np.ndarray,
+    mask: np.ndarray,
+    seen: np.ndarray,
+    dominant: np.ndarray,
+    names: list[str],
+    report: dict,
+    bits: int = 8,
+    exr: bool = False,
+) -> None:
+    """texture.png, source.png, source.npz, coverage.png, report.json (and texture.exr), each
+    written atomically.
+
+    source.npz holds ``dominant`` (H, W) int16, the index into ``photos`` of each texel's
+    dominant photo (-1: none), for tools that need the photo ids (``difftex evaluate``), not the
+    colours of source.png.
+    """
+    from difftex.scene.files import write_image, write_json, write_npz
+
+    out_dir = Path(out_dir)
+    write_image(out_dir / "texture.png", np.clip(U, 0, 1), bits=bits)
+    if exr:
+        write_image(out_dir / "texture.exr", U)
+    colours = source_colours(dominant, names)
+    write_image(out_dir / "source.png", source_map(dominant, names, mask, mask & ~seen, colours))
+    dom = np.where(mask & seen, dominant, -1)
+    write_npz(out_dir / "source.npz", dominant=dom.astype(np.int16), photos=np.array(names, dtype=str))
+    write_image(out_dir / "coverage.png", coverage_image(mask, seen))
+    report = dict(report)
+    report["source_colours"] = {
+        n: "#{:02x}{:02x}{:02x}".format(*(int(round(255 * v)) for v in c)) for n, c in colours.items()
+    }
+    write_json(out_dir / "report.json", report)
+
+
+@dataclass(frozen=True)
+class OutputConfig:
+    """The ``output:`` section: formats of the texture files (not the textures themselves)."""
+
+    bits: int = 8  # bit depth of texture.png and the atlas pages (8 or 16)
+    exr: bool = False  # also texture.exr per polygon (half float)
+
+    def __post_init__(self):
+        if int(self.bits) not in (8, 16):
+            raise ValueError(f"bits must be 8 or 16, got {self.bits}")
+
+
+def finish_polygon(composite: str | Path, out_dir: str | Path, cfg: OutputConfig = OutputConfig()) -> dict:
+    """texture.png (cfg.bits), source.png, source.npz, coverage.png, report.json (and texture.exr) of one
+    polygon from its composite.npz; returns the report."""
+    U, mask, seen, dominant, names, report = read_composite(composite)
+    write_texture_outputs(out_dir, U, mask, seen, dominant, names, report, bits=cfg.bits, exr=cfg.exr)
+    return report
+
+
+def write_composite(
+    path: str | Path,
+    U: np.ndarray,
+    mask: np.ndarray,
+    seen: np.ndarray,
+    dominant: np.ndarray,
+    names: list[str],
+    report: dict,
+) -> None:
+    """A polygon's composed texture in float (half precision), before quantisation to a PNG.
+
+    The texturing stage writes it; assembly turns it into the per-polygon PNGs and the atlas at
+    the configured bit depth, so a change of output format does not redo the texturing.
+    """
+    import json
+
+    from difftex.scene.files import write_npz
+
+    write_npz(
+        path,
+        texture=np.asarray(U, np.float16),
+        mask=np.packbits(mask.ravel()),
+        seen=np.packbits(seen.ravel()),
+        shape=np.array(seen.shape),
+        dominant=dominant.astype(np.int32),
+        photos=np.array(names, dtype=str),
+        report=np.array(json.dumps(report)),
+    )
+
+
+def read_composite(path: str | Path) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, list[str], dict]:
+    """(U (H, W, 3) float32, texel mask, seen (H, W) bool, dominant (H, W), photo names, report) of write_composite."""
+    import json
+
+    from difftex.errors import DifftexError
+    from difftex.scene.files import read_npz
+
+    d = read_npz(path)
+    try:
+        H, W = (int(v) for v in d["shape"])
+        seen = np.unpackbits(d["seen"], count=H * W).astype(bool).reshape(H, W)
+        mask = np.unpackbits(d["mask"], count=H * W).astype(bool).reshape(H, W)
+        return (
+            d["texture"].astype(np.float32),
+            mask,
+            seen,
+            d["dominant"].astype(np.int64),
+            [str(x) for x in d["photos"]],
+            json.loads(str(d["report"])),
+        )
+    except (KeyError, ValueError) as exc:
+        raise DifftexError(f"{path}: not a difftex composite texture ({exc})") from None

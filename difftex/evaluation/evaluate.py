@@ -1,0 +1,540 @@
+"""Evaluation of a textured proxy (paper Tables 1 and 2), for difftex and every baseline alike.
+
+Two schemes, both reading only a results folder ``R`` (``R/textures/<pid>/texture.png``,
+``source.npz``, ``report.json`` and the frames in ``R/visibility/<pid>.npz``):
+
+- **Synthetic** (scene has ``ground_truth/``): every texture is resampled into its polygon's
+  ground-truth frame (``ground_truth/frames/<pid>.json``) through world points, so a texture
+  at any resolution, or in a frame whose axes differ, lands on the right ground-truth texels;
+  the frames' planes must agree (checked) and then Error 90/95, SSIM, PSNR and LPIPS are
+  computed on the ground-truth texel mask (the paper resamples every method to the GT size).
+- **Held-out photos** (real scenes): the scene was copied by
+  :func:`difftex.evaluation.holdout.prepare_holdout` with some photos removed from its COLMAP
+  model (``holdout.json`` in the copy names them and the original scene); the textured proxy is
+  rendered into each held-out camera (an id buffer says which polygon a pixel sees, the pixel's
+  ray meets that polygon's plane at a texel, the texture is sampled bilinearly there) and
+  compared with the photo on the proxy's pixels. Synthetic scenes get the same with their
+  occluder-free ``ground_truth/views``.
+
+Q_front / Q_vc (perspective quality) need per-texel view directions of the source pixels:
+difftex's optimized blend weights (``R/optimized/<pid>/weights.npz``), the equal weights of the
+averaging baseline, or otherwise the dominant photo per texel (``R/textures/<pid>/source.npz``).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from difftex.errors import DifftexError
+from difftex.geometry.frames import UVFrame
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class EvaluateConfig:
+    """The ``evaluate:`` config section."""
+
+    lpips: str = "auto"  # auto | lpips | stlpips | none
+    render_long_side: int = 768  # held-out views are rendered and compared at this long side
+    error_maps: bool = True  # write per-polygon error maps (PNG) beside the metrics
+    views: bool = True  # also score renders into held-out views (real: holdout.json; synthetic: ground_truth/views)
+    device: str = "cpu"  # LPIPS device
+
+    def __post_init__(self):
+        if self.lpips not in ("auto", "lpips", "stlpips", "none"):
+            raise ValueError(f"lpips must be auto, lpips, stlpips or none, got {self.lpips!r}")
+        if not 32 <= int(self.render_long_side) <= 8192:
+            raise ValueError(f"render_long_side must be in 32..8192, got {self.render_long_side}")
+
+
+# --------------------------------------------------------------------------------------------
+# Reading a results folder
+
+
+@dataclass(eq=False)
+class PolygonTexture:
+    polygon_id: str
+    texture: np.ndarray  # (H, W, 3)
+    frame: UVFrame
+    mask: np.ndarray  # (H, W) texel mask
+    report: dict
+    folder: Path
+
+
+def visibility_dir(results: Path) -> Path:
+    """R/visibility, or the folder named by R/visibility.txt (method folders share one)."""
+    results = Path(results)
+    link = results / "visibility.txt"
+    if link.is_file():
+        return Path(link.read_text().strip())
+    return results / "visibility"
+
+
+def load_textures(results: str | Path) -> dict[str, PolygonTexture]:
+    """Every polygon texture of a results folder with its UV frame (from the visibility file)."""
+    from difftex.geometry.visibility import load_visibility
+    from difftex.scene.files import read_image, read_json
+
+    results = Path(results)
+    tdir = results / "textures"
+    if not tdir.is_dir():
+        raise DifftexError(f"{results}: no textures/ folder (run the workflow or a baseline first)")
+    vdir = visibility_dir(results)
+    out = {}
+    for sub in sorted(p for p in tdir.iterdir() if (p / "texture.png").is_file()):
+        vpath = vdir / f"{sub.name}.npz"
+        if not vpath.is_file():
+            raise DifftexError(f"{vpath}: visibility file of textured polygon '{sub.name}' is missing")
+        vis = load_visibility(vpath)
+        tex = read_image(sub / "texture.png")
+        if tex.shape[:2] != vis.frame.shape:
+            raise DifftexError(
+                f"{sub / 'texture.png'}: {tex.shape[1]}x{tex.shape[0]} texels, its frame says "
+                f"{vis.frame.width}x{vis.frame.height}"
+            )
+        rep = read_json(sub / "report.json") if (sub / "report.json").is_file() else {}
+        out[sub.name] = PolygonTexture(sub.name, tex, vis.frame, vis.texel_mask, rep, sub)
+    if not out:
+        raise DifftexError(f"{tdir}: no polygon textures (texture.png) in it")
+    return out
+
+
+# --------------------------------------------------------------------------------------------
+# Resampling between frames of the same plane
+
+
+def check_same_plane(a: UVFrame, b: UVFrame, what: str, tol: float = 1e-3) -> None:
+    """Raise unless the two frames lie on the same plane with the same outward normal."""
+    scale = max(a.width * a.texel_size, a.height * a.texel_size, 1e-9)
+    if float(a.normal @ b.normal) < 1 - 1e-4:
+        raise DifftexError(
+            f"{what}: ground-truth frame normal {np.round(b.normal, 4).tolist()} differs from "
+            f"difftex's {np.round(a.normal, 4).tolist()}"
+        )
+    if abs(float((b.origin - a.origin) @ a.normal)) > tol * scale:
+        raise DifftexError(
+            f"{what}: ground-truth frame is off difftex's plane by "
+            f"{abs(float((b.origin - a.origin) @ a.normal)):.4g} scene units"
+        )
+
+
+def frame_offsets(a: UVFrame, b: UVFrame) -> dict:
+    """How frame b differs from a (axes and origin), for the evaluation record."""
+    return {
+        "axes_dot": [float(a.e_u @ b.e_u), float(a.e_v @ b.e_v)],
+        "origin_offset_texels": float(np.linalg.norm(b.origin - a.origin) / b.texel_size),
+        "texel_size_ratio": float(b.texel_size / a.texel_size),
+    }
+
+
+def resample_texture(tex: np.ndarray, src: UVFrame, dst: UVFrame) -> np.ndarray:
+    """The texture of frame ``src`` seen at the texel centres of frame ``dst`` (same plane).
+
+    Downsampling first low-passes the texture (antialiased resize to about the destination
+    texel size) so that a 2048 map compared at 512 is not aliased, then samples bilinearly at
+    the exact world positions of the destination texel centres (edge texels clamp).
+    """
+    import torch
+    import torch.nn.functional as F
+
+    img = torch.from_numpy(np.ascontiguousarray(tex, np.float32)).permute(2, 0, 1)[None]
+    r = dst.texel_size / src.texel_size  # > 1: destination texels are larger
+    sx = sy = 1.0
+    if r > 1.01:
+        h, w = max(1, round(src.height / r)), max(1, round(src.width / r))
+        sy, sx = src.height / h, src.width / w
+        img = F.interpolate(img, size=(h, w), mode="bilinear", antialias=True, align_corners=False)
+    tx, ty = dst.centres()
+    t = src.world_to_texel(dst.texel_to_world(tx, ty))
+    H, W = img.shape[-2:]
+    gx = (t[..., 0] / sx) / W * 2 - 1
+    gy = (t[..., 1] / sy) / H * 2 - 1
+    grid = torch.from_numpy(np.stack([gx, gy], -1).astype(np.float32))[None]
+    out = F.grid_sample(img, grid, mode="bilinear", padding_mode="border", align_corners=False)
+    return out[0].permute(1, 2, 0).numpy()
+
+
+# --------------------------------------------------------------------------------------------
+# Per-texel view directions (Q_front, Q_vc)
+
+
+def view_weights(pt: PolygonTexture, results: Path) -> tuple[list[str], np.ndarray, str]:
+    """(photo names, per-photo weights (K, H, W), how) of the pixels that coloured each texel."""
+    from difftex.geometry.visibility import load_visibility
+    from difftex.scene.files import read_npz
+
+    method = pt.report.get("method", "")
+    wpath = results / "optimized" / pt.polygon_id / "weights.npz"
+    if method == "difftex" and wpath.is_file():
+        wz = read_npz(wpath)
+        names = [str(x) for x in wz["photos"]]
+        idx, W = wz["idx"].astype(np.int64), wz["W"].astype(np.float32)
+        if idx.shape[1:] == pt.frame.shape:
+            dense = (
+                np.stack([(W * (idx == n)).sum(0) for n in range(len(names))])
+                if names
+                else np.zeros((0, *pt.frame.shape))
+            )
+            return names, dense, "blend weights"
+    if method == "average":
+        vis = load_visibility(visibility_dir(results) / f"{pt.polygon_id}.npz")
+        return list(vis.photos), vis.texel_visible.astype(np.float32), "equal weights of visible photos"
+    src = pt.folder / "source.npz"
+    if not src.is_file():  # a results folder written before source.npz: its source.png is only colours
+        return [], np.zeros((0, *pt.frame.shape), np.float32), "none"
+    d = read_npz(src)
+    try:
+        names, dom = [str(x) for x in d["photos"]], d["dominant"].astype(np.int64)
+    except KeyError as exc:
+        raise DifftexError(f"{src}: not a difftex source file (no {exc})") from None
+    if dom.shape != pt.frame.shape:
+        raise DifftexError(
+            f"{src}: {dom.shape[1]}x{dom.shape[0]} texels, its frame says {pt.frame.width}x{pt.frame.height}"
+        )
+    w = (dom[None] == np.arange(len(names))[:, None, None]).astype(np.float32)  # (K, H, W), K may be 0
+    return names, w, "dominant photo (source.npz)" if names else "none"
+
+
+def perspective_quality(pt: PolygonTexture, results: Path, centres: dict[str, np.ndarray]) -> dict | None:
+    from difftex.evaluation import metrics
+
+    names, w, how = view_weights(pt, results)
+    keep = [i for i, n in enumerate(names) if n in centres]
+    if not keep:
+        return None
+    w = w[keep] * pt.mask[None]
+    if not (w.sum(0) > 0).any():
+        return None
+    tx, ty = pt.frame.centres()
+    pts = pt.frame.texel_to_world(tx, ty)
+    dirs = metrics.view_directions(pts, np.stack([centres[names[i]] for i in keep]), w, mode="blend")
+    cov = (w.sum(0) > 0) & pt.mask
+    return {
+        "q_front": metrics.q_front(dirs, pt.frame.normal, cov),
+        "q_vc": metrics.q_vc(dirs, cov),
+        "q_texels": int(cov.sum()),
+        "q_source": how,
+    }
+
+
+# --------------------------------------------------------------------------------------------
+# Synthetic: against ground-truth maps
+
+
+def _lpips_plan(cfg: EvaluateConfig) -> tuple[str | None, str | None]:
+    """(LPIPS variant to compute or None, label of the column when nothing is computed).
+
+    Resolved once per evaluation, so that missing weights give one warning, not one per polygon.
+    """
+    from difftex.evaluation import metrics
+
+    if cfg.lpips == "none":
+        return None, "none"
+    kind, label = metrics.lpips_source(cfg.lpips)
+    if kind is None:
+        log.warning("LPIPS (%s) %s", cfg.lpips, label)
+        return None, label
+    return cfg.lpips, None
+
+
+def evaluate_maps(
+    scene: Path,
+    textures: dict[str, PolygonTexture],
+    cfg: EvaluateConfig,
+    error_dir: Path | None = None,
+    progress: bool = True,
+) -> dict:
+    """Table 1 metrics per polygon and pooled over the building."""
+    from difftex.evaluation import metrics
+    from difftex.scene.files import read_image, read_json, write_image
+
+    gt = scene / "ground_truth"
+    rows, errs, sq, n_tex = [], [], 0.0, 0
+    lp_variant, lp_label = _lpips_plan(cfg)
+    for pid, pt in textures.items():
+        fpath = gt / "frames" / f"{pid}.json"
+        if not fpath.is_file():
+            continue
+        gframe = UVFrame.from_dict(read_json(fpath))
+        check_same_plane(pt.frame, gframe, str(fpath))
+        ref = read_image(gt / "maps" / f"{pid}.png")
+        gmask = read_image(gt / "masks" / f"{pid}.png")[..., 0] > 0.5
+        if ref.shape[:2] != gframe.shape:
+            raise DifftexError(
+                f"{gt / 'maps' / (pid + '.png')}: size differs from its frame {gframe.width}x{gframe.height}"
+            )
+        img = resample_texture(pt.texture, pt.frame, gframe)
+        row = {
+            "polygon_id": pid,
+            "texels": int(gmask.sum()),
+            "coverage": pt.report.get("coverage"),
+            "frame": frame_offsets(pt.frame, gframe),
+        }
+        e = metrics.texel_error(img, ref)
+        errs.append(e[gmask])
+        sq += float(((img - ref)[gmask] ** 2).sum())
+        n_tex += int(gmask.sum())
+        pe = metrics.error_percentiles(img, ref, gmask)
+        row.update(error90=pe[90.0], error95=pe[95.0], psnr=metrics.psnr(img, ref, gmask))
+        row["ssim"] = metrics.ssim(img, ref, gmask) if min(gmask.shape) >= 11 else None
+        if lp_variant and min(gmask.shape) >= metrics.LPIPS_MIN_SIDE:
+            row["lpips"], lp_label = metrics.lpips(img, ref, gmask, variant=lp_variant, device=cfg.device)
+        else:
+            row["lpips"] = None
+        if error_dir is not None and cfg.error_maps:
+            em = np.clip(e / math.sqrt(3.0) * 3.0, 0, 1)  # x3 so that typical errors are visible
+            em[~gmask] = 0
+            write_image(error_dir / f"{pid}.png", em)
+        rows.append(row)
+    if not rows:
+        raise DifftexError(f"{gt}: no ground-truth frame matches a textured polygon")
+    allerr = np.concatenate(errs)
+    tot = float(sum(r["texels"] for r in rows))
+
+    def wmean(key):
+        vals = [(r[key], r["texels"]) for r in rows if r.get(key) is not None]
+        return sum(v * n for v, n in vals) / sum(n for _, n in vals) if vals else None
+
+    mse = sq / max(3 * n_tex, 1)
+    overall = {
+        "error90": float(np.percentile(allerr, 90)),
+        "error95": float(np.percentile(allerr, 95)),
+        "ssim": wmean("ssim"),
+        "lpips": wmean("lpips"),
+        "psnr": metrics.psnr_from_mse(mse),
+        "lpips_variant": lp_label or "unavailable: no polygon has 32x32 ground-truth texels",
+        "texels": int(tot),
+        "polygons": len(rows),
+        "aggregation": "Error percentiles over all ground-truth texels of all polygons; SSIM/LPIPS texel-weighted "
+        "means of the per-polygon values",
+    }
+    return {"overall": overall, "polygons": rows}
+
+
+# --------------------------------------------------------------------------------------------
+# Rendering the textured proxy into a camera
+
+
+def scaled_photo(photo, long_side: int):
+    """The same camera at another resolution (pycolmap's rescale keeps the pixel-centre convention)."""
+    import copy
+    import dataclasses
+
+    s = min(1.0, long_side / max(photo.width, photo.height))
+    if s >= 1.0:
+        return photo, 1.0
+    cam = copy.deepcopy(photo.camera)
+    w, h = max(1, round(photo.width * s)), max(1, round(photo.height * s))
+    cam.rescale(w, h)
+    return dataclasses.replace(photo, camera=cam, width=int(cam.width), height=int(cam.height)), s
+
+
+def render_proxy(
+    photo, proxy, textures: dict[str, PolygonTexture], prepared=None
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(image (H, W, 3), polygon index per pixel (-1 none), textured (H, W) bool) in ``photo``'s camera."""
+    from difftex.geometry.frames import pixel_to_texel, sample_photo
+    from difftex.geometry.visibility import id_buffer
+
+    ids, _ = id_buffer(prepared if prepared is not None else proxy, photo)
+    H, W = ids.shape
+    img = np.zeros((H, W, 3), np.float32)
+    textured = np.zeros((H, W), bool)
+    for j, poly in enumerate(proxy.polygons):
+        pt = textures.get(poly.id)
+        sel = ids == j
+        if pt is None or not sel.any():
+            continue
+        ys, xs = np.nonzero(sel)
+        pix = np.stack([xs + 0.5, ys + 0.5], -1).astype(np.float64)
+        t = pixel_to_texel(pt.frame, photo, pix)
+        ok = np.isfinite(t).all(-1)
+        vals = sample_photo(pt.texture, np.where(ok[:, None], t, np.nan))
+        img[ys[ok], xs[ok]] = vals[ok]
+        textured[ys[ok], xs[ok]] = True
+    return img, ids, textured
+
+
+def downscale_image(img: np.ndarray, size: tuple[int, int]) -> np.ndarray:
+    """Antialiased resize to (width, height)."""
+    import torch
+    import torch.nn.functional as F
+
+    if img.shape[1] == size[0] and img.shape[0] == size[1]:
+        return img
+    t = torch.from_numpy(np.ascontiguousarray(img, np.float32)).permute(2, 0, 1)[None]
+    t = F.interpolate(t, size=(size[1], size[0]), mode="bilinear", antialias=True, align_corners=False)
+    return t[0].permute(1, 2, 0).numpy()
+
+
+def evaluate_views(
+    photos: list,
+    proxy,
+    textures: dict[str, PolygonTexture],
+    cfg: EvaluateConfig,
+    out_dir: Path | None = None,
+    progress: bool = True,
+) -> dict:
+    """SSIM / LPIPS / PSNR of the textured proxy rendered into each (held-out) photo, on proxy pixels."""
+    from rich.progress import track
+
+    from difftex.evaluation import metrics
+    from difftex.geometry.visibility import prepare
+    from difftex.scene.files import read_image, write_image
+
+    pp = prepare(proxy)
+    rows = []
+    lp_variant, lp_label = _lpips_plan(cfg)
+    for ph in track(photos, description="held-out views", disable=not progress, transient=True):
+        sp, _ = scaled_photo(ph, cfg.render_long_side)
+        ren, ids, textured = render_proxy(sp, proxy, textures, pp)
+        ref = downscale_image(read_image(ph.image_path, expected_size=(ph.width, ph.height)), (sp.width, sp.height))
+        # Metrics take [0, 1] images; textures are stored in [0, 1], so an HDR photo's values
+        # above 1 are clipped as the texture's were.
+        ref = np.clip(ref, 0.0, 1.0)
+        mask = textured
+        row = {
+            "photo": ph.name,
+            "size": [sp.width, sp.height],
+            "proxy_pixels": int((ids >= 0).sum()),
+            "compared_pixels": int(mask.sum()),
+        }
+        if mask.sum() < 64:
+            row["skipped"] = "the textured proxy covers fewer than 64 pixels"
+            rows.append(row)
+            continue
+        row["ssim"] = metrics.ssim(ren, ref, mask)
+        row["psnr"] = metrics.psnr(ren, ref, mask)
+        if lp_variant:
+            row["lpips"], lp_label = metrics.lpips(ren, ref, mask, variant=lp_variant, device=cfg.device)
+        else:
+            row["lpips"] = None
+        if out_dir is not None:
+            stem = Path(ph.name).stem
+            shown = np.where(mask[..., None], ren, ref * 0.25)
+            write_image(out_dir / f"{stem}_render.png", shown)
+            write_image(out_dir / f"{stem}_photo.png", ref)
+            err = np.clip(metrics.texel_error(ren, ref) / math.sqrt(3) * 3, 0, 1)
+            err[~mask] = 0
+            write_image(out_dir / f"{stem}_error.png", err)
+        rows.append(row)
+    scored = [r for r in rows if "ssim" in r]
+
+    def wmean(key):
+        vals = [(r[key], r["compared_pixels"]) for r in scored if r.get(key) is not None]
+        return sum(v * n for v, n in vals) / sum(n for _, n in vals) if vals else None
+
+    overall = {
+        "ssim": wmean("ssim"),
+        "lpips": wmean("lpips"),
+        "psnr": wmean("psnr"),
+        "views": len(scored),
+        "lpips_variant": lp_label or "unavailable: no held-out view was scored",
+        "render_long_side": cfg.render_long_side,
+        "aggregation": "pixel-weighted means over the held-out views of the per-view values",
+    }
+    return {"overall": overall, "views": rows}
+
+
+# --------------------------------------------------------------------------------------------
+# Held-out scene copies (real scenes)
+
+
+# --------------------------------------------------------------------------------------------
+# Everything for one results folder
+
+
+def evaluate_results(
+    scene: str | Path,
+    results: str | Path,
+    cfg: EvaluateConfig = EvaluateConfig(),
+    out_dir: str | Path | None = None,
+    progress: bool = True,
+) -> dict:
+    """All applicable metrics of one results folder; images (error maps, renders) under ``out_dir``."""
+    from difftex.scene.camera import load_photos
+    from difftex.scene.files import read_json
+    from difftex.scene.loading import load_scene
+
+    t0 = time.perf_counter()
+    scene, results = Path(scene), Path(results)
+    out_dir = Path(out_dir) if out_dir is not None else None
+    textures = load_textures(results)
+    sc = load_scene(scene, check_images=False)
+    methods = sorted({pt.report.get("method", "?") for pt in textures.values()})
+    res: dict = {
+        "scene": str(scene),
+        "results": str(results),
+        "method": methods[0] if len(methods) == 1 else methods,
+        "config": cfg.__dict__,
+        "textured_polygons": len(textures),
+        "proxy_polygons": len(sc.proxy.polygons),
+    }
+    # Perspective quality: over the photos the scene copy had (they are the only possible sources).
+    centres = {p.name: p.center for p in sc.photos}
+    qrows = {}
+    for pid, pt in textures.items():
+        q = perspective_quality(pt, results, centres)
+        if q is not None:
+            qrows[pid] = q
+    if qrows:
+        n = {pid: q["q_texels"] for pid, q in qrows.items()}
+        tot = sum(n.values())
+        res["perspective"] = {
+            "q_front": sum(q["q_front"] * n[p] for p, q in qrows.items()) / tot,
+            "q_vc": sum(q["q_vc"] * n[p] for p, q in qrows.items()) / tot,
+            "polygons": qrows,
+            "aggregation": "texel-weighted mean over polygons",
+        }
+    if (scene / "ground_truth" / "frames").is_dir():
+        res["maps"] = evaluate_maps(scene, textures, cfg, out_dir / "error_maps" if out_dir else None, progress)
+    if cfg.views:
+        hold = scene / "holdout.json"
+        if hold.is_file() and read_json(hold)["held_out"]:
+            info = read_json(hold)
+            orig = load_scene(info["original_scene"], check_images=False)
+            photos = [p for p in orig.photos if p.name in set(info["held_out"])]
+            res["views"] = evaluate_views(
+                photos, sc.proxy, textures, cfg, out_dir / "views" if out_dir else None, progress
+            )
+            res["views"]["held_out"] = info["held_out"]
+        elif (scene / "ground_truth" / "views" / "sparse" / "0").is_dir():
+            vdir = scene / "ground_truth" / "views"
+            photos = load_photos(vdir / "sparse" / "0", vdir / "images")
+            res["views"] = evaluate_views(
+                photos, sc.proxy, textures, cfg, out_dir / "views" if out_dir else None, progress
+            )
+    res["time_s"] = time.perf_counter() - t0
+    return res
+
+
+def summary_line(res: dict) -> str:
+    parts = [f"{res['textured_polygons']}/{res['proxy_polygons']} polygons textured"]
+    if "maps" in res:
+        o = res["maps"]["overall"]
+        parts.append(
+            f"maps: E90 {o['error90']:.4f} E95 {o['error95']:.4f} SSIM {o['ssim']:.4f} "
+            f"LPIPS {o['lpips'] if o['lpips'] is None else round(o['lpips'], 4)} ({o['lpips_variant']})"
+        )
+    if "views" in res:
+        o = res["views"]["overall"]
+        if o["ssim"] is not None:
+            parts.append(
+                f"views ({o['views']}): SSIM {o['ssim']:.4f} PSNR {o['psnr']:.2f} "
+                f"LPIPS {o['lpips'] if o['lpips'] is None else round(o['lpips'], 4)}"
+            )
+    if "perspective" in res:
+        parts.append(f"Q_front {res['perspective']['q_front']:.4f} Q_vc {res['perspective']['q_vc']:.4f}")
+    return "; ".join(parts)
+
+
+def to_json(obj):
+    return json.loads(json.dumps(obj, default=lambda o: o.tolist() if hasattr(o, "tolist") else str(o)))

@@ -1,0 +1,265 @@
+"""The UV frame of a polygon (the paper's virtual camera K~_i) and the mapping f_k^i to photos.
+
+See docs/conventions.md for the frame definition; everything here follows it exactly.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from math import ceil
+
+import numpy as np
+
+from difftex.errors import DifftexError
+from difftex.scene.camera import Photo
+from difftex.scene.proxy import Polygon
+
+_HORIZONTAL_SIN = float(np.sin(np.radians(10.0)))
+
+
+@dataclass(frozen=True, eq=False)
+class UVFrame:
+    """Orthographic, fronto-parallel texel grid over a polygon's minimum-area bounding rectangle."""
+
+    origin: np.ndarray  # (3,) world position of texel coordinate (0, 0): the rectangle corner
+    e_u: np.ndarray  # (3,) unit, texel x (columns)
+    e_v: np.ndarray  # (3,) unit, texel y (rows, "down")
+    normal: np.ndarray  # (3,) unit outward normal; e_u x e_v = -normal
+    texel_size: float  # scene units per texel
+    width: int
+    height: int
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        return self.height, self.width
+
+    @property
+    def A(self) -> np.ndarray:
+        """3x3 matrix with X = A @ [tx, ty, 1]."""
+        s = self.texel_size
+        return np.stack([s * self.e_u, s * self.e_v, self.origin], axis=1)
+
+    def texel_to_world(self, tx: np.ndarray, ty: np.ndarray) -> np.ndarray:
+        tx = np.asarray(tx, dtype=np.float64)[..., None]
+        ty = np.asarray(ty, dtype=np.float64)[..., None]
+        s = self.texel_size
+        return self.origin + s * tx * self.e_u + s * ty * self.e_v
+
+    def world_to_texel(self, X: np.ndarray) -> np.ndarray:
+        d = np.asarray(X, dtype=np.float64) - self.origin
+        return np.stack([d @ self.e_u, d @ self.e_v], axis=-1) / self.texel_size
+
+    def centres(self) -> tuple[np.ndarray, np.ndarray]:
+        """Texel-centre coordinates (H, W) each."""
+        ty, tx = np.mgrid[0 : self.height, 0 : self.width].astype(np.float64) + 0.5
+        return tx, ty
+
+    def resized(self, long_side: int) -> UVFrame:
+        """Same rectangle at another resolution (coarse-to-fine levels)."""
+        W_m, H_m = self.width * self.texel_size, self.height * self.texel_size
+        return _frame_with_size(self.origin, self.e_u, self.e_v, self.normal, W_m, H_m, long_side, None)
+
+    def to_dict(self) -> dict:
+        return {
+            "origin": self.origin.tolist(),
+            "e_u": self.e_u.tolist(),
+            "e_v": self.e_v.tolist(),
+            "normal": self.normal.tolist(),
+            "texel_size": self.texel_size,
+            "width": self.width,
+            "height": self.height,
+        }
+
+    @classmethod
+    def from_dict(cls, d: dict) -> UVFrame:
+        return cls(
+            origin=np.asarray(d["origin"], float),
+            e_u=np.asarray(d["e_u"], float),
+            e_v=np.asarray(d["e_v"], float),
+            normal=np.asarray(d["normal"], float),
+            texel_size=float(d["texel_size"]),
+            width=int(d["width"]),
+            height=int(d["height"]),
+        )
+
+
+def _frame_with_size(origin, e_u, e_v, normal, W_m, H_m, long_side, density) -> UVFrame:
+    if long_side is not None:
+        if long_side < 1:
+            raise DifftexError(f"texture long side must be >= 1, got {long_side}")
+        s = max(W_m, H_m) / long_side
+    elif density is not None:
+        if not density > 0:
+            raise DifftexError(f"texel density must be > 0, got {density}")
+        s = 1.0 / density
+    else:
+        raise DifftexError("give a texture long side or a texel density")
+    # The 1e-9 slack keeps an exact fit (W_m / s == long_side) from rounding up to long_side + 1.
+    width = max(1, ceil(W_m / s - 1e-9))
+    height = max(1, ceil(H_m / s - 1e-9))
+    return UVFrame(origin, e_u, e_v, normal, float(s), int(width), int(height))
+
+
+def uv_frame(
+    polygon: Polygon,
+    up: np.ndarray,
+    long_side: int | None = None,
+    density: float | None = None,
+) -> UVFrame:
+    """The polygon's UV frame per docs/conventions.md (minimum-area rectangle, 'down' = -up)."""
+    import shapely
+
+    n = polygon.normal
+    if not np.isfinite(n).all() or np.linalg.norm(n) < 0.5:
+        raise DifftexError(f"polygon '{polygon.id}' has no normal (degenerate)")
+    o, b1, b2 = polygon.plane_basis()
+    pts2 = polygon.to_plane(polygon.outer)
+    # shapely's oriented envelope is the minimum-area rotated rectangle (rotating calipers).
+    rect = shapely.oriented_envelope(shapely.MultiPoint(pts2))
+    if rect.geom_type != "Polygon":
+        raise DifftexError(f"polygon '{polygon.id}' is degenerate (its bounding rectangle is a {rect.geom_type})")
+    c = np.asarray(rect.exterior.coords)[:4]
+    d1_2 = c[1] - c[0]
+    d1 = d1_2[0] * b1 + d1_2[1] * b2
+    d1 /= np.linalg.norm(d1)
+    d2 = np.cross(n, d1)
+    up = np.asarray(up, dtype=np.float64)
+    down = -(up - (up @ n) * n)
+    # Below ~10 degrees of tilt the in-plane 'down' is dominated by the error of the estimated up
+    # (1-2 degrees), so such polygons take the horizontal rule to keep their frame stable.
+    if np.linalg.norm(down) > _HORIZONTAL_SIN:
+        cands = [d1, -d1, d2, -d2]
+        e_v = max(cands, key=lambda v: float(v @ down))
+    else:
+        # Horizontal polygon (roof, ceiling): no 'down' in its plane; the longer side is e_u.
+        ext1 = np.ptp(polygon.outer @ d1)
+        ext2 = np.ptp(polygon.outer @ d2)
+        e_u0 = d1 if ext1 >= ext2 else d2
+        if e_u0[int(np.argmax(np.abs(e_u0)))] < 0:
+            e_u0 = -e_u0
+        e_v = np.cross(e_u0, n)
+    e_u = np.cross(n, e_v)
+    allpts = polygon.outer
+    u = allpts @ e_u
+    v = allpts @ e_v
+    origin = u.min() * e_u + v.min() * e_v + (polygon.offset) * n
+    W_m, H_m = float(np.ptp(u)), float(np.ptp(v))
+    return _frame_with_size(origin, e_u, e_v, n, W_m, H_m, long_side, density)
+
+
+def texel_mask(polygon: Polygon, frame: UVFrame) -> np.ndarray:
+    """(H, W) bool: texel centres inside the polygon (outer boundary minus holes)."""
+    from skimage.draw import polygon as fill
+
+    def raster(loop: np.ndarray) -> np.ndarray:
+        t = frame.world_to_texel(loop)
+        m = np.zeros(frame.shape, bool)
+        # skimage fills pixels whose integer centre is inside; texel centres sit at +0.5.
+        rr, cc = fill(t[:, 1] - 0.5, t[:, 0] - 0.5, shape=frame.shape)
+        m[rr, cc] = True
+        return m
+
+    mask = raster(polygon.outer)
+    for h in polygon.holes:
+        mask &= ~raster(h)
+    if not mask.any():
+        # A sliver thinner than a texel still covers the texel(s) it passes through.
+        t = frame.world_to_texel(polygon.outer)
+        ix = np.clip(np.floor(t[:, 0]).astype(int), 0, frame.width - 1)
+        iy = np.clip(np.floor(t[:, 1]).astype(int), 0, frame.height - 1)
+        mask[iy, ix] = True
+    return mask
+
+
+@dataclass(frozen=True, eq=False)
+class TexelMapping:
+    """f_k^i evaluated at texel centres: pixel position, viewing geometry, validity."""
+
+    pix: np.ndarray  # (H, W, 2) pixel coordinates in photo k (NaN where behind the camera)
+    depth: np.ndarray  # (H, W) camera z
+    view_dir: np.ndarray  # (H, W, 3) unit vector from the texel's 3D point towards the camera
+    cos_angle: np.ndarray  # (H, W) cosine between view_dir and the polygon normal
+    valid: np.ndarray  # (H, W) bool: in front, inside the image, front-facing
+
+
+def texel_to_pixel(frame: UVFrame, photo: Photo, tx: np.ndarray, ty: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """f_k^i: continuous texel coordinates (...) to pixels (..., 2) and depth (...)."""
+    X = frame.texel_to_world(tx, ty)
+    if photo.is_pinhole:
+        # Homography H = K [R | t] A: exact for pinhole cameras and cheaper than projecting 3D points.
+        H = photo.K() @ (photo.R @ frame.A + np.outer(photo.t, [0.0, 0.0, 1.0]))
+        q = np.stack([np.asarray(tx, float), np.asarray(ty, float), np.ones_like(np.asarray(tx, float))], -1) @ H.T
+        depth = q[..., 2]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            pix = q[..., :2] / depth[..., None]
+        pix[depth <= 1e-9] = np.nan
+        return pix, depth
+    return photo.project(X)
+
+
+def texel_footprint(frame: UVFrame, photo: Photo, pix: np.ndarray) -> np.ndarray:
+    """Texel size in pixels, sqrt(|det J|) of f_k^i by forward differences (h, w).
+
+    Args:
+        pix: (h, w, 2) f_k^i at the texel centres (``map_texels(...).pix``).
+    """
+    tx, ty = frame.centres()
+    px, _ = texel_to_pixel(frame, photo, tx + 1.0, ty)
+    py, _ = texel_to_pixel(frame, photo, tx, ty + 1.0)
+    dx, dy = px - pix, py - pix
+    with np.errstate(invalid="ignore"):
+        area = np.abs(dx[..., 0] * dy[..., 1] - dx[..., 1] * dy[..., 0])
+    return np.sqrt(area)
+
+
+def pixel_to_texel(frame: UVFrame, photo: Photo, pix: np.ndarray) -> np.ndarray:
+    """Inverse of f_k^i: pixels (..., 2) to texel coordinates (..., 2) on the polygon's plane.
+
+    Rays parallel to the plane or hitting it behind the camera give NaN.
+    """
+    d = photo.unproject(pix)
+    C = photo.center
+    n = frame.normal
+    denom = d @ n
+    with np.errstate(divide="ignore", invalid="ignore"):
+        s = ((frame.origin - C) @ n) / denom
+    X = C + s[..., None] * d
+    out = frame.world_to_texel(X)
+    out[~(s > 0)] = np.nan
+    return out
+
+
+def map_texels(frame: UVFrame, photo: Photo, margin: float = 0.0) -> TexelMapping:
+    """Evaluate f_k^i and the viewing geometry at every texel centre (vectorised)."""
+    tx, ty = frame.centres()
+    pix, depth = texel_to_pixel(frame, photo, tx, ty)
+    X = frame.texel_to_world(tx, ty)
+    v = photo.center - X
+    v /= np.linalg.norm(v, axis=-1, keepdims=True)
+    cos = v @ frame.normal
+    valid = (depth > 1e-9) & photo.in_image(pix, margin) & (cos > 0)
+    return TexelMapping(pix=pix, depth=depth, view_dir=v, cos_angle=cos, valid=valid)
+
+
+def sample_photo(image: np.ndarray, pix: np.ndarray) -> np.ndarray:
+    """Bilinear samples of an (H, W, C) image at pixel coordinates (..., 2) (COLMAP convention).
+
+    Outside the image or at NaN coordinates the result is 0. torch's grid_sample does the
+    interpolation because it is vectorised and the optimizer uses the same convention.
+    """
+    import torch
+    import torch.nn.functional as F
+
+    h, w = image.shape[:2]
+    shape = pix.shape[:-1]
+    g = np.asarray(pix, dtype=np.float32).reshape(1, -1, 1, 2).copy()
+    bad = ~np.isfinite(g).all(axis=-1)
+    g[bad] = -10.0
+    # align_corners=False: normalised -1 is the left edge of pixel 0, so pixel centres are at x+0.5.
+    g[..., 0] = g[..., 0] / w * 2 - 1
+    g[..., 1] = g[..., 1] / h * 2 - 1
+    img = torch.from_numpy(np.ascontiguousarray(image, dtype=np.float32)).permute(2, 0, 1)[None]
+    out = F.grid_sample(img, torch.from_numpy(g), mode="bilinear", padding_mode="zeros", align_corners=False)
+    res = out[0, :, :, 0].permute(1, 0).numpy()
+    res[bad.reshape(-1)] = 0.0
+    return res.reshape(*shape, image.shape[2])

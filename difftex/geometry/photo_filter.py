@@ -1,0 +1,307 @@
+"""Photo filtering: drop photos that see nothing, blurry photos, and per polygon extreme inclinations.
+
+Sharpness is the variance of the Laplacian of the grey image at a common size, judged relative
+to the set's median so that the threshold does not depend on the camera or the scene.
+
+The per-polygon tests (``max_angle_deg``, ``min_pixels``) never take a polygon's last photos
+(paper, Sec. 3.4: improper photo removal causes irreversible colour loss). A polygon that every
+sharp photo sees beyond ``max_angle_deg`` keeps all of those oblique photos (``textured_from_oblique``);
+one that no photo sees with ``min_pixels`` pixels keeps the sharp photos in which some of it is
+visible at all (``textured_from_glimpses``). Only a polygon that no sharp photo sees stays
+untextured, and the table says why (:func:`unseen_reason`).
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass
+from math import ceil
+
+import numpy as np
+
+from difftex.config import FilterConfig
+from difftex.errors import DifftexError
+from difftex.geometry.raycast import ProxyCaster
+from difftex.geometry.visibility import id_buffer, prepare
+from difftex.scene.camera import Photo
+from difftex.scene.files import decode_photo
+from difftex.scene.proxy import Proxy
+
+log = logging.getLogger(__name__)
+
+
+def sharpness(image: np.ndarray, long_side: int = 1024) -> float:
+    """Variance of the Laplacian of the luminance, after area-downscaling to ``long_side``."""
+    from scipy.ndimage import laplace
+    from skimage.transform import resize
+
+    grey = image[..., :3] @ np.array([0.299, 0.587, 0.114], dtype=np.float32)
+    h, w = grey.shape
+    scale = long_side / max(h, w)
+    if scale < 1:
+        grey = resize(grey, (max(1, round(h * scale)), max(1, round(w * scale))), anti_aliasing=True)
+    return float(laplace(grey.astype(np.float64)).var())
+
+
+@dataclass
+class PhotoRecord:
+    name: str
+    sharpness: float = 0.0
+    sharpness_rel: float = 0.0
+    polygons: dict | None = None  # polygon id -> {"pixels": int, "angle_deg": float}
+    kept: bool = True
+    reason: str = ""
+
+
+def viewing_angles(proxy: Proxy, photo: Photo, ids: np.ndarray, dist: np.ndarray, stride: int, min_pixels: int) -> dict:
+    """Per seen polygon: visible pixel count (at analysis size) and the median viewing angle (deg)."""
+    out: dict = {}
+    ys, xs = np.nonzero(ids >= 0)
+    if len(ys) == 0:
+        return out
+    pix = np.stack([(xs + 0.5) * stride, (ys + 0.5) * stride], axis=-1)
+    pix = np.minimum(pix, [photo.width - 0.5, photo.height - 0.5])
+    rays = photo.unproject(pix)
+    pid = ids[ys, xs]
+    for j in np.unique(pid):
+        sel = pid == j
+        n = proxy.polygons[j].normal
+        cos = -(rays[sel] @ n)  # ray points from the camera to the surface
+        front = cos > 0
+        if front.sum() < min_pixels:
+            continue
+        angle = np.degrees(np.arccos(np.clip(np.median(cos[front]), -1, 1)))
+        out[proxy.polygons[j].id] = {"pixels": int(front.sum()), "angle_deg": round(float(angle), 2)}
+    return out
+
+
+def check_kept(records: list[PhotoRecord], proxy: Proxy, images_dir) -> None:
+    """Warn about photos that see no polygon; stop when no photo is left at all.
+
+    A photo that sees nothing is normal (a view of the street); every photo seeing nothing is
+    not: the proxy and the photos do not meet (wrong frame or units), and continuing would
+    write an all-grey model.
+    """
+    blind = [r.name for r in records if not r.polygons]
+    kept = [r for r in records if r.kept]
+    if not kept:
+        reasons: dict[str, int] = {}
+        for r in records:
+            key = r.reason.split(" (")[0]
+            reasons[key] = reasons.get(key, 0) + 1
+        detail = "; ".join(f"{why}: {n} of {len(records)}" for why, n in sorted(reasons.items(), key=lambda kv: -kv[1]))
+        hint = " Is the proxy in the COLMAP model's frame and units?" if len(blind) == len(records) else ""
+        raise DifftexError(f"{images_dir}: every photo was filtered out ({detail}); nothing to texture.{hint}")
+    if blind:
+        shown = ", ".join(blind[:3]) + (", ..." if len(blind) > 3 else "")
+        log.warning(
+            "%s: %d photo%s no proxy polygon, dropped (%s)",
+            images_dir,
+            len(blind),
+            "s see" if len(blind) > 1 else " sees",
+            shown,
+        )
+
+
+def _blurry(r: PhotoRecord) -> bool:
+    return not r.kept and r.reason.startswith("blurry")
+
+
+def _join(a: str, b: str) -> str:
+    return f"{a}; {b}" if a else b
+
+
+def polygon_photos(pid: str, records: list[PhotoRecord], cfg: FilterConfig) -> dict:
+    """The photos one polygon keeps, and those it drops with the reason.
+
+    Photos that see it within ``max_angle_deg`` are kept. When there are none, every sharp
+    photo that sees it is kept, however oblique: all of them rather than the least oblique few,
+    because oblique views of one polygon usually see different parts of it (a side wall from
+    either end), and the texturing's quality weights (Q_a, L_Persp) already prefer, per texel,
+    the least oblique photo that sees it -- a choice per polygon here could only lose texels.
+
+    Returns:
+        {"kept": [names], "dropped": {name: reason}, "inclined": {name: angle} (dropped as
+        inclined; the visibility stage takes one back for texels no kept photo sees),
+        "textured_from_oblique": bool, and when true "oblique_angles": {name: angle}, least oblique first}.
+    """
+    kept, dropped, inclined = [], {}, {}
+    for r in records:
+        seen = (r.polygons or {}).get(pid)
+        if seen is None:
+            continue
+        if not r.kept:
+            dropped[r.name] = r.reason
+        elif seen["angle_deg"] > cfg.max_angle_deg:
+            dropped[r.name] = f"inclined ({seen['angle_deg']:.1f} deg > {cfg.max_angle_deg})"
+            inclined[r.name] = seen["angle_deg"]
+        else:
+            kept.append(r.name)
+    out = {"kept": kept, "dropped": dropped, "inclined": inclined, "textured_from_oblique": False}
+    if not kept and inclined:
+        out.update(
+            kept=sorted(inclined),
+            dropped={n: w for n, w in dropped.items() if n not in inclined},
+            inclined={},
+            textured_from_oblique=True,
+            oblique_angles=dict(sorted(inclined.items(), key=lambda kv: kv[1])),
+        )
+    return out
+
+
+def polygon_points(poly, long_side: int = 32) -> np.ndarray:
+    """(N, 3) points spread over a polygon: its texel centres at ``long_side`` and its centroid."""
+    from difftex.geometry.frames import texel_mask, uv_frame
+
+    frame = uv_frame(poly, np.array([0.0, 0.0, 1.0]), long_side=long_side)
+    ty, tx = np.nonzero(texel_mask(poly, frame))
+    return np.concatenate([frame.texel_to_world(tx + 0.5, ty + 0.5), poly.centroid[None]])
+
+
+def sight_line(caster: ProxyCaster, index: int, photo: Photo, points: np.ndarray) -> dict:
+    """How ``photo`` sees polygon ``index``, from ``points`` on it (:func:`polygon_points`)
+    rather than from the photo's pixels, so that a polygon too small for the filter's analysis
+    size is still found.
+
+    Returns:
+        {"state": "back-facing" (the camera is behind its plane) | "outside" (no point of it in
+        the image) | "hidden" (every point in the image is behind another polygon) | "visible",
+        "points": visible points, "angle_deg": median viewing angle of those (visible only)}.
+    """
+    poly = caster.proxy.polygons[index]
+    if float(poly.normal @ (photo.center - poly.centroid)) <= 0:
+        return {"state": "back-facing", "points": 0}
+    pix, depth = photo.project(points)
+    inside = (depth > 0) & photo.in_image(pix)
+    if not inside.any():
+        return {"state": "outside", "points": 0}
+    rays = points[inside] - photo.center
+    dist = np.linalg.norm(rays, axis=1)
+    ids, _ = caster.cast(photo.center, rays / dist[:, None])
+    seen = ids == index  # a ray meets the polygon's plane once: a hit on it is a hit at the point
+    if not seen.any():
+        return {"state": "hidden", "points": 0}
+    cos = -(rays[seen] / dist[seen, None]) @ poly.normal
+    return {
+        "state": "visible",
+        "points": int(seen.sum()),
+        "angle_deg": round(float(np.degrees(np.arccos(np.clip(np.median(cos), -1, 1)))), 2),
+    }
+
+
+def unseen_reason(sight: dict[str, dict], blurry: list[str]) -> str:
+    """Why no photo textures a polygon, from :func:`sight_line` of every photo.
+
+    ``blurry``: photos in which it is visible but that were dropped as blurry.
+    """
+    n = len(sight)
+    count = {state: sum(s["state"] == state for s in sight.values()) for state in ("back-facing", "outside", "hidden")}
+    if blurry:
+        return (
+            "every photo that sees it was dropped as blurry "
+            f"({', '.join(blurry[:3])}{', ...' if len(blurry) > 3 else ''})"
+        )
+    if count["hidden"]:
+        return f"hidden behind other polygons in the {count['hidden']} photo(s) that have it in view"
+    if count["outside"]:
+        return f"outside every photo (in front of {count['outside']} of {n} cameras, in none of their images)"
+    return f"back-facing to every camera (all {n})"
+
+
+def filter_photos(proxy: Proxy, photos: list[Photo], cfg: FilterConfig, progress: bool = True) -> dict:
+    """Decide which photos to keep, globally and per polygon; returns the table as a dict."""
+    from rich.progress import track
+
+    t0 = time.perf_counter()
+    pp = prepare(proxy)
+    records = []
+    it = track(photos, description="filtering photos", disable=not progress, transient=True)
+    for ph in it:
+        # Sharpness is measured at sharpness_long_side: a JPEG decodes straight to about that size.
+        reduce = 2 ** int(np.floor(np.log2(max(1.0, max(ph.width, ph.height) / cfg.sharpness_long_side))))
+        img = decode_photo(ph.image_path, (ph.width, ph.height), reduce)
+        stride = max(1, ceil(max(ph.width, ph.height) / cfg.analysis_long_side))
+        ids, dist = id_buffer(pp, ph, stride=stride)
+        rec = PhotoRecord(name=ph.name, sharpness=sharpness(img, cfg.sharpness_long_side))
+        rec.polygons = viewing_angles(proxy, ph, ids, dist, stride, cfg.min_pixels)
+        records.append(rec)
+    med = float(np.median([r.sharpness for r in records])) if records else 0.0
+    for r in records:
+        r.sharpness_rel = r.sharpness / med if med > 0 else 1.0
+        if not r.polygons:
+            r.kept, r.reason = False, "sees no proxy polygon"
+        elif r.sharpness_rel < cfg.blur_ratio:
+            r.kept, r.reason = False, f"blurry (sharpness {r.sharpness_rel:.2f} x median < {cfg.blur_ratio})"
+    check_kept(records, proxy, photos[0].image_path.parent if photos else None)
+    per_polygon = {poly.id: polygon_photos(poly.id, records, cfg) for poly in proxy.polygons}
+    by_name = {r.name: r for r in records}
+    for i, poly in enumerate(proxy.polygons):
+        d = per_polygon[poly.id]
+        if d["kept"]:
+            continue
+        # no sharp photo sees it with min_pixels pixels: look at the polygon itself in every photo
+        points = polygon_points(poly)
+        sight = {ph.name: sight_line(pp, i, ph, points) for ph in photos}
+        usable = {n: s for n, s in sight.items() if s["state"] == "visible" and not _blurry(by_name[n])}
+        if usable:
+            d["kept"] = sorted(usable)
+            d["textured_from_glimpses"] = True
+            d["glimpses"] = {n: {"points": s["points"], "angle_deg": s["angle_deg"]} for n, s in sorted(usable.items())}
+            for n in usable:
+                r = by_name[n]
+                if not r.kept:  # it saw no polygon with min_pixels pixels: kept for this one
+                    r.kept, r.reason = True, ""
+                r.reason = _join(r.reason, f"kept for {poly.id}, which no other photo sees")
+        else:
+            blurry = sorted(n for n, s in sight.items() if s["state"] == "visible")
+            d["untextured_reason"] = unseen_reason(sight, blurry)
+            d["sight"] = {
+                state: sum(s["state"] == state for s in sight.values())
+                for state in ("back-facing", "outside", "hidden", "visible")
+            }
+    oblique = {pid: d for pid, d in per_polygon.items() if d["textured_from_oblique"]}
+    if oblique:
+        log.warning(
+            "%s: textured from oblique photos only (every photo sees them beyond filter.max_angle_deg = %g): %s",
+            proxy.path,
+            cfg.max_angle_deg,
+            ", ".join(f"{pid} ({min(d['oblique_angles'].values()):.0f} deg)" for pid, d in oblique.items()),
+        )
+    unseen = {pid: d["untextured_reason"] for pid, d in per_polygon.items() if not d["kept"]}
+    if unseen:
+        log.warning(
+            "%s: no photo sees %d of %d polygons, untextured (grey): %s",
+            proxy.path,
+            len(unseen),
+            len(per_polygon),
+            "; ".join(f"{pid} ({why})" for pid, why in unseen.items()),
+        )
+    return {
+        "config": cfg.__dict__,
+        "median_sharpness": med,
+        "photos": [r.__dict__ for r in records],
+        "polygons": per_polygon,
+        "seconds": round(time.perf_counter() - t0, 3),
+    }
+
+
+def write_table(result: dict, json_path, csv_path=None) -> None:
+    """The filter table as JSON (complete) and CSV (one row per photo, for a spreadsheet)."""
+    from difftex.scene.files import write_json, write_text
+
+    write_json(json_path, result)
+    if csv_path is not None:
+        rows = ["photo,kept,reason,sharpness,sharpness_rel,polygons_seen,candidate_for"]
+        used: dict[str, list[str]] = {}
+        for pid, d in result["polygons"].items():
+            for name in d["kept"]:
+                used.setdefault(name, []).append(pid)
+        for r in result["photos"]:
+            seen = ";".join(f"{k}:{v['angle_deg']:.1f}deg" for k, v in (r["polygons"] or {}).items())
+            reason = r["reason"].replace('"', "'")
+            rows.append(
+                f'{r["name"]},{int(r["kept"])},"{reason}",{r["sharpness"]:.6g},{r["sharpness_rel"]:.3f},"{seen}",'
+                f'"{";".join(used.get(r["name"], []))}"'
+            )
+        write_text(csv_path, "\n".join(rows) + "\n")

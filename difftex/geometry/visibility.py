@@ -1,0 +1,289 @@
+"""Visibility of proxy polygons in photos: a per-photo polygon-id buffer, texel masks, a_k^i.
+
+The id buffer is made by casting each pixel's ray, through the camera's distortion model,
+against the proxy and keeping the nearest hit (difftex.geometry.raycast). A rasteriser's straight edges
+could not follow COLMAP's distortion models.
+
+From the id buffer, for polygon i and photo k:
+- a_k^i (photo space): pixels whose nearest proxy surface is polygon i, seen from its front;
+- texel visibility: texel centre in front of the camera, inside the image, front-facing, and
+  its pixel in the id buffer belongs to polygon i (so it is not hidden by another polygon).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+
+import numpy as np
+
+from difftex.config import TextureConfig
+from difftex.errors import DifftexError
+from difftex.geometry.frames import UVFrame, texel_mask, texel_to_pixel, uv_frame
+from difftex.geometry.raycast import NO_POLYGON, ProxyCaster, id_buffer, prepare  # noqa: F401  (id_buffer, prepare: re-exported)
+from difftex.scene.camera import Photo
+from difftex.scene.proxy import Proxy
+
+
+@dataclass(frozen=True, eq=False)
+class PolygonVisibility:
+    """Which texels of one polygon each candidate photo sees, and where (a_k^i) in the photo."""
+
+    polygon_id: str
+    frame: UVFrame
+    texel_mask: np.ndarray  # (H, W) bool
+    photos: list[str]  # candidate photo names, K of them
+    texel_visible: np.ndarray  # (K, H, W) bool
+    a_bbox: np.ndarray  # (K, 4) int: x0, y0, x1, y1 (exclusive) of a_k^i in photo pixels
+    a_masks: list[np.ndarray]  # K crops (y1-y0, x1-x0) bool of a_k^i
+    texel_size: dict | None = None  # difftex.geometry.density.TexelSize as a dict: how the texel size was chosen
+    rescued: dict | None = None  # photos kept only as the last source of some texels: name -> {"texels", "why"}
+
+    def a_mask_full(self, k: int, width: int, height: int) -> np.ndarray:
+        m = np.zeros((height, width), bool)
+        x0, y0, x1, y1 = self.a_bbox[k]
+        m[y0:y1, x0:x1] = self.a_masks[k]
+        return m
+
+    @property
+    def coverage(self) -> float:
+        """Share of the polygon's texels seen by at least one candidate photo."""
+        if not self.texel_mask.any():
+            return 0.0
+        seen = self.texel_visible.any(axis=0) if len(self.photos) else np.zeros_like(self.texel_mask)
+        return float((seen & self.texel_mask).sum() / self.texel_mask.sum())
+
+
+def save_visibility(path, vis: PolygonVisibility) -> None:
+    """Compressed npz; boolean masks are bit-packed (a 2048^2 mask is 512 KiB before zlib)."""
+    import json
+
+    from difftex.scene.files import write_npz
+
+    H, W = vis.frame.shape
+    sizes = np.array([m.size for m in vis.a_masks], dtype=np.int64)
+    a_flat = np.concatenate([m.ravel() for m in vis.a_masks]) if vis.a_masks else np.zeros(0, bool)
+    write_npz(
+        path,
+        polygon_id=np.array(vis.polygon_id),
+        frame=np.array(json.dumps(vis.frame.to_dict())),
+        texel_mask=np.packbits(vis.texel_mask.ravel()),
+        photos=np.array(vis.photos, dtype=str),
+        texel_visible=np.packbits(vis.texel_visible.reshape(len(vis.photos), H * W), axis=1),
+        a_bbox=vis.a_bbox,
+        a_sizes=sizes,
+        a_masks=np.packbits(a_flat),
+        shape=np.array([H, W]),
+        texel_size=np.array(json.dumps(vis.texel_size)),
+    )
+
+
+def load_visibility(path) -> PolygonVisibility:
+    import json
+
+    from difftex.scene.files import read_npz
+
+    d = read_npz(path)
+    try:
+        H, W = (int(x) for x in d["shape"])
+        frame = UVFrame.from_dict(json.loads(str(d["frame"])))
+        photos = [str(x) for x in d["photos"]]
+        K = len(photos)
+        tv = (
+            np.unpackbits(d["texel_visible"], axis=1, count=H * W).astype(bool).reshape(K, H, W)
+            if K
+            else np.zeros((0, H, W), bool)
+        )
+        flat = np.unpackbits(d["a_masks"], count=int(d["a_sizes"].sum())).astype(bool)
+        crops, pos = [], 0
+        for k in range(K):
+            x0, y0, x1, y1 = (int(v) for v in d["a_bbox"][k])
+            n = (y1 - y0) * (x1 - x0)
+            crops.append(flat[pos : pos + n].reshape(y1 - y0, x1 - x0))
+            pos += n
+        return PolygonVisibility(
+            polygon_id=str(d["polygon_id"]),
+            frame=frame,
+            texel_mask=np.unpackbits(d["texel_mask"], count=H * W).astype(bool).reshape(H, W),
+            photos=photos,
+            texel_visible=tv,
+            a_bbox=d["a_bbox"].astype(np.int64).reshape(K, 4),
+            a_masks=crops,
+            texel_size=json.loads(str(d["texel_size"])) if "texel_size" in d else None,
+        )
+    except (KeyError, ValueError) as exc:
+        raise DifftexError(f"{path}: not a difftex visibility file ({exc})") from None
+
+
+def crop_texel_visibility(frame: UVFrame, photo: Photo, mask: np.ndarray, bbox, crop: np.ndarray) -> np.ndarray:
+    """(H, W) bool: texels of ``mask`` whose centre projects onto a pixel of the crop of a_k^i.
+
+    Args:
+        bbox: (x0, y0, x1, y1) of ``crop`` in full-resolution pixels.
+        crop: (y1 - y0, x1 - x0) bool, the pixels whose nearest proxy surface is the polygon.
+    """
+    x0, y0, x1, y1 = (int(v) for v in bbox)
+    seen = np.zeros(frame.shape, bool)
+    if x1 <= x0 or y1 <= y0:
+        return seen
+    ty, tx = np.nonzero(mask)
+    pix, depth = texel_to_pixel(frame, photo, tx + 0.5, ty + 0.5)
+    ok = (depth > 1e-9) & photo.in_image(pix)
+    px = np.floor(np.where(ok, pix[:, 0], -1)).astype(np.int64) - x0
+    py = np.floor(np.where(ok, pix[:, 1], -1)).astype(np.int64) - y0
+    inside = ok & (px >= 0) & (py >= 0) & (px < x1 - x0) & (py < y1 - y0)
+    hit = np.zeros_like(inside)
+    hit[inside] = crop[py[inside], px[inside]]
+    seen[ty[hit], tx[hit]] = True
+    return seen
+
+
+@dataclass
+class _Sighting:
+    """What one photo's id buffer says of one polygon (kept until the texel sizes are chosen)."""
+
+    name: str
+    bbox: tuple[int, int, int, int]
+    crop: np.ndarray  # packed bits of the (y1 - y0, x1 - x0) a_k^i crop
+    mean_cos: float
+    gsd: np.ndarray | None  # (h, w) at the probe frame (auto density)
+    cos: np.ndarray | None
+
+
+def scene_visibility(
+    proxy: Proxy,
+    photos: list[Photo],
+    up: np.ndarray,
+    candidates: dict[str, list[str]],
+    texture: TextureConfig | int,
+    min_texels: int = 16,
+    max_photos: int | None = None,
+    progress: bool = True,
+    top_k: int = 8,
+    fallback: dict[str, dict[str, str]] | None = None,
+) -> list[PolygonVisibility]:
+    """Visibility of every polygon in its candidate photos (photo names per polygon id).
+
+    A photo that sees fewer than ``min_texels`` texels, and one of ``fallback`` (per polygon id:
+    photo name -> why the filter left it out, e.g. inclined), joins only where it is the last
+    source of some texels: dropping it there would lose their colour for good (paper, Sec. 3.4),
+    and the texturing's quality weights and photo drop keep it out of the texels that other
+    photos see. ``PolygonVisibility.rescued`` lists those photos. ``max_photos`` (best Q_a
+    first) is a cap the user set, applied last.
+
+    One pass over the photos: each photo's id buffer gives, per polygon it sees, the crop of
+    a_k^i and (``density: auto``) the photo's ground sampling distance on a probe grid. Then each
+    polygon's texel size is chosen (difftex.geometry.density), and its texel visibility per photo is read
+    from the crops. Only one full-resolution id buffer is in memory at a time.
+
+    ``texture``: the texture section, or an int long side (tests and tools).
+    """
+    from rich.progress import track
+
+    from difftex.geometry.density import PROBE_LONG_SIDE, choose_texel_size, photo_texel_size, probe_gsd
+
+    cfg = texture if isinstance(texture, TextureConfig) else TextureConfig(density=None, long_side=int(texture))
+    caster = ProxyCaster.build(proxy)
+    probes = [uv_frame(p, up, long_side=PROBE_LONG_SIDE) for p in proxy.polygons] if cfg.mode == "auto" else None
+    probe_masks = [texel_mask(p, f) for p, f in zip(proxy.polygons, probes)] if probes else None
+    fallback = fallback or {}
+    wanted = {pid: set(names) | set(fallback.get(pid, ())) for pid, names in candidates.items()}
+    parts: list[list[_Sighting]] = [[] for _ in proxy.polygons]
+    used = [ph for ph in photos if any(ph.name in s for s in wanted.values())]
+    for ph in track(used, description="visibility", disable=not progress, transient=True):
+        ids, _ = id_buffer(caster, ph)
+        for i, poly in enumerate(proxy.polygons):
+            if ph.name not in wanted.get(poly.id, ()):
+                continue
+            if (poly.normal @ (ph.center - poly.centroid)) <= 0:
+                continue  # the camera is behind the plane: it sees none of this face's outside
+            a = ids == i
+            ys, xs = np.nonzero(a)
+            if len(ys) == 0:
+                continue
+            box = (int(xs.min()), int(ys.min()), int(xs.max()) + 1, int(ys.max()) + 1)
+            crop = a[box[1] : box[3], box[0] : box[2]]
+            gsd = cos = None
+            if probes is not None and probe_masks is not None:
+                seen_p = crop_texel_visibility(probes[i], ph, probe_masks[i], box, crop)
+                gsd, cos = probe_gsd(probes[i], ph, seen_p)
+            v = ph.center - poly.centroid
+            mean_cos = float(v @ poly.normal / np.linalg.norm(v))
+            parts[i].append(_Sighting(ph.name, box, np.packbits(crop.ravel()), mean_cos, gsd, cos))
+        del ids
+    by_name = {p.name: p for p in photos}
+    out = []
+    for i, poly in enumerate(proxy.polygons):
+        items = parts[i]
+        rect = uv_frame(poly, up, long_side=PROBE_LONG_SIDE)
+        extent = (rect.width * rect.texel_size, rect.height * rect.texel_size)
+        photo_size = None
+        if probes is not None and items:
+            photo_size = photo_texel_size(
+                np.stack([it.gsd for it in items]),  # type: ignore[misc]  # set whenever probes are
+                np.stack([it.cos for it in items]),  # type: ignore[misc]
+                cfg.gsd_percentile,
+            )
+        size = choose_texel_size(extent, extent[0] * extent[1], photo_size, cfg, min(max(len(items), 1), top_k))
+        frame = (
+            uv_frame(poly, up, density=1.0 / size.texel_size)
+            if cfg.mode != "long_side"
+            else uv_frame(poly, up, long_side=int(cfg.long_side))  # type: ignore[arg-type]  # set in long_side mode
+        )
+        tmask = texel_mask(poly, frame)
+        kept, spare = [], []
+        later = fallback.get(poly.id, {})
+        for it in items:
+            h, w = it.bbox[3] - it.bbox[1], it.bbox[2] - it.bbox[0]
+            crop = np.unpackbits(it.crop, count=h * w).astype(bool).reshape(h, w)
+            seen = crop_texel_visibility(frame, by_name[it.name], tmask, it.bbox, crop)
+            if it.name in later:
+                spare.append((it, crop, seen, later[it.name]))
+            elif seen.sum() >= min_texels:
+                kept.append((it, crop, seen))
+            elif seen.any():
+                spare.append(
+                    (it, crop, seen, f"sees {int(seen.sum())} texels (< visibility.min_texels = {min_texels})")
+                )
+        kept, rescued = last_sources(kept, spare, tmask)
+        if max_photos is not None and len(kept) > max_photos:  # a cap the user set: it wins
+            kept = sorted(kept, key=lambda k: -k[0].mean_cos)[:max_photos]
+            rescued = {n: r for n, r in rescued.items() if n in {k[0].name for k in kept}}
+        order = {it.name: n for n, it in enumerate(items)}
+        kept = sorted(kept, key=lambda k: order[k[0].name])
+        K = len(kept)
+        H, W = frame.shape
+        vis = PolygonVisibility(
+            polygon_id=poly.id,
+            frame=frame,
+            texel_mask=tmask,
+            photos=[k[0].name for k in kept],
+            texel_visible=np.stack([k[2] for k in kept]) if K else np.zeros((0, H, W), bool),
+            a_bbox=np.asarray([k[0].bbox for k in kept], dtype=np.int64).reshape(K, 4),
+            a_masks=[k[1] for k in kept],
+        )
+        out.append(dataclasses.replace(vis, texel_size=dataclasses.asdict(size), rescued=rescued))
+    return out
+
+
+def last_sources(kept: list[tuple], spare: list[tuple], mask: np.ndarray) -> tuple[list[tuple], dict]:
+    """``kept`` plus the ``spare`` photos that see texels no photo before them sees.
+
+    Args:
+        kept: (sighting, crop, seen (H, W) bool) of the photos that passed every test.
+        spare: (sighting, crop, seen, why it was left out), tried least oblique first.
+        mask: (H, W) texel mask of the polygon.
+    Returns:
+        (the kept tuples and the rescued ones, {name: {"texels": texels only it sees, "why": why}}).
+    """
+    covered = np.zeros(mask.shape, bool)
+    for k in kept:
+        covered |= k[2]
+    rescued = {}
+    for it, crop, seen, why in sorted(spare, key=lambda s: -s[0].mean_cos):
+        new = seen & mask & ~covered
+        if new.any():
+            kept = [*kept, (it, crop, seen)]
+            covered |= seen
+            rescued[it.name] = {"texels": int(new.sum()), "why": why}
+    return kept, rescued

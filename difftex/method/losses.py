@@ -1,0 +1,288 @@
+"""The DiffTex objective for one polygon (paper eq. 5-10), on a slot layout of the weights.
+
+Layout: each texel keeps ``K`` candidate *slots*; slot ``j`` of texel ``t`` refers to photo
+``idx[j, t]`` (or -1). The parameters ``z`` (K, H, W) are logits: the blend weights, the paper's
+normalised w_k in [0, 1], are their softmax over the active slots, ``W = a e^z / sum_j(a e^z)``
+with ``a`` the activation mask a_k^i mapped to texel space. Every sum over texels is divided by the
+polygon's texel count ``n_tex`` so that the
+paper's balance (alpha, beta, omega) does not change with the resolution level.
+
+Render loss comes in two forms: the texel-space form compares U with every photo mapped into
+texel space (fast); the render-space form renders the textured polygon into each photo's pixels
+(what the paper does with nvdiffrast) by bilinear lookup of U at each pixel's texel coordinate.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+import torch.nn.functional as F
+
+
+def blend_weights(z: torch.Tensor, active: torch.Tensor) -> torch.Tensor:
+    """W (K, H, W): the softmax of the logits z over each texel's active slots (zero where none).
+
+    Logits, not weights clamped to [0, 1] and renormalised: with normalised weights the
+    gradient of a photo is proportional to how far its cost is from the texel's weighted mean,
+    which vanishes for the runners-up as a texel narrows down to a few photos, so they linger
+    for hundreds of iterations; Adam on logits lowers every losing photo's log-weight at its
+    step size until the activation threshold tau removes it.
+    """
+    x = torch.where(active, z, torch.full_like(z, float("-inf")))
+    zm = x.amax(0, keepdim=True).detach()
+    zm = torch.where(torch.isfinite(zm), zm, torch.zeros_like(zm))  # texels with nothing active
+    e = torch.exp(x - zm)
+    return e / e.sum(0, keepdim=True).clamp_min(1e-30)
+
+
+def compose(W: torch.Tensor, colours: torch.Tensor) -> torch.Tensor:
+    """U_i(t) = sum_k W_k(t) I_k(f_k(t)); colours (K, 3, H, W) -> (3, H, W)."""
+    return (W[:, None] * colours).sum(0)
+
+
+def render_loss_texel(U, colours, active, Q, n_tex: float) -> torch.Tensor:
+    """Texel-space L_Render data term: sum_k ||a_k Q_k (U - I^_k)||^2 over texels."""
+    r = (active.to(U.dtype) * Q)[:, None] * (U[None] - colours)
+    return (r * r).sum() / n_tex
+
+
+def para_edge_cost(active: torch.Tensor, D: torch.Tensor, axis: int, lambda_s: float) -> torch.Tensor:
+    """C(t_o, t_q) = m_k(t_o) D(t_o, t_q) + lambda_s per slot (eq. 9), with m_k the overlap mask."""
+    overlap = (active.sum(0, keepdim=True) >= 2) & active  # m_k: another mapped photo overlaps
+    return crop_pair(overlap, axis, "o").to(D.dtype) * D[None] + lambda_s
+
+
+def render_quality(active: torch.Tensor, Q: torch.Tensor) -> torch.Tensor:
+    """q_k = (a_k Q_k)^2, each photo's weight in the squared norm of L_Render (eq. 5); (K, H, W)."""
+    aq = active.to(Q.dtype) * Q
+    return aq * aq
+
+
+def ghost_spread(d2: torch.Tensor, margin: float) -> torch.Tensor:
+    """psi(d^2) = d^4 / (d^2 + margin): a photo's squared distance to the blend, discounted
+    below ``margin`` (the photometric noise: blending photos that differ by noise only averages
+    the noise away, which is wanted), equal to d^2 - margin + O(margin^2 / d^2) above it."""
+    return d2 if margin <= 0 else d2 * d2 / (d2 + margin)
+
+
+def ghost_loss(W, U, colours, active, Q, n_tex: float, margin: float = 0.0) -> torch.Tensor:
+    """The spread of the blend: sum_t A(t) sum_k W_k(t) psi(|I^_k(t) - U(t)|^2), A = sum_k q_k.
+
+    Not in the paper. L_Render alone is minimised by the q-weighted mean of the photos (the mean
+    minimises a sum of squared distances), so it pulls every texel towards a blend, and ghosts
+    where the photos disagree. By the bias-variance decomposition (sum_k W_k = 1)
+
+        L_Render + ghost = sum_t sum_k W_k(t) sum_j q_j(t) |I^_k(t) - I^_j(t)|^2,
+
+    the expected render error of using one photo, drawn with probability W: linear in W, so
+    its minimum selects photos, and blending photos that agree costs nothing while blending
+    photos that disagree (relief parallax, misalignment, an occluder) costs their spread. With
+    ``margin`` > 0 (psi, ghost_spread) differences at the noise level cost next to nothing, so
+    photos that agree up to noise are blended (the noise averages out) and the others selected.
+
+    Shapes: W (K, H, W), U (3, H, W), colours (K, 3, H, W), active / Q (K, H, W).
+    """
+    A = render_quality(active, Q).sum(0)
+    spread = (W * ghost_spread(((colours - U[None]) ** 2).sum(1), margin)).sum(0)
+    return (A * spread).sum() / n_tex
+
+
+@dataclass
+class PixelSet:
+    """Render-mode data of one photo at one level: its a_k^i pixels (downscaled to texel size)."""
+
+    grid: torch.Tensor  # (1, n, 1, 2) texel coordinates normalised for grid_sample
+    colour: torch.Tensor  # (n, 3) photo colours at those pixels
+    texel: torch.Tensor  # (n,) flat index of the nearest texel
+    slot: torch.Tensor  # (n,) slot of this photo at that texel, -1 if it is not a candidate there
+    scale: float  # visible texels / pixels: puts a photo's pixel sum on the texel-sum scale
+
+
+@dataclass
+class PixelBatch:
+    """All photos' PixelSets concatenated, so one grid_sample renders every view."""
+
+    grid: torch.Tensor  # (1, P, 1, 2)
+    colour: torch.Tensor  # (P, 3)
+    texel: torch.Tensor  # (P,)
+    slot: torch.Tensor  # (P,)
+    scale: torch.Tensor  # (P,) the photo's scale per pixel
+    den: torch.Tensor | None = None  # (P,) sampled support, fixed per level (see render_view)
+
+    @property
+    def n(self) -> int:
+        return int(self.colour.shape[0])
+
+
+def batch_pixel_sets(sets: list[PixelSet], support: torch.Tensor, device) -> PixelBatch:
+    if not sets:
+        z = torch.zeros(0, device=device)
+        return PixelBatch(
+            grid=torch.zeros(1, 0, 1, 2, device=device),
+            colour=torch.zeros(0, 3, device=device),
+            texel=z.long(),
+            slot=z.long(),
+            scale=z,
+            den=z,
+        )
+    b = PixelBatch(
+        grid=torch.cat([s.grid for s in sets], 1),
+        colour=torch.cat([s.colour for s in sets]),
+        texel=torch.cat([s.texel for s in sets]),
+        slot=torch.cat([s.slot for s in sets]),
+        scale=torch.cat([torch.full((s.colour.shape[0],), float(s.scale), device=device) for s in sets]),
+    )
+    s_ = support.float()[None, None]
+    b.den = F.grid_sample(s_, b.grid, mode="bilinear", padding_mode="zeros", align_corners=False)[0, 0, :, 0]
+    return b
+
+
+def render_view(
+    U: torch.Tensor, support: torch.Tensor, grid: torch.Tensor, den: torch.Tensor | None = None
+) -> torch.Tensor:
+    """R_k at the given pixels: bilinear lookup of U (3, H, W), normalised by the support.
+
+    Texels outside the polygon (or with no source) carry no colour; dividing by the bilinearly
+    sampled support keeps pixels at the polygon's border from blending with black. The support
+    does not depend on the weights, so its samples ``den`` can be computed once.
+    """
+    s = support.to(U.dtype)[None]
+    num = F.grid_sample((U * s)[None], grid, mode="bilinear", padding_mode="zeros", align_corners=False)[0, :, :, 0]
+    if den is None:
+        den = F.grid_sample(s[None], grid, mode="bilinear", padding_mode="zeros", align_corners=False)[0, 0, :, 0]
+    return (num / den.clamp_min(1e-6)[None]).T  # (n, 3)
+
+
+def render_loss_pixels(U, support, batch: PixelBatch, active, Q, n_tex: float) -> torch.Tensor:
+    """Render-space L_Render data term: sum_k ||a_k Q (R_k - I_k)||^2 over a_k^i pixels."""
+    if batch.n == 0:
+        return U.new_zeros(())
+    K = active.shape[0]
+    a_flat = active.reshape(K, -1).to(U.dtype)
+    q_flat = Q.reshape(K, -1)
+    ok = batch.slot >= 0
+    j = batch.slot.clamp_min(0)
+    wq = a_flat[j, batch.texel] * q_flat[j, batch.texel] * ok.to(U.dtype)
+    R = render_view(U, support, batch.grid, batch.den)
+    r = wq[:, None] * (R - batch.colour)
+    return (batch.scale[:, None] * r * r).sum() / n_tex
+
+
+def guidance_direction(view_dirs: torch.Tensor, normal: torch.Tensor) -> torch.Tensor:
+    """v~_i = 0.5 sum v_k / |sum v_k| - 0.5 n_i (eq. 6), v_k the photos' viewing directions."""
+    s = view_dirs.sum(0)
+    return 0.5 * s / s.norm().clamp_min(1e-12) - 0.5 * normal
+
+
+def persp_cost(view_field: torch.Tensor, v_tilde: torch.Tensor) -> torch.Tensor:
+    """|V^_k - v~_i|^2 per slot and texel; view_field (K, 3, H, W) camera-to-texel unit vectors."""
+    d = view_field - v_tilde.view(1, 3, 1, 1)
+    return (d * d).sum(1)
+
+
+def persp_loss(W, cost, n_tex: float) -> torch.Tensor:
+    """L_Persp = sum_k ||W_k . V_k . V_k||_1 with V_k = a^_k (V^_k - v~) (eq. 7); a is inside W."""
+    return (W * cost).sum() / n_tex
+
+
+@dataclass
+class NeighbourMatch:
+    """Slot correspondence between texel o and its neighbour q (up or left) for L_Para.
+
+    ``match[j]`` at o is the slot of q holding the same photo as slot j of o (-1: none);
+    ``q_alone[l]`` at o marks slots of q whose photo is not among o's slots.
+    Arrays are cropped so that o and q line up: o = [:, 1:, :], q = [:, :-1, :] for "up".
+    """
+
+    match: torch.Tensor | None  # (K, h', w') long; None: slot j is the same photo everywhere
+    q_alone: torch.Tensor | None  # (K, h', w') bool
+    pair_ok: torch.Tensor  # (h', w') bool: both texels inside the polygon
+
+
+def neighbour_match(idx: torch.Tensor, mask: torch.Tensor, axis: int, fixed: bool = False) -> NeighbourMatch:
+    """Build the slot correspondence for the up (axis=1) or left (axis=2) neighbour.
+
+    ``fixed``: every slot holds one photo at all texels (weights of photos that do not see a
+    texel are 0 there), so slots correspond directly and no gather is needed.
+    """
+    K = idx.shape[0]
+    if axis == 1:
+        io, iq = idx[:, 1:, :], idx[:, :-1, :]
+        ok = mask[1:, :] & mask[:-1, :]
+    else:
+        io, iq = idx[:, :, 1:], idx[:, :, :-1]
+        ok = mask[:, 1:] & mask[:, :-1]
+    if fixed:
+        return NeighbourMatch(match=None, q_alone=None, pair_ok=ok)
+    match = torch.full_like(io, -1)
+    q_in_o = torch.zeros(io.shape, dtype=torch.bool, device=idx.device)
+    # K x K comparisons, done slot by slot to keep the temporary at (h, w).
+    for slot in range(K):
+        same = (io == iq[slot : slot + 1]) & (io >= 0)
+        match = torch.where(same & (match < 0), torch.full_like(match, slot), match)
+        q_in_o[slot] = same.any(0)
+    q_alone = (~q_in_o) & (iq >= 0)
+    return NeighbourMatch(match=match, q_alone=q_alone, pair_ok=ok)
+
+
+def crop_pair(x: torch.Tensor, axis: int, which: str) -> torch.Tensor:
+    """The texels o (``which`` "o") or their neighbours q ("q") along ``axis`` (1: up, 2: left)."""
+    if axis == 1:
+        return x[..., 1:, :] if which == "o" else x[..., :-1, :]
+    return x[..., :, 1:] if which == "o" else x[..., :, :-1]
+
+
+def smooth_abs(x: torch.Tensor, eps: float) -> torch.Tensor:
+    """|x|, smoothed near 0 (Charbonnier) when eps > 0.
+
+    The exact |x| has a gradient of constant size whose sign flips with every tiny
+    difference; with Adam's per-parameter normalisation that noise swamps the other terms.
+    """
+    return (x * x + eps * eps).sqrt() - eps if eps > 0 else x.abs()
+
+
+def edge_weights(U: torch.Tensor, G: torch.Tensor, axes=(1, 2)) -> dict[int, torch.Tensor]:
+    """D(t_o, t_q) = S(|U(t_o) - U(t_q)|) (1 + G(t_o)) per neighbour direction (eq. 10), no gradient.
+
+    D is a constant of L_Para: it says where a change of source is expensive; letting its
+    gradient act would blur U instead of moving the seams. It changes slowly with U, so the
+    optimizer refreshes it every few iterations.
+    """
+    U = U.detach()
+    return {
+        a: torch.sigmoid((crop_pair(U, a, "o") - crop_pair(U, a, "q")).norm(dim=0)) * (1.0 + crop_pair(G, a, "o"))
+        for a in axes
+    }
+
+
+def para_loss(
+    W,
+    U,
+    active,
+    G,
+    matches: dict[int, NeighbourMatch],
+    lambda_s: float,
+    n_tex: float,
+    eps: float = 0.0,
+    D: dict[int, torch.Tensor] | None = None,
+) -> torch.Tensor:
+    """L_Para (eq. 8-10) over up and left neighbours, summed over photos.
+
+    C = m_k(t_o) D(t_o, t_q) + lambda_s with D from ``edge_weights`` (computed here if not given).
+    """
+    if D is None:
+        D = edge_weights(U, G, tuple(matches))
+    total = W.new_zeros(())
+    for axis, nm in matches.items():
+        Wo, Wq = crop_pair(W, axis, "o"), crop_pair(W, axis, "q")
+        C = para_edge_cost(active, D[axis], axis, lambda_s)
+        if nm.match is None:
+            term = (C * smooth_abs(Wo - Wq, eps)).sum(0)
+        else:
+            Wq_same = torch.gather(Wq, 0, nm.match.clamp_min(0)) * (nm.match >= 0).to(W.dtype)
+            term = (C * smooth_abs(Wo - Wq_same, eps)).sum(0) + lambda_s * smooth_abs(
+                Wq * nm.q_alone.to(W.dtype), eps  # type: ignore[union-attr]  # set unless fixed
+            ).sum(0)
+        total = total + (term * nm.pair_ok.to(W.dtype)).sum()
+    return total / n_tex

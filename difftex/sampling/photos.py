@@ -1,0 +1,362 @@
+"""Photo sampling: a polygon's candidate photos, decoded once, mapped into its texel space.
+
+For one polygon P_i, every candidate photo I_k is
+
+1. decoded once (``decode_photo``), at the coarsest power-of-two scale that still holds the
+   detail the polygon's finest texture level needs (a JPEG is decoded at 1/2, 1/4 or 1/8 in the
+   DCT domain, which is several times faster than a full decode);
+2. cropped to the polygon and kept as a 2x box-filtered pyramid (``PhotoSampler``);
+3. mapped into texel space at any resolution level (``PhotoSet.map``): f_k^i evaluated at the
+   texel centres (``texel_map``), the pyramid level matched to each texel's footprint
+   (trilinear), so a coarse level never touches full-resolution pixels.
+
+Layer: scene input and geometry below, the method (initialisation, losses, the loop),
+composition and the baselines above; they all sample photos through this module.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from difftex.errors import DifftexError
+from difftex.geometry.frames import UVFrame
+from difftex.sampling.colour import apply_transfer_torch
+from difftex.sampling.texels import Region, level_frame, resample_nearest, texel_map
+from difftex.scene.camera import Photo
+from difftex.scene.files import decode_photo
+
+
+def pick_device(name: str | torch.device) -> torch.device:
+    """The torch device for a config value: "auto" (CUDA when torch sees it), "cpu" or "cuda"."""
+    if isinstance(name, torch.device):
+        return name
+    if name == "cuda" and not torch.cuda.is_available():
+        raise DifftexError("device 'cuda' requested but torch sees no CUDA device")
+    if name == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    return torch.device(name)
+
+
+# --------------------------------------------------------------------------------------------
+# One polygon's input
+
+
+@dataclass(eq=False)
+class PolygonInput:
+    """What texturing one polygon needs (built from a visibility file or by a test)."""
+
+    polygon_id: str
+    frame: UVFrame  # target resolution
+    texel_mask: np.ndarray  # (H, W) bool
+    photos: list[Photo]  # candidate photos
+    texel_visible: np.ndarray  # (N, H, W) bool
+    load_image: Callable[[Photo], np.ndarray] | None = None  # float32 RGB (h, w, 3); None: decode_photo
+    a_bbox: np.ndarray | None = None  # (N, 4) x0, y0, x1, y1 of a_k^i (render mode)
+    a_masks: list[np.ndarray] | None = None  # N crops of a_k^i
+
+    def __post_init__(self):
+        N = len(self.photos)
+        if self.texel_visible.shape != (N, *self.frame.shape):
+            raise DifftexError(
+                f"polygon '{self.polygon_id}': visibility is {self.texel_visible.shape}, expected "
+                f"{(N, *self.frame.shape)}"
+            )
+        if self.texel_mask.shape != self.frame.shape:
+            raise DifftexError(
+                f"polygon '{self.polygon_id}': texel mask shape {self.texel_mask.shape} != frame {self.frame.shape}"
+            )
+
+
+def polygon_input_from_visibility(vis, scene_photos: dict[str, Photo], load_image=None) -> PolygonInput:
+    """PolygonInput from a difftex.geometry.visibility.PolygonVisibility and the scene's photos by name."""
+    missing = [n for n in vis.photos if n not in scene_photos]
+    if missing:
+        raise DifftexError(
+            f"polygon '{vis.polygon_id}': visibility names photo(s) not in the scene: {', '.join(missing[:3])}"
+        )
+    return PolygonInput(
+        polygon_id=vis.polygon_id,
+        frame=vis.frame,
+        texel_mask=vis.texel_mask,
+        photos=[scene_photos[n] for n in vis.photos],
+        texel_visible=vis.texel_visible,
+        load_image=load_image,
+        a_bbox=vis.a_bbox,
+        a_masks=vis.a_masks,
+    )
+
+
+# --------------------------------------------------------------------------------------------
+# Decoding and pyramids
+
+
+class PhotoSampler:
+    """A photo cropped to the polygon, as a 2x box-filtered pyramid, sampled at pixel positions.
+
+    Level L pixel (i, j) covers full-resolution pixels [x0 + j 2^L, x0 + (j+1) 2^L); with COLMAP
+    pixel centres at +0.5 a full-resolution coordinate p maps to (p - x0) / 2^L at level L.
+    ``image`` is the photo decoded at 1/2^``base`` (levels below ``base`` do not exist) and
+    ``box`` the crop in full-resolution pixels, a multiple of 2^``base``.
+    """
+
+    def __init__(
+        self, image: np.ndarray, box: tuple[int, int, int, int], device: torch.device, base: int = 0, min_side: int = 4
+    ):
+        x0, y0, x1, y1 = box
+        s = 2**base
+        if x0 % s or y0 % s:
+            raise ValueError("the crop box must start on a multiple of the decode scale")
+        self.x0, self.y0, self.base = int(x0), int(y0), int(base)
+        crop = torch.from_numpy(
+            np.ascontiguousarray(image[y0 // s : -(-y1 // s), x0 // s : -(-x1 // s)], dtype=np.float32)
+        ).permute(2, 0, 1)
+        self.device = device
+        levels = [crop.to(device=device, dtype=torch.float16)]
+        cur = crop.to(device)
+        while min(cur.shape[1:]) >= 2 * min_side and len(levels) < 12:
+            h, w = cur.shape[1] // 2 * 2, cur.shape[2] // 2 * 2
+            cur = F.avg_pool2d(cur[None, :, :h, :w], 2)[0]
+            levels.append(cur.to(torch.float16))
+        self.levels = levels  # levels[i] is pyramid level base + i
+
+    @property
+    def top(self) -> int:
+        """The coarsest level's index."""
+        return self.base + len(self.levels) - 1
+
+    def level_image(self, L: int) -> torch.Tensor:
+        return self.levels[L - self.base].float()
+
+    def nbytes(self) -> int:
+        return int(sum(t.numel() * t.element_size() for t in self.levels))
+
+    def sample(self, pix: torch.Tensor, footprint: torch.Tensor) -> torch.Tensor:
+        """Colours (3, h, w) at full-resolution pixels ``pix`` (h, w, 2), trilinear over levels.
+
+        ``footprint`` (h, w) is the texel's size in full-resolution pixels; the pyramid level is
+        log2 of it, so a texel averages about one level pixel (no aliasing, no extra blur).
+        """
+        h, w = pix.shape[:2]
+        lam = torch.log2(footprint.clamp_min(1.0)).clamp(self.base, self.top)
+        out = torch.zeros(3, h, w, device=self.device)
+        p = torch.nan_to_num(pix, nan=-1e6)
+        lo, hi = int(math.floor(float(lam.min()))), int(math.ceil(float(lam.max())))
+        for L in range(lo, min(hi, self.top) + 1):
+            wL = (1.0 - (lam - L).abs()).clamp_min(0.0)
+            if not bool((wL > 0).any()):
+                continue
+            img = self.level_image(L)
+            s = 2.0**L
+            gx = ((p[..., 0] - self.x0) / s) / img.shape[2] * 2 - 1
+            gy = ((p[..., 1] - self.y0) / s) / img.shape[1] * 2 - 1
+            grid = torch.stack([gx, gy], -1)[None]
+            # border padding: pixels of a texel near the crop edge still get the nearest colour
+            smp = F.grid_sample(img[None], grid, mode="bilinear", padding_mode="border", align_corners=False)[0]
+            out += wL[None] * smp
+        return out
+
+
+# --------------------------------------------------------------------------------------------
+# A polygon's photos, decoded once
+
+
+@dataclass
+class MappedPhoto:
+    """Photo n mapped into texel space at one level."""
+
+    colour: torch.Tensor  # (3, h, w), through the photo's brightness transfer when one is given
+    visible: torch.Tensor  # (h, w) bool
+    view: torch.Tensor  # (3, h, w) unit camera-to-texel direction (V^_k)
+    cos: torch.Tensor  # (h, w) frontality (Q_a)
+    footprint: torch.Tensor  # (h, w) texel size in full-resolution pixels
+
+
+@dataclass
+class Correction:
+    """An affine correction of a photo's mapping in its pixels: p -> p + d + M (p - c) / s.
+
+    ``params`` = (dx, dy, m11, m12, m21, m22) in pixels; ``centre`` c and ``scale`` s normalise
+    the affine part to the polygon's extent in the photo, so all six parameters are in pixels
+    of displacement at the polygon's edge.
+    """
+
+    params: torch.Tensor  # (6,) float64
+    centre: tuple[float, float]
+    scale: float
+
+    def displacement(self, pix: torch.Tensor) -> torch.Tensor:
+        """(..., 2) pixel displacement at ``pix`` (..., 2)."""
+        p = self.params.to(pix.device, pix.dtype)
+        u = (pix[..., 0] - self.centre[0]) / self.scale
+        v = (pix[..., 1] - self.centre[1]) / self.scale
+        return torch.stack([p[0] + p[2] * u + p[3] * v, p[1] + p[4] * u + p[5] * v], -1)
+
+    def apply(self, pix: torch.Tensor) -> torch.Tensor:
+        return pix + self.displacement(pix)
+
+
+PROBE_LONG_SIDE = 64  # texels of the probe level that sizes crops and decode scales
+# Crop origins are multiples of 2^CROP_ALIGN pixels, so the box-filter pyramid's pixels fall on
+# the same image blocks whatever the crop (for levels <= CROP_ALIGN): sampled colours then do
+# not depend on how far the polygon's visible region happens to extend.
+CROP_ALIGN = 7
+
+
+@dataclass
+class PhotoSet:
+    """The candidate photos of one polygon, each decoded once and kept as a cropped pyramid.
+
+    ``samplers`` maps the index of a photo in ``inp.photos`` to its sampler; photos that see no
+    texel of the polygon have none. ``reads`` counts image decodes (one per photo).
+    """
+
+    inp: PolygonInput
+    device: torch.device
+    samplers: dict[int, PhotoSampler]
+    reads: int = 0
+    decode_scale: dict[int, int] = field(default_factory=dict)
+    # Per photo, a small affine correction of f_k^i in pixels (difftex.method.alignment):
+    # p -> p + d + M (p - c) / s, parameters (dx, dy, m11, m12, m21, m22), centre c, scale s.
+    corrections: dict[int, Correction] = field(default_factory=dict)
+
+    @classmethod
+    def load(
+        cls,
+        inp: PolygonInput,
+        device,
+        finest: UVFrame | None = None,
+        exact_decode: bool = False,
+        progress: Callable[[], None] | None = None,
+    ) -> PhotoSet:
+        """Decode, crop and pyramid every candidate photo that sees a texel of ``inp``.
+
+        ``finest``: the finest frame that will be sampled (default ``inp.frame``); each photo is
+        decoded at the largest power-of-two reduction r with r <= the smallest texel footprint
+        (in pixels) over the texels it sees, so no sampled pyramid level is lost. ``exact_decode``
+        decodes every photo at full size (a JPEG's DCT-scaled decode differs from box-averaging
+        the full decode by about one 8-bit step).
+        """
+        device = pick_device(device)
+        finest = finest or inp.frame
+        probe = level_frame(inp.frame, min(PROBE_LONG_SIDE, max(inp.frame.shape)))
+        vis_probe = _any_pool(inp.texel_visible & inp.texel_mask[None], inp.frame, probe)
+        ps = cls(inp=inp, device=device, samplers={})
+        for n, ph in enumerate(inp.photos):
+            if not vis_probe[n].any():
+                continue
+            tm = texel_map(probe, ph, "cpu")
+            ok = vis_probe[n] & tm.valid.numpy()
+            if not ok.any():
+                continue
+            scale = probe.texel_size / finest.texel_size  # probe texel -> finest texels
+            fp_fine = tm.footprint.numpy()[ok] / scale
+            box = _crop_box(
+                ph,
+                tm.pix.numpy()[ok],
+                tm.footprint.numpy()[ok],
+                inp.a_bbox[n] if inp.a_bbox is not None and len(inp.a_bbox) > n else None,
+            )
+            if box is None:
+                continue
+            reduce = 1
+            if not exact_decode and inp.load_image is None:
+                reduce = 2 ** int(np.clip(np.floor(np.log2(max(float(fp_fine.min()), 1.0))), 0, 3))
+            s = reduce
+            box = (box[0] // s * s, box[1] // s * s, box[2], box[3])
+            if inp.load_image is not None:
+                img = inp.load_image(ph)
+                if img.shape[:2] != (ph.height, ph.width):
+                    raise DifftexError(
+                        f"{ph.image_path}: image is {img.shape[1]}x{img.shape[0]}, camera says {ph.width}x{ph.height}"
+                    )
+            else:
+                img = decode_photo(ph.image_path, (ph.width, ph.height), reduce)
+            ps.reads += 1
+            base = int(math.log2(reduce))
+            ps.samplers[n] = PhotoSampler(img, box, device, base=base)
+            ps.decode_scale[n] = reduce
+            del img
+            if progress is not None:
+                progress()
+        return ps
+
+    def nbytes(self) -> int:
+        return int(sum(s.nbytes() for s in self.samplers.values()))
+
+    def map(
+        self, n: int, frame: UVFrame, mask: np.ndarray, transfer: np.ndarray | None = None, region: Region | None = None
+    ) -> MappedPhoto | None:
+        """Photo n mapped into ``frame`` over the texels of ``mask``; None if it sees none.
+
+        ``transfer``: its brightness transfer (difftex.sampling.colour), applied to the colours;
+        ``region``: only that rectangle of the frame (the MappedPhoto is that size; ``mask`` is
+        the whole frame's).
+        """
+        inp, ph = self.inp, self.inp.photos[n]
+        visible = resample_nearest(inp.texel_visible[n], inp.frame, frame, region)
+        if region is not None:
+            y0, y1, x0, x1 = region
+            mask = mask[y0:y1, x0:x1]
+        tm = texel_map(frame, ph, self.device, region)
+        if n in self.corrections:
+            tm.pix = self.corrections[n].apply(tm.pix)
+        vis = tm.valid & torch.from_numpy(np.ascontiguousarray(visible & mask)).to(self.device)
+        if not bool(vis.any()):
+            return None
+        col = self.samplers[n].sample(tm.pix, tm.footprint) * vis[None]
+        mp = MappedPhoto(colour=col, visible=vis, view=tm.view, cos=tm.cos, footprint=tm.footprint)
+        return with_transfer(mp, transfer)
+
+
+def with_transfer(mp: MappedPhoto, transfer: np.ndarray | None) -> MappedPhoto:
+    """The mapped photo with its colours through a brightness transfer (difftex.sampling.colour)."""
+    if transfer is None:
+        return mp
+    col = apply_transfer_torch(mp.colour, transfer) * mp.visible[None]
+    return MappedPhoto(colour=col, visible=mp.visible, view=mp.view, cos=mp.cos, footprint=mp.footprint)
+
+
+def _any_pool(masks: np.ndarray, src: UVFrame, dst: UVFrame) -> np.ndarray:
+    """(N, h, w) bool: a coarse texel is set when any fine texel it covers is set."""
+    if masks.shape[-2:] == dst.shape:
+        return masks
+    t = torch.from_numpy(masks.astype(np.float32))[:, None]
+    out = (
+        F.adaptive_max_pool2d(t, dst.shape)
+        if dst.height <= src.height and dst.width <= src.width
+        else F.interpolate(t, size=dst.shape, mode="nearest")
+    )
+    return out[:, 0].numpy() > 0
+
+
+def _crop_box(
+    photo: Photo, pix: np.ndarray, footprint: np.ndarray, a_box=None, pad: int = 16
+) -> tuple[int, int, int, int] | None:
+    """Pixel box holding the polygon's visible (probe) texels and a_k^i, padded, inside the image.
+
+    A probe texel covers ``footprint`` pixels around its centre: the box grows by that much.
+    """
+    boxes: list[tuple[float, ...]] = []
+    if len(pix):
+        r = footprint[:, None]
+        lo, hi = pix - r, pix + r
+        boxes.append((lo[:, 0].min(), lo[:, 1].min(), hi[:, 0].max(), hi[:, 1].max()))
+    if a_box is not None and a_box[2] > a_box[0] and a_box[3] > a_box[1]:
+        boxes.append(tuple(float(v) for v in a_box))
+    if not boxes:
+        return None
+    b = np.array(boxes)
+    a = 2**CROP_ALIGN
+    x0 = max(0, int(math.floor(b[:, 0].min())) - pad) // a * a
+    y0 = max(0, int(math.floor(b[:, 1].min())) - pad) // a * a
+    x1 = min(photo.width, int(math.ceil(b[:, 2].max())) + pad)
+    y1 = min(photo.height, int(math.ceil(b[:, 3].max())) + pad)
+    if x1 <= x0 or y1 <= y0:
+        return None
+    return x0, y0, x1, y1

@@ -1,0 +1,256 @@
+"""Atomic file output and checked image input.
+
+Every output is written to a temporary file in the target folder and renamed into place, so an
+interrupted run never leaves a half-written file that a rerun (or Snakemake) would take as done.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import math
+import os
+import tempfile
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from difftex.errors import DifftexError, os_error_message
+
+
+def current_umask() -> int:
+    """The process's file-creation mask, read without changing it.
+
+    ``os.umask`` can only be read by setting it, which races with other threads creating files;
+    Linux shows it in /proc/self/status, so the set-and-restore is only the fallback.
+    """
+    try:
+        for line in Path("/proc/self/status").read_text().splitlines():
+            if line.startswith("Umask:"):
+                return int(line.split()[1], 8)
+    except (OSError, ValueError, IndexError):
+        pass
+    mask = os.umask(0o022)
+    os.umask(mask)
+    return mask
+
+
+@contextlib.contextmanager
+def atomic_path(path: str | os.PathLike, suffix: str | None = None) -> Iterator[Path]:
+    """Yield a temporary path beside ``path``; rename it onto ``path`` only if the block succeeds.
+
+    The temporary name keeps ``path``'s extension (or ``suffix``) because writers such as
+    OpenImageIO and numpy choose the format from it. ``tempfile.mkstemp`` creates the file with
+    mode 0600 whatever the umask; the result gets the mode a plain ``open`` would give (0666
+    minus the umask), so colleagues and web servers can read the outputs where the umask allows.
+    An OS error (disk full, permission denied) becomes a one-line DifftexError naming ``path``,
+    and the temporary file is removed: nothing half-written is left.
+    """
+    path = Path(path)
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        ext = suffix if suffix is not None else "".join(path.suffixes[-1:])
+        fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=f".part{ext}", dir=path.parent)
+        os.close(fd)
+    except OSError as exc:
+        raise DifftexError(os_error_message(exc, path)) from None
+    tmp_path = Path(tmp)
+    try:
+        try:
+            yield tmp_path
+            os.chmod(tmp_path, 0o666 & ~current_umask())
+            os.replace(tmp_path, path)
+        except OSError as exc:
+            raise DifftexError(os_error_message(exc, path)) from None
+    finally:
+        if tmp_path.exists():
+            tmp_path.unlink()
+
+
+def write_text(path: str | os.PathLike, text: str) -> None:
+    with atomic_path(path) as tmp:
+        tmp.write_text(text)
+
+
+def _json_default(obj: Any) -> Any:
+    if isinstance(obj, np.generic):
+        return obj.item()
+    if isinstance(obj, np.ndarray):
+        return obj.tolist()
+    if isinstance(obj, Path):
+        return str(obj)
+    raise TypeError(f"not JSON serialisable: {type(obj).__name__}")
+
+
+def write_json(path: str | os.PathLike, data: Any) -> None:
+    write_text(path, json.dumps(data, indent=2, default=_json_default) + "\n")
+
+
+def read_json(path: str | os.PathLike) -> Any:
+    path = Path(path)
+    try:
+        return json.loads(path.read_text())
+    except FileNotFoundError:
+        raise DifftexError(f"{path}: file not found") from None
+    except json.JSONDecodeError as exc:
+        raise DifftexError(f"{path}: not valid JSON ({exc.msg} at line {exc.lineno})") from None
+
+
+def write_npz(path: str | os.PathLike, **arrays: np.ndarray) -> None:
+    """Compressed npz, written atomically."""
+    with atomic_path(path, suffix=".npz") as tmp:
+        np.savez_compressed(tmp, **arrays)
+
+
+def read_npz(path: str | os.PathLike) -> dict[str, np.ndarray]:
+    path = Path(path)
+    try:
+        with np.load(path, allow_pickle=False) as data:
+            return {k: data[k] for k in data.files}
+    except FileNotFoundError:
+        raise DifftexError(f"{path}: file not found") from None
+    except (OSError, ValueError) as exc:
+        raise DifftexError(f"{path}: unreadable npz ({exc})") from None
+
+
+def _first_line(text: str) -> str:
+    lines = [ln.strip() for ln in (text or "").strip().splitlines() if ln.strip()]
+    return lines[0] if lines else ""
+
+
+def read_image(path: str | os.PathLike, expected_size: tuple[int, int] | None = None) -> np.ndarray:
+    """Read an image as float32 RGB in [0, 1] (H, W, 3) with OpenImageIO.
+
+    8/16-bit integer formats are normalised by OIIO; float formats (EXR) are kept linear as stored.
+    ``expected_size`` is (width, height): a mismatch is an error naming the file.
+    """
+    import OpenImageIO as oiio
+
+    path = Path(path)
+    if not path.is_file():
+        raise DifftexError(f"{path}: image file not found")
+    inp = oiio.ImageInput.open(str(path))
+    if inp is None:
+        raise DifftexError(f"{path}: cannot open image ({_first_line(oiio.geterror()) or 'unknown format'})")
+    try:
+        spec = inp.spec()
+        if expected_size is not None and (spec.width, spec.height) != tuple(expected_size):
+            raise DifftexError(
+                f"{path}: image is {spec.width}x{spec.height} but its camera says {expected_size[0]}x{expected_size[1]}"
+            )
+        pixels = inp.read_image(0, 0, 0, spec.nchannels, oiio.FLOAT)
+        if pixels is None or not isinstance(pixels, np.ndarray):
+            raise DifftexError(f"{path}: corrupt image ({_first_line(inp.geterror()) or 'read failed'})")
+        err = inp.geterror()
+        if err:
+            raise DifftexError(f"{path}: corrupt image ({_first_line(err)})")
+    finally:
+        inp.close()
+    pixels = pixels.reshape(spec.height, spec.width, spec.nchannels)
+    if spec.nchannels == 1:
+        pixels = np.repeat(pixels, 3, axis=2)
+    elif spec.nchannels == 2:  # grey + alpha
+        pixels = np.repeat(pixels[:, :, :1], 3, axis=2)
+    else:
+        pixels = pixels[:, :, :3]
+    if not np.isfinite(pixels).all():
+        raise DifftexError(f"{path}: image holds NaN or infinite values")
+    return np.ascontiguousarray(pixels, dtype=np.float32)
+
+
+def image_size(path: str | os.PathLike) -> tuple[int, int]:
+    """(width, height) from the header alone."""
+    import OpenImageIO as oiio
+
+    inp = oiio.ImageInput.open(str(path))
+    if inp is None:
+        raise DifftexError(f"{path}: cannot open image ({_first_line(oiio.geterror()) or 'unknown format'})")
+    spec = inp.spec()
+    inp.close()
+    return spec.width, spec.height
+
+
+def write_image(path: str | os.PathLike, pixels: np.ndarray, bits: int = 8) -> None:
+    """Write float RGB(A) in [0, 1] as 8/16-bit PNG/JPEG/TIFF or float EXR, atomically."""
+    import OpenImageIO as oiio
+
+    path = Path(path)
+    arr = np.asarray(pixels, dtype=np.float32)
+    if arr.ndim == 2:
+        arr = arr[:, :, None]
+    h, w, c = arr.shape
+    if path.suffix.lower() == ".exr":
+        fmt = oiio.HALF
+    else:
+        fmt = {8: oiio.UINT8, 16: oiio.UINT16}[bits]
+        arr = np.clip(arr, 0.0, 1.0)
+    with atomic_path(path) as tmp:
+        out = oiio.ImageOutput.create(str(tmp))
+        if out is None:
+            raise DifftexError(f"{path}: cannot write image ({oiio.geterror().strip()})")
+        spec = oiio.ImageSpec(w, h, c, fmt)
+        if not out.open(str(tmp), spec) or not out.write_image(np.ascontiguousarray(arr)):
+            err = out.geterror()
+            out.close()
+            raise DifftexError(f"{path}: cannot write image ({err.strip()})")
+        out.close()
+
+
+JPEG_SUFFIXES = {".jpg", ".jpeg"}
+
+
+def decode_photo(path: str | os.PathLike, size: tuple[int, int], reduce: int = 1) -> np.ndarray:
+    """An image of ``size`` (width, height) as float32 RGB (h, w, 3) in [0, 1], at 1/``reduce`` of
+    full size (a power of 2).
+
+    A JPEG is decoded at the reduced size directly (libjpeg's DCT scaling through Pillow's
+    ``draft``: 1/2, 1/4, 1/8), which OpenImageIO cannot do; other formats are read in full with
+    OpenImageIO (difftex.scene.files.read_image) and box-averaged. Pixel (j, i) of the result covers
+    full-resolution pixels [j r, (j + 1) r) x [i r, (i + 1) r), as in a box pyramid. The size
+    is ceil(width / r) x ceil(height / r).
+    """
+    if reduce < 1 or reduce & (reduce - 1):
+        raise ValueError(f"reduce must be a power of two, got {reduce}")
+    path = Path(path)
+    if reduce > 1 and path.suffix.lower() in JPEG_SUFFIXES:
+        img, got = _decode_jpeg_scaled(path, size, reduce)
+        return box_reduce(img, reduce // got)
+    return box_reduce(read_image(path, expected_size=size), reduce)
+
+
+def _decode_jpeg_scaled(path: Path, size: tuple[int, int], reduce: int) -> tuple[np.ndarray, int]:
+    """(image, achieved reduction) of a JPEG decoded with DCT scaling (at most 1/8)."""
+    from PIL import Image
+
+    try:
+        with Image.open(path) as im:
+            width, height = size
+            if im.size != (width, height):
+                raise DifftexError(f"{path}: image is {im.size[0]}x{im.size[1]} but its camera says {width}x{height}")
+            r = min(reduce, 8)
+            im.draft("RGB", (math.ceil(width / r), math.ceil(height / r)))
+            got = max(1, round(width / im.size[0]))
+            arr = np.asarray(im.convert("RGB"), dtype=np.float32) / 255.0
+    except DifftexError:
+        raise
+    except (OSError, ValueError, SyntaxError) as exc:
+        raise DifftexError(
+            f"{path}: corrupt image ({str(exc).splitlines()[0] if str(exc) else type(exc).__name__})"
+        ) from None
+    if arr.shape[:2] != (math.ceil(height / got), math.ceil(width / got)):
+        # a decoder that did not honour the draft exactly: fall back to the general path
+        return read_image(path, expected_size=size), 1
+    return arr, got
+
+
+def box_reduce(img: np.ndarray, r: int) -> np.ndarray:
+    """Average r x r blocks (the last partial row/column of blocks averages what it has)."""
+    if r <= 1:
+        return img
+    import torch
+    import torch.nn.functional as F
+
+    t = torch.from_numpy(np.ascontiguousarray(img, dtype=np.float32)).permute(2, 0, 1)[None]
+    return F.avg_pool2d(t, r, ceil_mode=True, count_include_pad=False)[0].permute(1, 2, 0).numpy()
