@@ -3,7 +3,7 @@
 # constraints.txt; CUDA builds that also run on a CPU), piq, the package in editable mode, and the
 # reference LPIPS / ST-LPIPS packages with their weight files.
 #
-# CPU-only torch instead (about 1.5 GB smaller): install it first, then run this script with
+# CPU-only torch instead (no CUDA libraries: several GB smaller): install it first, then run this script with
 #   TORCH_INDEX=https://download.pytorch.org/whl/cpu bash scripts/install.sh
 set -euo pipefail
 cd "$(dirname "$0")/.."

@@ -16,7 +16,7 @@ def add_arguments(parser) -> None:
     parser.add_argument(
         "--png-dir",
         help="also write texture.png, source.png, source.npz, coverage.png, report.json here "
-        "(the workflow's assembly does this)",
+        "(the workflow's finish rule does this)",
     )
     parser.add_argument("--no-progress", action="store_true")
 
