@@ -286,7 +286,14 @@ def _render_gt_maps(cfg, building, model, polygons, gscene, variant, gt: Path, a
 
 
 def polygon_id_image(polygons, R, t, intr) -> np.ndarray:
-    """Per pixel: 1 + index of the first proxy polygon its ray hits, 0 for none (numpy ray casting)."""
+    """Per pixel: 1 + index of the first proxy polygon its ray hits, 0 for none (numpy ray casting).
+
+    Not ``difftex.geometry.raycast`` (Mitsuba) on purpose: this is ground truth, which must not
+    come from the code it grades (docs/synth.md: the truth never comes from difftex's own mapping
+    code), and float64 Moeller-Trumbore gives the same ids on every CPU, where Mitsuba's LLVM
+    kernels change grazing-edge hits between AVX2 and AVX-512 machines (docs/synth.md,
+    Determinism). One image per held-out view: speed does not matter here.
+    """
     cam = intr.pycolmap()
     H, W = intr.height, intr.width
     yy, xx = np.mgrid[0:H, 0:W].astype(np.float64) + 0.5
