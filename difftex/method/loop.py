@@ -99,12 +99,14 @@ def optimize_polygon(
     sides = level_sides(max(inp.frame.shape), cfg.long_side_start, cfg.coarse_to_fine)
     dropped: set[int] = set()
     prev: LevelState | None = None
-    # Iterations against the levels' caps, on stderr, gone when done; rich shows nothing when
-    # stderr is not a terminal. Without progress, advancing costs nothing per iteration.
-    bar = Progress(*Progress.get_default_columns(), MofNCompleteColumn(), console=Console(stderr=True),
-                   transient=True, disable=not progress)
+    # Iterations against the levels' caps, on stderr, gone when done, and only on a terminal (a
+    # transient rich bar still writes an empty line to a log). Without it, advancing costs nothing.
+    console = Console(stderr=True)
+    show = progress and console.is_terminal
+    bar = Progress(*Progress.get_default_columns(), MofNCompleteColumn(), console=console, transient=True,
+                   disable=not show)
     advance: Callable[[float], None] = _no_progress
-    if progress:
+    if show:
         total = sum(cfg.cap(i) for i in range(len(sides)))
         advance = functools.partial(bar.advance, bar.add_task(f"optimize {inp.polygon_id}", total=total))
     bar.start()
