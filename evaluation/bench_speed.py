@@ -67,7 +67,7 @@ def polygon_work(results: Path) -> dict:
 
     vis = read_json(results / "visibility" / "summary.json")["polygons"]
     texels = sum(int(p["texels"]) for p in vis if p.get("photos"))
-    slots = iters = 0
+    slots = iters = caps = converged = n_levels = 0
     levels = []
     for p in vis:
         st = results / "optimized" / p["id"] / "stats.json"
@@ -77,9 +77,13 @@ def polygon_work(results: Path) -> dict:
         last = s["levels"][-1]
         slots += int(last["top_k"]) * int(s.get("texels", 0))
         iters += sum(int(lv["iterations"]) for lv in s["levels"])
+        caps += sum(int(lv["cap"]) for lv in s["levels"])
+        converged += sum(bool(lv["converged"]) for lv in s["levels"])
+        n_levels += len(s["levels"])
         levels.append([int(lv["iterations"]) for lv in s["levels"]])
     return {"polygons": len(vis), "textured": sum(1 for p in vis if p.get("photos")), "texels": texels,
             "slot_texels": slots, "iterations": iters, "iterations_per_level": levels,
+            "iteration_caps": caps, "levels_converged": converged, "levels": n_levels,
             "map_sizes": {p["id"]: [p["width"], p["height"]] for p in vis},
             "texel_sizes": {p["id"]: p.get("texel_size") for p in vis}}
 
@@ -243,7 +247,8 @@ def write(stem: Path, rows: list[dict], mach: dict, args) -> None:
             lines.append(
                 f"| {sc.name} | {n_ph} | difftex {run['preset']} | {run['wall_s']:.1f} | {run['cpu_s']:.1f} | "
                 f"{run['peak_rss_mb']:.0f} | {run['texels'] / 1e6:.2f} | {run['slot_texels'] / 1e6:.2f} | "
-                f"{run['iterations']} | {ratio} |"
+                f"{run['iterations']} of {run.get('iteration_caps', '?')} "
+                f"({run.get('levels_converged', '?')}/{run.get('levels', '?')} levels converged) | {ratio} |"
             )
         av = row["average"]
         lines.append(

@@ -110,3 +110,16 @@ def test_failure_report_ends_with_the_errors_and_merges_repeats(tmp_path):
     assert lines[0] == "difftex: warning: S/images: note"  # warnings once, first
     assert lines[1].startswith("difftex: 3 jobs failed; logs: ")
     assert lines[2:] == ["difftex: error: S/proxy.obj: bad (in 2 jobs)", "difftex: error: y: other"]
+
+
+def test_job_error_names_a_full_disk_when_the_log_ended_normally(tmp_path, monkeypatch):
+    import collections
+
+    log = tmp_path / "wall.log"
+    log.write_text("texture wall: 49x64 texels, 3 photos read\n")
+    usage = collections.namedtuple("usage", "total used free")
+    monkeypatch.setattr(runlog.shutil, "disk_usage", lambda p: usage(10 << 20, 10 << 20, 0))
+    line = runlog.job_error([log], "texture", "pid=wall")
+    assert line.startswith("difftex: error: ") and "No space left on device" in line
+    monkeypatch.setattr(runlog.shutil, "disk_usage", lambda p: usage(10 << 30, 1 << 30, 9 << 30))
+    assert "49x64 texels" in runlog.job_error([log], "texture", "pid=wall")

@@ -9,6 +9,7 @@ for every executor (local, SLURM) as long as the logs are on a shared filesystem
 
 from __future__ import annotations
 
+import shutil
 import sys
 from pathlib import Path
 
@@ -51,7 +52,19 @@ def job_error(logs: list[str | Path], rule: str, label: str = "") -> str:
     if not logs:
         return ERROR_PREFIX + f"{what} failed (it has no log; see Snakemake's log)"
     tail = f": {one_line(last)[:300]}" if last else " with an empty log (killed? out of memory or time?)"
+    if _disk_full(Path(logs[0]).parent):
+        # the job's own code finished, then writing its outputs (or Snakemake's records of
+        # them) failed: the last log line is a success message and would mislead
+        tail = " after its log ended: No space left on device where its results go"
     return ERROR_PREFIX + f"{logs[0]}: {what} failed{tail}"
+
+
+def _disk_full(folder: Path, reserve: int = 1 << 20) -> bool:
+    """Whether the filesystem holding ``folder`` has less than ``reserve`` bytes free."""
+    try:
+        return shutil.disk_usage(folder).free < reserve
+    except OSError:
+        return False
 
 
 def failed_jobs(workflow) -> list[tuple[str, str, list[str]]]:
