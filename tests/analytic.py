@@ -13,7 +13,7 @@ from types import SimpleNamespace
 import numpy as np
 
 from difftex.compose.texturing import texture_polygon
-from difftex.geometry.frames import map_texels, texel_mask, uv_frame
+from difftex.geometry.frames import look_at, map_texels, texel_mask, uv_frame
 from difftex.method.config import ComputeConfig, OptimizeConfig
 from difftex.sampling.photos import PolygonInput
 from difftex.scene.camera import Photo
@@ -38,15 +38,6 @@ def pattern(x: np.ndarray, z: np.ndarray, kind: str = "checker") -> np.ndarray:
     g = 0.3 + 0.4 * (0.5 + 0.5 * np.sin(2.0 * x))
     b = 0.25 + 0.5 * chk * (z / WALL_H)
     return np.stack([r, g, b], -1).astype(np.float32)
-
-
-def look_at(C: np.ndarray, target: np.ndarray) -> np.ndarray:
-    z = target - C
-    z /= np.linalg.norm(z)
-    y = -(UP - (UP @ z) * z)
-    y /= np.linalg.norm(y)
-    x = np.cross(y, z)
-    return np.stack([x, y, z])
 
 
 def make_photo(

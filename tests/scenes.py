@@ -6,21 +6,14 @@ from pathlib import Path
 
 import numpy as np
 
+from difftex.geometry import frames
 from difftex.scene.files import write_image
 
 
 def look_at(center, target, up=(0.0, 0.0, 1.0)) -> tuple[np.ndarray, np.ndarray]:
     """cam_from_world (R, t) of a camera at ``center`` looking at ``target``, upright."""
-    c = np.asarray(center, float)
-    z = np.asarray(target, float) - c
-    z /= np.linalg.norm(z)
-    x = np.cross(z, np.asarray(up, float))
-    if np.linalg.norm(x) < 1e-9:
-        x = np.cross(z, [0.0, 1.0, 0.0])
-    x /= np.linalg.norm(x)
-    y = np.cross(z, x)
-    R = np.stack([x, y, z])
-    return R, -R @ c
+    R = frames.look_at(center, target, up)
+    return R, -R @ np.asarray(center, float)
 
 
 def rot_to_qvec(R: np.ndarray) -> np.ndarray:

@@ -10,7 +10,7 @@ import pytest
 import torch
 
 from difftex.evaluation.mrf import MRFConfig, energy, level_gains, mrf_texture, patch_sums, run_polygon, solve_labels
-from difftex.geometry.frames import map_texels, texel_mask, uv_frame
+from difftex.geometry.frames import look_at, map_texels, texel_mask, uv_frame
 from difftex.sampling.photos import PolygonInput
 from difftex.scene.camera import Photo
 from difftex.scene.proxy import Polygon
@@ -92,11 +92,7 @@ def make_photo(name, yaw_deg, dist=6.0, f=150.0, size=(160, 120)) -> Photo:
 
     a = math.radians(yaw_deg)
     C = CENTRE + dist * np.array([math.sin(a), -math.cos(a), 0.0])
-    z = CENTRE - C
-    z /= np.linalg.norm(z)
-    y = -(UP - (UP @ z) * z)
-    y /= np.linalg.norm(y)
-    R = np.stack([np.cross(y, z), y, z])
+    R = look_at(C, CENTRE)
     w, h = size
     cam = pycolmap.Camera(model="PINHOLE", width=w, height=h, params=[f, f, w / 2, h / 2])
     return Photo(name=name, image_path=None, camera=cam, R=R, t=-R @ C, width=w, height=h, model="PINHOLE")

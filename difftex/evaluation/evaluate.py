@@ -340,7 +340,14 @@ def scaled_photo(photo, long_side: int):
 def render_proxy(
     photo, proxy, textures: dict[str, PolygonTexture], prepared=None
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(image (H, W, 3), polygon index per pixel (-1 none), textured (H, W) bool) in ``photo``'s camera."""
+    """(image (H, W, 3), polygon index per pixel (-1 none), textured (H, W) bool) in ``photo``'s camera.
+
+    Not ``difftex.export.assemble.render_view`` on purpose: that one renders the exported GLB (its
+    atlas and UVs, untextured polygons as grey) to check the written file; this one renders the
+    per-polygon textures of any results folder (baselines and peers write no GLB), excludes
+    untextured polygons from ``textured`` and returns the polygon index per pixel, which the
+    scores need. Both use the same ray caster (``id_buffer``) and sampler (``sample_photo``).
+    """
     from difftex.geometry.frames import pixel_to_texel, sample_photo
     from difftex.geometry.visibility import id_buffer
 

@@ -147,6 +147,25 @@ def uv_frame(
     return _frame_with_size(origin, e_u, e_v, n, W_m, H_m, long_side, density)
 
 
+def look_at(center: np.ndarray, target: np.ndarray, up=(0.0, 0.0, 1.0)) -> np.ndarray:
+    """cam_from_world rotation R of an upright camera at ``center`` looking at ``target``.
+
+    COLMAP convention: R's rows are the camera's x (right), y (down) and z (forward, towards
+    ``target``) in world coordinates; x = z x up, y = z x x, so y is ``-up`` made orthogonal to z.
+    When ``up`` is parallel to the view direction, world y stands in for it. The translation is
+    ``-R @ center``.
+    """
+    c = np.asarray(center, dtype=np.float64)
+    z = np.asarray(target, dtype=np.float64) - c
+    z /= np.linalg.norm(z)
+    x = np.cross(z, np.asarray(up, dtype=np.float64))
+    if np.linalg.norm(x) < 1e-9:
+        x = np.cross(z, [0.0, 1.0, 0.0])
+    x /= np.linalg.norm(x)
+    y = np.cross(z, x)
+    return np.stack([x, y, z])
+
+
 def texel_mask(polygon: Polygon, frame: UVFrame) -> np.ndarray:
     """(H, W) bool: texel centres inside the polygon (outer boundary minus holes)."""
     from skimage.draw import polygon as fill

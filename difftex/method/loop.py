@@ -8,12 +8,16 @@ changing or the level's iteration cap.
 
 from __future__ import annotations
 
+import functools
 import time
 import warnings
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
 import torch
+from rich.console import Console
+from rich.progress import MofNCompleteColumn, Progress
 
 from difftex.method import alignment, diagnostics, losses
 from difftex.method.config import ComputeConfig, OptimizeConfig
@@ -62,6 +66,10 @@ def weight_change(W: torch.Tensor, W_old: torch.Tensor, mask: torch.Tensor, q: f
     return float(torch.quantile(d.float(), q))
 
 
+def _no_progress(n: float) -> None:
+    pass
+
+
 def optimize_polygon(
     photos: PhotoSet,
     cfg: OptimizeConfig,
@@ -91,39 +99,46 @@ def optimize_polygon(
     sides = level_sides(max(inp.frame.shape), cfg.long_side_start, cfg.coarse_to_fine)
     dropped: set[int] = set()
     prev: LevelState | None = None
-    bar = None
-    if progress:
-        from tqdm import tqdm
-
-        bar = tqdm(total=sum(cfg.cap(i) for i in range(len(sides))), desc=f"optimize {inp.polygon_id}", leave=False)
+    # Iterations against the levels' caps, on stderr, gone when done, and only on a terminal (a
+    # transient rich bar still writes an empty line to a log). Without it, advancing costs nothing.
+    console = Console(stderr=True)
+    show = progress and console.is_terminal
+    bar = Progress(*Progress.get_default_columns(), MofNCompleteColumn(), console=console, transient=True,
+                   disable=not show)
+    advance: Callable[[float], None] = _no_progress
+    if show:
+        total = sum(cfg.cap(i) for i in range(len(sides)))
+        advance = functools.partial(bar.advance, bar.add_task(f"optimize {inp.polygon_id}", total=total))
+    bar.start()
     stats["alignment"] = []
-    for li, side in enumerate(sides):
-        tl = time.perf_counter()
-        frame = level_frame(inp.frame, side)
-        aligned = False
-        if cfg.align and side <= cfg.align_max_long_side:
-            stats["alignment"].append(_align(photos, frame, transfers, prev, cfg))
-            aligned = True
-        lv = build_level(
-            photos,
-            frame,
-            cfg,
-            transfers,
-            dropped=dropped,
-            mapped=first if li == 0 and not aligned else None,
-            prev=(prev.level, losses.blend_weights(prev.z, prev.active)) if prev is not None else None,
-        )
-        if cfg.use_render and cfg.loss_mode == "render":
-            lv.pixel_sets = build_pixel_sets(photos, lv, transfers)
-        t_setup = time.perf_counter() - tl
-        st, lvl_stats = _run_level(lv, li, cfg, compute, dropped, stats, bar)
-        lvl_stats.update(
-            {"long_side": side, "time_setup_s": t_setup, "time_s": time.perf_counter() - tl, "photo_maps": lv.maps}
-        )
-        stats["levels"].append(lvl_stats)
-        prev = st
-    if bar is not None:
-        bar.close()
+    try:
+        for li, side in enumerate(sides):
+            tl = time.perf_counter()
+            frame = level_frame(inp.frame, side)
+            aligned = False
+            if cfg.align and side <= cfg.align_max_long_side:
+                stats["alignment"].append(_align(photos, frame, transfers, prev, cfg))
+                aligned = True
+            lv = build_level(
+                photos,
+                frame,
+                cfg,
+                transfers,
+                dropped=dropped,
+                mapped=first if li == 0 and not aligned else None,
+                prev=(prev.level, losses.blend_weights(prev.z, prev.active)) if prev is not None else None,
+            )
+            if cfg.use_render and cfg.loss_mode == "render":
+                lv.pixel_sets = build_pixel_sets(photos, lv, transfers)
+            t_setup = time.perf_counter() - tl
+            st, lvl_stats = _run_level(lv, li, cfg, compute, dropped, stats, advance)
+            lvl_stats.update(
+                {"long_side": side, "time_setup_s": t_setup, "time_s": time.perf_counter() - tl, "photo_maps": lv.maps}
+            )
+            stats["levels"].append(lvl_stats)
+            prev = st
+    finally:
+        bar.stop()
     assert prev is not None
     lv = prev.level
     with torch.no_grad():
@@ -182,7 +197,8 @@ def _align(photos: PhotoSet, frame, transfers, prev: LevelState | None, cfg: Opt
 
 
 def _run_level(
-    lv: Level, li: int, cfg: OptimizeConfig, compute: ComputeConfig, dropped: set[int], stats: dict, bar
+    lv: Level, li: int, cfg: OptimizeConfig, compute: ComputeConfig, dropped: set[int], stats: dict,
+    advance: Callable[[float], None],
 ) -> tuple[LevelState, dict]:
     """Adam iterations at one level with activation updates, pixel elimination and photo drop."""
     N = len(stats["photos"])
@@ -255,8 +271,7 @@ def _run_level(
             base = base_mask(lv, st.eliminated, drop_slots)
             st.active = update_activation(st.z, base, cfg.tau)
         iter_times.append(time.perf_counter() - t_it)
-        if bar is not None:
-            bar.update(1)
+        advance(1)
         if it % cfg.conv_window == 0:
             # Converged: over the last conv_window iterations almost every texel (99 %) moved
             # less than conv_tol of its weight.
@@ -266,8 +281,8 @@ def _run_level(
             if it >= cfg.min_iters_per_level and changes[-1] < cfg.conv_tol:
                 converged = True
                 break
-    if bar is not None and it < cap:
-        bar.update(cap - it)
+    if it < cap:
+        advance(cap - it)
     final_terms = {k: float(v) for k, v in value_and_grad(st, cfg)[0].items()}
     W_end = losses.blend_weights(st.z, st.active)
     lvl_stats = {

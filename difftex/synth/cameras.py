@@ -7,6 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
+from difftex.geometry.frames import look_at
 from difftex.synth.buildings import Building
 
 
@@ -54,14 +55,9 @@ class Intrinsics:
         return cam
 
 
-def look_at(C: np.ndarray, target: np.ndarray, up=(0.0, 0.0, 1.0)) -> tuple[np.ndarray, np.ndarray]:
-    """Upright COLMAP camera (x right, y down, z forward) at C looking at target."""
-    z = target - C
-    z = z / np.linalg.norm(z)
-    x = np.cross(z, np.asarray(up, float))
-    x /= np.linalg.norm(x)
-    y = np.cross(z, x)
-    R = np.stack([x, y, z])
+def _pose(C: np.ndarray, target: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """cam_from_world (R, t) of an upright camera at C looking at target."""
+    R = look_at(C, target)
     return R, -R @ C
 
 
@@ -93,7 +89,7 @@ def make_views(building: Building, n: int, street_fraction: float, rng: np.rando
             radius_xy,
             top * 0.5,
         ]
-        views.append(("drone", *look_at(C, target)))
+        views.append(("drone", *_pose(C, target)))
     walls = [w for w in building.walls if w.outer[:, 2].min() < 1e-6]
     lengths = np.array([w.length for w in walls])
     k = 0
@@ -107,7 +103,7 @@ def make_views(building: Building, n: int, street_fraction: float, rng: np.rando
         if not _outside(building, C[:2], 2.0):
             continue
         target = w.to3d(np.array([[u, min(w.eave, 12.0) * rng.uniform(0.35, 0.6)]]), 0.0)[0]
-        views.append(("street", *look_at(C, target)))
+        views.append(("street", *_pose(C, target)))
         k += 1
     out = []
     for j, (kind, R, t) in enumerate(views):

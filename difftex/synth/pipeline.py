@@ -59,7 +59,8 @@ def run_scene(
     cfg: SynthConfig, spec: BuildingSpec, out: Path, seed: int, building_index: int, progress: bool, preset_name: str
 ) -> dict:
     import mitsuba
-    from tqdm import tqdm
+    from rich.console import Console
+    from rich.progress import MofNCompleteColumn, Progress
 
     from difftex.scene.files import write_image, write_json
     from difftex.scene.proxy import Polygon, write_proxy_obj
@@ -97,66 +98,72 @@ def run_scene(
 
     n_gt = len(building.faces)
     total = len(train) + len(held) + n_gt
-    bar = tqdm(total=total, desc=f"synth {spec.name}", unit="render", disable=not progress)
+    # Not transient: the finished bar stays (as the tqdm bar did, which this replaces), on stderr.
+    bar = Progress(*Progress.get_default_columns(), MofNCompleteColumn(), console=Console(stderr=True),
+                   disable=not progress)
+    advance = functools.partial(bar.advance, bar.add_task(f"synth {spec.name}", total=total))
+    bar.start()
+    try:
 
-    # --- training photos (occluders in, per-photo exposure) -----------------------------------
-    t1 = time.perf_counter()
-    scene = rd.build_scene(variant, model, ground, ground_size, lighting, occluders=cfg.occluders)
-    canv = {c.camera_id: cams.undistort_canvas(c) for c in intr}
-    maps = {c.camera_id: cams.distortion_map(c, canv[c.camera_id]) for c in intr if c.k != 0}
-    for i, v in enumerate(train):
-        c = intr_by_id[v.camera_id]
-        cw, ch = canv[c.camera_id]
-        sensor = rd.perspective_sensor(variant, v.R, v.t, c.f, cw, ch, cfg.spp)
-        lin = rd.render(variant, scene, sensor, cfg.spp, seed=1000 * building_index + i + 7919 * seed)
-        if c.k != 0:
-            lin = cams.warp(lin, maps[c.camera_id])
-        lin = lin * (EXPOSURE * v.gain) * np.asarray(v.wb, np.float32)
-        if cfg.image_noise > 0:
-            nrng = np.random.default_rng([seed, building_index, i, 17])
-            lin = lin + nrng.normal(0, cfg.image_noise, lin.shape).astype(np.float32)
-        write_image(out / "images" / v.name, rd.to_srgb(lin))
-        bar.update(1)
-    timing["photos_s"] = time.perf_counter() - t1
-    timing["per_photo_s"] = timing["photos_s"] / max(len(train), 1)
+        # --- training photos (occluders in, per-photo exposure) -----------------------------------
+        t1 = time.perf_counter()
+        scene = rd.build_scene(variant, model, ground, ground_size, lighting, occluders=cfg.occluders)
+        canv = {c.camera_id: cams.undistort_canvas(c) for c in intr}
+        maps = {c.camera_id: cams.distortion_map(c, canv[c.camera_id]) for c in intr if c.k != 0}
+        for i, v in enumerate(train):
+            c = intr_by_id[v.camera_id]
+            cw, ch = canv[c.camera_id]
+            sensor = rd.perspective_sensor(variant, v.R, v.t, c.f, cw, ch, cfg.spp)
+            lin = rd.render(variant, scene, sensor, cfg.spp, seed=1000 * building_index + i + 7919 * seed)
+            if c.k != 0:
+                lin = cams.warp(lin, maps[c.camera_id])
+            lin = lin * (EXPOSURE * v.gain) * np.asarray(v.wb, np.float32)
+            if cfg.image_noise > 0:
+                nrng = np.random.default_rng([seed, building_index, i, 17])
+                lin = lin + nrng.normal(0, cfg.image_noise, lin.shape).astype(np.float32)
+            write_image(out / "images" / v.name, rd.to_srgb(lin))
+            advance(1)
+        timing["photos_s"] = time.perf_counter() - t1
+        timing["per_photo_s"] = timing["photos_s"] / max(len(train), 1)
 
-    # --- sparse points on the detailed facades, seen (not occluded) from the true cameras ------
-    t2 = time.perf_counter()
-    points = _sample_points(cfg, building, layouts, bitmaps, train, intr_by_id, scene, variant, r_cam)
-    cams.write_colmap(out / "sparse" / "0", intr, train, points)
-    polygons = [Polygon(id=f.id, outer=f.outer.copy()) for f in building.faces]
-    write_proxy_obj(
-        out / "proxy.obj", polygons, header=f"difftex synth: building '{spec.name}' ({spec.style}), seed {seed}"
-    )
-    timing["colmap_s"] = time.perf_counter() - t2
-    del scene
+        # --- sparse points on the detailed facades, seen (not occluded) from the true cameras ------
+        t2 = time.perf_counter()
+        points = _sample_points(cfg, building, layouts, bitmaps, train, intr_by_id, scene, variant, r_cam)
+        cams.write_colmap(out / "sparse" / "0", intr, train, points)
+        polygons = [Polygon(id=f.id, outer=f.outer.copy()) for f in building.faces]
+        write_proxy_obj(
+            out / "proxy.obj", polygons, header=f"difftex synth: building '{spec.name}' ({spec.style}), seed {seed}"
+        )
+        timing["colmap_s"] = time.perf_counter() - t2
+        del scene
 
-    # --- ground truth: occluder-free, reference exposure ---------------------------------------
-    t3 = time.perf_counter()
-    gt = out / "ground_truth"
-    gscene = rd.build_scene(variant, model, ground, ground_size, lighting, occluders=False)
-    # The frame must be the one difftex will compute: it takes 'up' from the written cameras (~+z;
-    # the exact vector matters for flat roofs, whose e_v comes from up's tiny horizontal part).
-    from difftex.scene.camera import load_photos, scene_up
+        # --- ground truth: occluder-free, reference exposure ---------------------------------------
+        t3 = time.perf_counter()
+        gt = out / "ground_truth"
+        gscene = rd.build_scene(variant, model, ground, ground_size, lighting, occluders=False)
+        # The frame must be the one difftex will compute: it takes 'up' from the written cameras (~+z;
+        # the exact vector matters for flat roofs, whose e_v comes from up's tiny horizontal part).
+        from difftex.scene.camera import load_photos, scene_up
 
-    up = scene_up(load_photos(out / "sparse" / "0", out / "images", check_images=False))
-    frames = _render_gt_maps(cfg, building, model, polygons, gscene, variant, gt, bar, up)
-    timing["gt_maps_s"] = time.perf_counter() - t3
-    t4 = time.perf_counter()
-    for i, v in enumerate(held):
-        c = intr_by_id[v.camera_id]
-        cw, ch = canv[c.camera_id]
-        sensor = rd.perspective_sensor(variant, v.R, v.t, c.f, cw, ch, cfg.gt_spp)
-        lin = rd.render(variant, gscene, sensor, cfg.gt_spp, seed=500000 + 1000 * building_index + i)
-        if c.k != 0:
-            lin = cams.warp(lin, maps[c.camera_id])
-        write_image(gt / "views" / "images" / v.name, rd.to_srgb(lin * EXPOSURE))
-        ids = polygon_id_image(polygons, v.R, v.t, c)
-        write_image(gt / "views" / "polygon_ids" / v.name, ids[..., None].astype(np.float32) / 65535.0, bits=16)
-        bar.update(1)
-    cams.write_colmap(gt / "views" / "sparse" / "0", intr, held, None, written=False)
-    timing["held_out_s"] = time.perf_counter() - t4
-    bar.close()
+        up = scene_up(load_photos(out / "sparse" / "0", out / "images", check_images=False))
+        frames = _render_gt_maps(cfg, building, model, polygons, gscene, variant, gt, advance, up)
+        timing["gt_maps_s"] = time.perf_counter() - t3
+        t4 = time.perf_counter()
+        for i, v in enumerate(held):
+            c = intr_by_id[v.camera_id]
+            cw, ch = canv[c.camera_id]
+            sensor = rd.perspective_sensor(variant, v.R, v.t, c.f, cw, ch, cfg.gt_spp)
+            lin = rd.render(variant, gscene, sensor, cfg.gt_spp, seed=500000 + 1000 * building_index + i)
+            if c.k != 0:
+                lin = cams.warp(lin, maps[c.camera_id])
+            write_image(gt / "views" / "images" / v.name, rd.to_srgb(lin * EXPOSURE))
+            ids = polygon_id_image(polygons, v.R, v.t, c)
+            write_image(gt / "views" / "polygon_ids" / v.name, ids[..., None].astype(np.float32) / 65535.0, bits=16)
+            advance(1)
+        cams.write_colmap(gt / "views" / "sparse" / "0", intr, held, None, written=False)
+        timing["held_out_s"] = time.perf_counter() - t4
+    finally:
+        bar.stop()
     del gscene
 
     write_json(
@@ -253,7 +260,7 @@ def run_scene(
     return manifest
 
 
-def _render_gt_maps(cfg, building, model, polygons, gscene, variant, gt: Path, bar, up) -> dict:
+def _render_gt_maps(cfg, building, model, polygons, gscene, variant, gt: Path, advance, up) -> dict:
     from difftex.geometry.frames import texel_mask, uv_frame
     from difftex.scene.files import write_image, write_json
     from difftex.synth import render as rd
@@ -274,12 +281,19 @@ def _render_gt_maps(cfg, building, model, polygons, gscene, variant, gt: Path, b
         fd["up"] = np.asarray(up).tolist()
         write_json(gt / "frames" / f"{poly.id}.json", fd)
         frames[poly.id] = fd
-        bar.update(1)
+        advance(1)
     return frames
 
 
 def polygon_id_image(polygons, R, t, intr) -> np.ndarray:
-    """Per pixel: 1 + index of the first proxy polygon its ray hits, 0 for none (numpy ray casting)."""
+    """Per pixel: 1 + index of the first proxy polygon its ray hits, 0 for none (numpy ray casting).
+
+    Not ``difftex.geometry.raycast`` (Mitsuba) on purpose: this is ground truth, which must not
+    come from the code it grades (docs/synth.md: the truth never comes from difftex's own mapping
+    code), and float64 Moeller-Trumbore gives the same ids on every CPU, where Mitsuba's LLVM
+    kernels change grazing-edge hits between AVX2 and AVX-512 machines (docs/synth.md,
+    Determinism). One image per held-out view: speed does not matter here.
+    """
     cam = intr.pycolmap()
     H, W = intr.height, intr.width
     yy, xx = np.mgrid[0:H, 0:W].astype(np.float64) + 0.5

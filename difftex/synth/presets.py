@@ -99,8 +99,6 @@ PRESETS: dict[str, SynthConfig] = {
     ),
 }
 
-STYLES = ("box", "gable", "lshape", "tower", "courtyard")
-
 
 def get_preset(name: str) -> SynthConfig:
     try:

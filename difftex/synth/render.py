@@ -210,8 +210,3 @@ def ray_hit_distance(variant: str, scene, origins: np.ndarray, dirs: np.ndarray)
 def to_srgb(linear: np.ndarray) -> np.ndarray:
     x = np.clip(linear, 0.0, 1.0)
     return np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.power(x, 1 / 2.4) - 0.055).astype(np.float32)
-
-
-def from_srgb(srgb: np.ndarray) -> np.ndarray:
-    x = np.asarray(srgb, np.float32)
-    return np.where(x <= 0.04045, x / 12.92, ((x + 0.055) / 1.055) ** 2.4).astype(np.float32)
