@@ -51,7 +51,7 @@ def para_value_and_grad(
     lambda_s: float,
     eps: float,
 ) -> tuple[torch.Tensor, torch.Tensor]:
-    """L_Para (eq. 8-10, times n_tex) and its gradient with respect to W, (K, H, W).
+    """L_Para (eq. 7-9, times n_tex) and its gradient with respect to W, (K, H, W).
 
     Mirrors losses.para_loss: the slot j of texel o meets the slot of its neighbour q that holds
     the same photo (``match``; all slots correspond when the layout is fixed), and photos of q

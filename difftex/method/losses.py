@@ -1,4 +1,4 @@
-"""The DiffTex objective for one polygon (paper eq. 5-10), on a slot layout of the weights.
+"""The DiffTex objective for one polygon (paper eq. 3-9), on a slot layout of the weights.
 
 Layout: each texel keeps ``K`` candidate *slots*; slot ``j`` of texel ``t`` refers to photo
 ``idx[j, t]`` (or -1). The parameters ``z`` (K, H, W) are logits: the blend weights, the paper's
@@ -48,13 +48,13 @@ def render_loss_texel(U, colours, active, Q, n_tex: float) -> torch.Tensor:
 
 
 def para_edge_cost(active: torch.Tensor, D: torch.Tensor, axis: int, lambda_s: float) -> torch.Tensor:
-    """C(t_o, t_q) = m_k(t_o) D(t_o, t_q) + lambda_s per slot (eq. 9), with m_k the overlap mask."""
+    """C(t_o, t_q) = m_k(t_o) D(t_o, t_q) + lambda_s per slot (eq. 8), with m_k the overlap mask."""
     overlap = (active.sum(0, keepdim=True) >= 2) & active  # m_k: another mapped photo overlaps
     return crop_pair(overlap, axis, "o").to(D.dtype) * D[None] + lambda_s
 
 
 def render_quality(active: torch.Tensor, Q: torch.Tensor) -> torch.Tensor:
-    """q_k = (a_k Q_k)^2, each photo's weight in the squared norm of L_Render (eq. 5); (K, H, W)."""
+    """q_k = (a_k Q_k)^2, each photo's weight in the squared norm of L_Render (eq. 4); (K, H, W)."""
     aq = active.to(Q.dtype) * Q
     return aq * aq
 
@@ -170,7 +170,7 @@ def render_loss_pixels(U, support, batch: PixelBatch, active, Q, n_tex: float) -
 
 
 def guidance_direction(view_dirs: torch.Tensor, normal: torch.Tensor) -> torch.Tensor:
-    """v~_i = 0.5 sum v_k / |sum v_k| - 0.5 n_i (eq. 6), v_k the photos' viewing directions."""
+    """v~_i = 0.5 sum v_k / |sum v_k| - 0.5 n_i (Sec. 3.2, in the text before eq. 5), v_k the photos' viewing directions."""
     s = view_dirs.sum(0)
     return 0.5 * s / s.norm().clamp_min(1e-12) - 0.5 * normal
 
@@ -182,7 +182,7 @@ def persp_cost(view_field: torch.Tensor, v_tilde: torch.Tensor) -> torch.Tensor:
 
 
 def persp_loss(W, cost, n_tex: float) -> torch.Tensor:
-    """L_Persp = sum_k ||W_k . V_k . V_k||_1 with V_k = a^_k (V^_k - v~) (eq. 7); a is inside W."""
+    """L_Persp = sum_k ||W_k . V_k . V_k||_1 with V_k = a^_k (V^_k - v~) (eq. 5-6); a is inside W."""
     return (W * cost).sum() / n_tex
 
 
@@ -243,7 +243,7 @@ def smooth_abs(x: torch.Tensor, eps: float) -> torch.Tensor:
 
 
 def edge_weights(U: torch.Tensor, G: torch.Tensor, axes=(1, 2)) -> dict[int, torch.Tensor]:
-    """D(t_o, t_q) = S(|U(t_o) - U(t_q)|) (1 + G(t_o)) per neighbour direction (eq. 10), no gradient.
+    """D(t_o, t_q) = S(|U(t_o) - U(t_q)|) (1 + G(t_o)) per neighbour direction (eq. 9), no gradient.
 
     D is a constant of L_Para: it says where a change of source is expensive; letting its
     gradient act would blur U instead of moving the seams. It changes slowly with U, so the
@@ -267,7 +267,7 @@ def para_loss(
     eps: float = 0.0,
     D: dict[int, torch.Tensor] | None = None,
 ) -> torch.Tensor:
-    """L_Para (eq. 8-10) over up and left neighbours, summed over photos.
+    """L_Para (eq. 7-9) over up and left neighbours, summed over photos.
 
     C = m_k(t_o) D(t_o, t_q) + lambda_s with D from ``edge_weights`` (computed here if not given).
     """

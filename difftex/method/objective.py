@@ -1,4 +1,4 @@
-"""The objective L = alpha L_Render + beta L_Persp + omega L_Para of one level (eq. 4) and its
+"""The objective L = alpha L_Render + beta L_Persp + omega L_Para of one level (eq. 3) and its
 gradient. The terms themselves are in difftex.method.losses, one function per equation.
 """
 
