@@ -170,7 +170,10 @@ def render_loss_pixels(U, support, batch: PixelBatch, active, Q, n_tex: float) -
 
 
 def guidance_direction(view_dirs: torch.Tensor, normal: torch.Tensor) -> torch.Tensor:
-    """v~_i = 0.5 sum v_k / |sum v_k| - 0.5 n_i (Sec. 3.2, in the text before eq. 5), v_k the photos' viewing directions."""
+    """v~_i = 0.5 sum v_k / |sum v_k| - 0.5 n_i (Sec. 3.2, the text before eq. 5).
+
+    v_k are the photos' viewing directions.
+    """
     s = view_dirs.sum(0)
     return 0.5 * s / s.norm().clamp_min(1e-12) - 0.5 * normal
 
