@@ -210,7 +210,9 @@ def start(work: Path, log: Path, *args: str) -> subprocess.Popen:
 
 def test_interrupted_and_killed_runs_resume_to_the_same_textures(resume_scene, reference_run, tmp_path):
     work = tmp_path / "w"
-    args = ("--config", f"scene={resume_scene}", *QUICK)
+    # one job at a time (the last --cores wins): with two side by side the remaining polygons
+    # could finish before the signal lands, and there would be nothing left to interrupt
+    args = ("--config", f"scene={resume_scene}", *QUICK, "--cores", "1")
     total = len(textures(reference_run)) // 3  # texture, source, coverage per polygon
 
     # 1. a run, and a second one started in the same folder meanwhile: refused, one line
