@@ -204,8 +204,11 @@ def n_textures(work: Path) -> int:
 
 def start(work: Path, log: Path, *args: str) -> subprocess.Popen:
     # its own session: the signal goes to Snakemake and its jobs, as Ctrl-C or a power cut would
+    # SIGINT back to its default: a shell's background job (e.g. CI under nohup ... &) starts with
+    # it ignored, Python then keeps it ignored, and Ctrl-C would not reach Snakemake at all
     return subprocess.Popen(snakemake_cmd(work, *args), stdout=open(log, "w"), stderr=subprocess.STDOUT,
-                            env=env(), start_new_session=True)
+                            env=env(), start_new_session=True,
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
 
 
 def test_interrupted_and_killed_runs_resume_to_the_same_textures(resume_scene, reference_run, tmp_path):
