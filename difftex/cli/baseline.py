@@ -22,22 +22,11 @@ def run(args) -> int:
     import time
 
     from difftex.cli._polygon import load
-    from difftex.compose.composite import finish_texture
-    from difftex.compose.outputs import write_texture_outputs
-    from difftex.evaluation.baselines import baseline_texture
+    from difftex.evaluation.baselines import baseline_texture, write_baseline_polygon
 
     t0 = time.perf_counter()
     _, compute, inp = load(args)
     U, wsum, dominant, info = baseline_texture(inp, args.method, compute.device)
-    U, fill = finish_texture(U, wsum, inp.texel_mask)
-    seen = (wsum > 0) & inp.texel_mask
-    report = {
-        "polygon_id": inp.polygon_id,
-        **info,
-        **fill,
-        "histogram_matching": False,
-        "time_s": time.perf_counter() - t0,
-    }
-    write_texture_outputs(args.out_dir, U, inp.texel_mask, seen, dominant, [p.name for p in inp.photos], report)
-    print(f"baseline {args.method} {inp.polygon_id}: coverage {fill['coverage']:.3f}")
+    report = write_baseline_polygon(inp, U, wsum, dominant, info, args.out_dir, t0)
+    print(f"baseline {args.method} {inp.polygon_id}: coverage {report['coverage']:.3f}")
     return 0

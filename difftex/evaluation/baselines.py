@@ -9,10 +9,13 @@
 
 from __future__ import annotations
 
+import time
+
 import numpy as np
 import torch
 
-from difftex.compose.composite import compose_from_photos
+from difftex.compose.composite import compose_from_photos, finish_texture
+from difftex.compose.outputs import write_texture_outputs
 from difftex.errors import DifftexError
 from difftex.sampling.photos import PhotoSet, PolygonInput, pick_device
 from difftex.sampling.texels import level_frame, resample_nearest
@@ -74,3 +77,20 @@ def baseline_texture(inp: PolygonInput, method: str, device="cpu") -> tuple[np.n
     U, wsum = compose_from_photos(photos, lambda n, mp: weights.get(n))
     info = {"method": "frontal", "ranking": [inp.photos[n].name for n in order]}
     return U, wsum, dominant.cpu().numpy(), info
+
+
+def write_baseline_polygon(inp: PolygonInput, U: np.ndarray, wsum: np.ndarray, dominant: np.ndarray, info: dict,
+                           out_dir, t0: float) -> dict:
+    """Fill a baseline's texture (no histogram matching), write the per-polygon outputs and
+    return the report; ``t0``: the polygon's start (time.perf_counter) for its time_s."""
+    U, fill = finish_texture(U, wsum, inp.texel_mask)
+    seen = (wsum > 0) & inp.texel_mask
+    report = {
+        "polygon_id": inp.polygon_id,
+        **info,
+        **fill,
+        "histogram_matching": False,
+        "time_s": time.perf_counter() - t0,
+    }
+    write_texture_outputs(out_dir, U, inp.texel_mask, seen, dominant, [p.name for p in inp.photos], report)
+    return report

@@ -292,19 +292,8 @@ def mrf_texture(
 
 def run_polygon(inp: PolygonInput, out_dir, cfg: MRFConfig = MRFConfig(), device="cpu") -> dict:
     """Texture one polygon and write the baseline outputs; returns the report."""
-    from difftex.compose.composite import finish_texture
-    from difftex.compose.outputs import write_texture_outputs
+    from difftex.evaluation.baselines import write_baseline_polygon
 
     t0 = time.perf_counter()
     U, wsum, dominant, info = mrf_texture(inp, cfg, device)
-    U, fill = finish_texture(U, wsum, inp.texel_mask)
-    seen = (wsum > 0) & inp.texel_mask
-    report = {
-        "polygon_id": inp.polygon_id,
-        **info,
-        **fill,
-        "histogram_matching": False,
-        "time_s": time.perf_counter() - t0,
-    }
-    write_texture_outputs(out_dir, U, inp.texel_mask, seen, dominant, [p.name for p in inp.photos], report)
-    return report
+    return write_baseline_polygon(inp, U, wsum, dominant, info, out_dir, t0)
