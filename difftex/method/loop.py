@@ -34,7 +34,6 @@ from difftex.method.levels import Level, build_level, upsample_field
 from difftex.method.objective import (
     LevelState,
     compiled_objective,
-    compiled_texel_gradient,
     objective,
     value_and_grad,
 )
@@ -210,10 +209,9 @@ def _run_level(
     if cfg.use_para:
         st.matches = {a: losses.neighbour_match(lv.idx, lv.mask, a, fixed=lv.fixed_slots) for a in (1, 2)}
     adam = Adam(lr=cfg.lr, betas=cfg.betas)
-    if cfg.loss_mode == "render":
-        fn = compiled_objective(lv, compute) or objective
-    else:
-        fn = compiled_texel_gradient(lv, compute)
+    fn = compiled_objective(lv, cfg.loss_mode, compute)
+    if fn is None and cfg.loss_mode == "render":
+        fn = objective  # autograd needs the function; the texel loss has its own gradient
     hist: dict[str, list] = {k: [] for k in LOSS_KEYS}
     n_elim = 0
     dropped_here: list[str] = []

@@ -105,31 +105,21 @@ def value_and_grad(st: LevelState, cfg: OptimizeConfig, fn=None) -> tuple[dict[s
     return {k: v.detach() for k, v in terms.items()}, z.grad
 
 
-def compiled_objective(lv: Level, compute: ComputeConfig):
-    """torch.compile'd ``objective`` for this level, or None to run eagerly.
+def compiled_objective(lv: Level, loss_mode: str, compute: ComputeConfig):
+    """The level's loss function torch.compile'd, or None to run it eagerly: ``objective``
+    (autograd through it) for the render loss, ``texel_value_and_grad`` for the texel loss.
 
-    On the CPU, eager L costs some 30 elementwise passes over (K, H, W) tensors per iteration;
-    inductor fuses them into a few loops. Measured on one thread (evaluation/bench_optimize.md):
-    at a 19.8 M-slot level 4.3-5.7 s eager vs 2.3 s compiled per iteration, after 13-15 s of
-    cold compilation. Saving ~0.1 us per slot and iteration repays that at about 130 M
-    slot-iterations, i.e. from ~4 M slots at the finer levels' 40-80 iteration caps: ``auto``
-    compiles levels with at least ``compile_min_slots`` slot entries.
+    On the CPU, eager L costs some 30 elementwise passes over (K, H, W) tensors per iteration,
+    and the written-out texel gradient some 80 over (K, 3, H, W) and (K, H, W) tensors, each a
+    trip through memory; inductor fuses them into a few loops. Measured on one thread
+    (evaluation/bench_optimize.md): render loss at a 19.8 M-slot level 4.3-5.7 s eager vs 2.3 s
+    compiled per iteration, after 13-15 s of cold compilation; texel loss at 1024 texels
+    0.70 vs 0.34 s (evaluation/bench_optimize_texel_compile.md). Saving ~0.1 us per slot and
+    iteration repays the compilation at about 130 M slot-iterations, i.e. from ~4 M slots at the
+    finer levels' 40-80 iteration caps: ``auto`` compiles levels with at least
+    ``compile_min_slots`` slot entries.
     """
     mode = compute.compile
     if mode == "off" or (mode == "auto" and lv.idx.numel() < compute.compile_min_slots):
         return None
-    return torch.compile(objective, dynamic=False)
-
-
-def compiled_texel_gradient(lv: Level, compute: ComputeConfig):
-    """torch.compile'd ``texel_value_and_grad`` for this level, or None to run it eagerly.
-
-    The written-out gradient is still some 80 elementwise passes over (K, 3, H, W) and (K, H, W)
-    tensors per iteration, each a trip through memory; inductor fuses them into a few loops
-    (evaluation/bench_optimize.md gives the iteration time against the bytes it must touch).
-    Same rule as ``compiled_objective`` for when it pays.
-    """
-    mode = compute.compile
-    if mode == "off" or (mode == "auto" and lv.idx.numel() < compute.compile_min_slots):
-        return None
-    return torch.compile(texel_value_and_grad, dynamic=False)
+    return torch.compile(objective if loss_mode == "render" else texel_value_and_grad, dynamic=False)
