@@ -65,6 +65,8 @@ class OptimizeConfig:
     align_prior_px: float = 2.0  # prior standard deviation of a correction, pixels
     align_max_px: float = 8.0  # a correction moving the polygon's edge further than this is rejected
     align_max_long_side: int = 1024  # align at levels up to this long side
+    settle_sigma: float = 3.0  # texels whose candidates agree within this many sigma_c keep their Q blend (0: off)
+    align_tol_px: float = 0.1  # stop aligning once no weighted photo's correction moved more than this, pixels
     histmatch_reference: HistmatchReference = "median"  # per-texel median of the candidates, the best photo, or pooled
     histmatch_channels: str = "sv"  # HSV channels matched; hue is circular and left alone by default
     exact_decode: bool = False  # decode every photo at full size (default: JPEG DCT scaling where levels allow)

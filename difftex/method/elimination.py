@@ -114,3 +114,22 @@ def dropped_slot_mask(
     best = argmax0(torch.where(base, score, torch.full_like(score, -1.0)))
     keep = torch.zeros_like(ds).scatter_(0, best, True) & need[None]
     return ds & ~keep
+
+
+def settled_texels(lv: Level, active: torch.Tensor, k: float) -> torch.Tensor:
+    """(h, w) bool: texels whose active candidates all agree, within ``k`` times the level's
+    photometric noise sigma_c (Level.noise) of their Q-weighted mean.
+
+    There the objective has nothing to decide: no occluder to reject, no misregistration or
+    relief to choose between, and a blend averages the photos' noise away. The optimization
+    leaves these texels at their Q-proportional blend and spends its iterations on the others
+    (a level where every texel is settled runs none).
+
+    Shapes: active (K, h, w) bool -> (h, w) bool.
+    """
+    a = active.to(lv.Q.dtype) * lv.Q
+    wsum = a.sum(0)
+    mu = (a[:, None] * lv.colours).sum(0) / wsum.clamp_min(1e-12)
+    d2 = ((lv.colours - mu[None]) ** 2).sum(1)
+    worst = torch.where(active, d2, torch.zeros_like(d2)).amax(0)
+    return lv.mask & (wsum > 0) & (worst <= (k * lv.noise) ** 2)

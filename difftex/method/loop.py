@@ -19,7 +19,7 @@ import torch
 from rich.console import Console
 from rich.progress import MofNCompleteColumn, Progress
 
-from difftex.method import alignment, diagnostics, losses
+from difftex.method import alignment, compact, diagnostics, losses
 from difftex.method.config import ComputeConfig, OptimizeConfig
 from difftex.method.elimination import (
     base_mask,
@@ -27,14 +27,17 @@ from difftex.method.elimination import (
     eliminate_pixels,
     photo_zero_share,
     photos_to_drop,
+    settled_texels,
     update_activation,
 )
 from difftex.method.gradient import Adam
-from difftex.method.levels import Level, build_level, upsample_field
+from difftex.method.levels import Level, build_level, init_logits, upsample_field
 from difftex.method.objective import (
     LevelState,
     compiled_objective,
+    ghost_margin,
     objective,
+    render_weights,
     value_and_grad,
 )
 from difftex.method.render import build_pixel_sets
@@ -110,14 +113,19 @@ def optimize_polygon(
         advance = functools.partial(bar.advance, bar.add_task(f"optimize {inp.polygon_id}", total=total))
     bar.start()
     stats["alignment"] = []
+    aligning = cfg.align
     try:
         for li, side in enumerate(sides):
             tl = time.perf_counter()
             frame = level_frame(inp.frame, side)
             aligned = False
-            if cfg.align and side <= cfg.align_max_long_side:
-                stats["alignment"].append(_align(photos, frame, transfers, prev, cfg))
+            if aligning and side <= cfg.align_max_long_side:
+                rep = _align(photos, frame, transfers, prev, cfg)
+                stats["alignment"].append(rep)
                 aligned = True
+                # Converged: the corrections no longer move at this resolution; finer levels
+                # would refit the same ones at the cost of mapping every photo again.
+                aligning = li == 0 or rep["max_update_px"] > cfg.align_tol_px
             lv = build_level(
                 photos,
                 frame,
@@ -173,16 +181,23 @@ def optimize_polygon(
 
 def _align(photos: PhotoSet, frame, transfers, prev: LevelState | None, cfg: OptimizeConfig) -> dict:
     """Refine the photos' mapping corrections at this level against the consensus texture: the
-    per-texel median of the photos at the first level, the previous level's texture after it."""
+    per-texel median of the photos at the first level, the previous level's texture after it.
+
+    After the first level only the photos that hold weight somewhere (> tau) are refined: the
+    others do not appear in the texture, and a photo that comes back keeps its last correction.
+    """
     t0 = time.perf_counter()
     inp = photos.inp
     mask = resample_nearest(inp.texel_mask, inp.frame, frame)
+    which = None
     if prev is None:
         consensus, defined = alignment.consensus_median(photos, frame, mask, transfers)
         noise = 0.05
     else:
         plv = prev.level
-        U = losses.compose(losses.blend_weights(prev.z, prev.active), plv.colours)
+        W = losses.blend_weights(prev.z, prev.active)
+        which = set(torch.unique(plv.idx[(W > cfg.tau) & plv.visible]).tolist()) - {-1}
+        U = losses.compose(W, plv.colours)
         consensus = upsample_field(U, plv.frame, frame)
         defined = upsample_field((plv.visible.sum(0) >= 2).float()[None], plv.frame, frame)[0] > 0.99
         noise = plv.noise
@@ -190,9 +205,11 @@ def _align(photos: PhotoSet, frame, transfers, prev: LevelState | None, cfg: Opt
         cfg.align_model, cfg.align_iterations, cfg.align_prior_px, cfg.align_max_px, max(noise, cfg.sigma_min)
     )
     report = alignment.align_level(
-        photos, frame, mask, transfers, consensus, defined & torch.from_numpy(mask).to(defined.device), st
+        photos, frame, mask, transfers, consensus, defined & torch.from_numpy(mask).to(defined.device), st, which
     )
-    return {"long_side": max(frame.shape), "photos": report, "time_s": time.perf_counter() - t0}
+    moved = [r["update_px"] for r in report.values()]
+    return {"long_side": max(frame.shape), "photos": report, "aligned": len(report),
+            "max_update_px": max(moved, default=0.0), "time_s": time.perf_counter() - t0}
 
 
 def _run_level(
@@ -209,9 +226,6 @@ def _run_level(
     if cfg.use_para:
         st.matches = {a: losses.neighbour_match(lv.idx, lv.mask, a, fixed=lv.fixed_slots) for a in (1, 2)}
     adam = Adam(lr=cfg.lr, betas=cfg.betas)
-    fn = compiled_objective(lv, cfg.loss_mode, compute)
-    if fn is None and cfg.loss_mode == "render":
-        fn = objective  # autograd needs the function; the texel loss has its own gradient
     hist: dict[str, list] = {k: [] for k in LOSS_KEYS}
     n_elim = 0
     dropped_here: list[str] = []
@@ -226,7 +240,32 @@ def _run_level(
             drop_slots = dropped_slot_mask(lv, st.eliminated, dropped)
             base = base_mask(lv, st.eliminated, drop_slots)
             st.active = update_activation(st.z, base, cfg.tau)
-    anything = cfg.use_render or cfg.use_persp or cfg.use_para
+    free = None
+    settled_share = 0.0
+    if cfg.settle_sigma > 0:
+        with torch.no_grad():
+            settled = settled_texels(lv, st.active, cfg.settle_sigma)
+            st.z = torch.where(settled[None], init_logits(lv.Q * base), st.z)
+            st.active = update_activation(st.z, base, cfg.tau)
+            free = (~settled).to(st.z.dtype)[None]
+            settled_share = float(settled.sum()) / lv.n_tex
+            if cfg.use_para:
+                # L_Para couples free texels only: a seam against a settled texel, whose photos
+                # agree, shows nothing, so the free texels choose as if their settled neighbours
+                # were any of their photos (not the blend the settled texels keep)
+                st.matches = {a: losses.neighbour_match(lv.idx, lv.mask & ~settled, a, fixed=lv.fixed_slots)
+                              for a in (1, 2)}
+    anything = (cfg.use_render or cfg.use_persp or cfg.use_para) and settled_share < 1.0
+    co = None  # the objective on the free texels' tiles alone (difftex.method.compact)
+    if free is not None and anything and cfg.loss_mode == "texel":
+        lay = compact.tile_layout(lv.mask & (free[0] > 0))
+        if lay is not None:
+            co = compact.compact_objective(lay, lv.colours, render_weights(lv, cfg), lv.cost, lv.G, lv.idx,
+                                           lv.mask & (free[0] > 0),
+                                           lv.n_tex, ghost_margin(lv, cfg), lv.fixed_slots, cfg.use_para)
+    fn = compiled_objective(lv, cfg.loss_mode, compute, slots=co.slots if co is not None else None)
+    if fn is None and cfg.loss_mode == "render":
+        fn = objective  # autograd needs the function; the texel loss has its own gradient
     iter_times: list[float] = []
     W_check = losses.blend_weights(st.z, st.active)
     dominant_start = diagnostics.dominant_photo(lv.idx, W_check)
@@ -235,7 +274,11 @@ def _run_level(
         st.it = it
         t_it = time.perf_counter()
         try:
-            terms, grad = value_and_grad(st, cfg, fn)
+            if co is not None:
+                due = it % max(cfg.eliminate_every, 1) == 0  # L_Para's edge weights are refreshed
+                terms, grad = compact.value_and_grad(st.z, st.active, co, cfg, due, fn)
+            else:
+                terms, grad = value_and_grad(st, cfg, fn)
         except Exception as e:  # noqa: BLE001 - compilation needs a C++ toolchain; eager always works
             if fn is None or fn is objective:
                 raise
@@ -243,11 +286,17 @@ def _run_level(
             warnings.warn(f"torch.compile failed ({reason}); running eagerly", stacklevel=2)
             stats["compile_failed"] = reason
             fn = objective if cfg.loss_mode == "render" else None
-            terms, grad = value_and_grad(st, cfg, fn)
+            if co is not None:
+                terms, grad = compact.value_and_grad(st.z, st.active, co, cfg, True, fn)
+            else:
+                terms, grad = value_and_grad(st, cfg, fn)
         for k in hist:
             hist[k].append(float(terms[k]) if k in terms else 0.0)
         with torch.no_grad():
-            adam.step(st.z, grad)  # type: ignore[arg-type]  # fn is set, so grad is
+            assert grad is not None  # fn is set, so the gradient is
+            if free is not None:
+                grad = grad * free  # settled texels keep their blend
+            adam.step(st.z, grad)
             W = losses.blend_weights(st.z, base)
             if cfg.data_elimination:
                 if it >= cfg.min_iters_per_level // 2:
@@ -298,6 +347,9 @@ def _run_level(
         else (iter_times[0] if iter_times else 0.0),
         "eliminated_pixels": n_elim,
         "dropped_photos": dropped_here,
+        "settled_share": settled_share,
+        # strip of the free texels' tiles against the level (1: the whole level was evaluated)
+        "evaluated_share": co.layout.src.numel() / lv.mask.numel() if co is not None else 1.0,
         "active_slots_mean": float(st.active.sum(0).float()[lv.mask].mean()) if bool(lv.mask.any()) else 0.0,
         "tensor_bytes": lv.nbytes(),
         "final": final_terms,
