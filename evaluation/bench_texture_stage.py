@@ -43,9 +43,10 @@ def machine() -> dict:
     return info
 
 
-def run_polygon(results: Path, scene: Path, pid: str, compute_yaml: Path, threads: int, scratch: Path) -> dict:
-    """One `difftex texture` process for polygon ``pid``; its wall time, peak RSS and stats."""
-    config = sorted((results / "config").glob("texture-*.yaml"))[-1]
+def run_polygon(
+    results: Path, scene: Path, pid: str, config: Path, compute_yaml: Path, threads: int, scratch: Path
+) -> dict:
+    """One `difftex texture` process for polygon ``pid``: its wall time and stats."""
     out = scratch / pid
     cmd = [
         sys.executable, "-c", "import sys; from difftex.cli import main; sys.exit(main())",
@@ -88,9 +89,10 @@ def main(argv=None) -> int:
     with tempfile.TemporaryDirectory() as tmp:
         compute = Path(tmp) / "compute.yaml"
         compute.write_text(f"compute:\n  device: {a.device}\n")
+        config = sorted((a.results / "config").glob("texture-*.yaml"))[-1]
         t0 = time.perf_counter()
         for pid in pids:
-            rows.append(run_polygon(a.results, a.scene, pid, compute, a.threads, Path(tmp)))
+            rows.append(run_polygon(a.results, a.scene, pid, config, compute, a.threads, Path(tmp)))
             print(f"bench_texture_stage: {pid}: {rows[-1]}", flush=True)
         total = time.perf_counter() - t0
     rss = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024

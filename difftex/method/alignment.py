@@ -203,9 +203,8 @@ def align_level(
     for name, n in report.items():
         c = photos.corrections.get(n)
         edge = max_shift(c) if c is not None else 0.0
-        old = before.get(n)
-        moved = edge if old is None else (max_shift(Correction(c.params - old.params, c.centre, c.scale))
-                                          if c is not None else max_shift(old))
+        old = before.get(n)  # a photo with a correction before keeps one (only finite ones are set)
+        moved = max_shift(Correction(c.params - old.params, c.centre, c.scale)) if c and old else edge
         out[name] = {
             "max_shift_px": round(edge, 3),
             "update_px": round(moved, 3),

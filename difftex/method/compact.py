@@ -54,23 +54,11 @@ def tile_layout(free: torch.Tensor, max_share: float = 0.35, tiles: tuple[int, .
     h, w = free.shape
     if not bool(free.any()):
         return None
-    best: tuple[int, int] | None = None
-    for T in tiles:
-        ty, tx = -(-h // T), -(-w // T)
-        fp = torch.zeros(ty * T, tx * T, dtype=torch.bool, device=free.device)
-        fp[:h, :w] = free
-        n = int(fp.reshape(ty, T, tx, T).any(3).any(1).sum())
-        area = n * (T + 3) * (T + 2)
-        if best is None or area < best[0]:
-            best = (area, T)
-    assert best is not None
-    area, T = best
-    if area > max_share * h * w:
+    grids = {T: _tiles_with_free(free, T) for T in tiles}
+    T = min(tiles, key=lambda t: int(grids[t].sum()) * (t + 3) * (t + 2))
+    if int(grids[T].sum()) * (T + 3) * (T + 2) > max_share * h * w:
         return None
-    ty, tx = -(-h // T), -(-w // T)
-    fp = torch.zeros(ty * T, tx * T, dtype=torch.bool, device=free.device)
-    fp[:h, :w] = free
-    act = torch.nonzero(fp.reshape(ty, T, tx, T).any(3).any(1))  # (n, 2) tile row, column
+    act = torch.nonzero(grids[T])  # (n, 2) tile row, column
     dev = free.device
     dy = torch.arange(-1, T + 2, device=dev)  # halo, T rows, halo, separator
     dx = torch.arange(-1, T + 1, device=dev)
@@ -82,6 +70,15 @@ def tile_layout(free: torch.Tensor, max_share: float = 0.35, tiles: tuple[int, .
     interior = inner & free.reshape(-1)[src.clamp_min(0)]
     n = act.shape[0]
     return TileLayout(src=src.reshape(n * (T + 3), T + 2), interior=interior.reshape(n * (T + 3), T + 2), tile=T)
+
+
+def _tiles_with_free(free: torch.Tensor, T: int) -> torch.Tensor:
+    """(ceil(h / T), ceil(w / T)) bool: the T x T tiles that hold a free texel."""
+    h, w = free.shape
+    ty, tx = -(-h // T), -(-w // T)
+    fp = torch.zeros(ty * T, tx * T, dtype=torch.bool, device=free.device)
+    fp[:h, :w] = free
+    return fp.reshape(ty, T, tx, T).any(3).any(1)
 
 
 def gather(x: torch.Tensor, lay: TileLayout) -> torch.Tensor:

@@ -223,8 +223,6 @@ def _run_level(
     z = lv.z0.clone()
     base = base_mask(lv, eliminated, drop_slots)
     st = LevelState(level=lv, z=z, active=update_activation(z, base, cfg.tau), eliminated=eliminated)
-    if cfg.use_para:
-        st.matches = {a: losses.neighbour_match(lv.idx, lv.mask, a, fixed=lv.fixed_slots) for a in (1, 2)}
     adam = Adam(lr=cfg.lr, betas=cfg.betas)
     hist: dict[str, list] = {k: [] for k in LOSS_KEYS}
     n_elim = 0
@@ -240,7 +238,8 @@ def _run_level(
             drop_slots = dropped_slot_mask(lv, st.eliminated, dropped)
             base = base_mask(lv, st.eliminated, drop_slots)
             st.active = update_activation(st.z, base, cfg.tau)
-    free = None
+    free = None  # (1, h, w) float: 1 where the weights are optimized (None: everywhere)
+    free_mask = lv.mask  # the texels L_Para couples
     settled_share = 0.0
     if cfg.settle_sigma > 0:
         with torch.no_grad():
@@ -249,20 +248,19 @@ def _run_level(
             st.active = update_activation(st.z, base, cfg.tau)
             free = (~settled).to(st.z.dtype)[None]
             settled_share = float(settled.sum()) / lv.n_tex
-            if cfg.use_para:
-                # L_Para couples free texels only: a seam against a settled texel, whose photos
-                # agree, shows nothing, so the free texels choose as if their settled neighbours
-                # were any of their photos (not the blend the settled texels keep)
-                st.matches = {a: losses.neighbour_match(lv.idx, lv.mask & ~settled, a, fixed=lv.fixed_slots)
-                              for a in (1, 2)}
+            # L_Para couples free texels only: a seam against a settled texel, whose photos
+            # agree, shows nothing, so the free texels choose as if their settled neighbours
+            # were any of their photos (not the blend the settled texels keep)
+            free_mask = lv.mask & ~settled
+    if cfg.use_para:
+        st.matches = {a: losses.neighbour_match(lv.idx, free_mask, a, fixed=lv.fixed_slots) for a in (1, 2)}
     anything = (cfg.use_render or cfg.use_persp or cfg.use_para) and settled_share < 1.0
     co = None  # the objective on the free texels' tiles alone (difftex.method.compact)
     if free is not None and anything and cfg.loss_mode == "texel":
-        lay = compact.tile_layout(lv.mask & (free[0] > 0))
+        lay = compact.tile_layout(free_mask)
         if lay is not None:
             co = compact.compact_objective(lay, lv.colours, render_weights(lv, cfg), lv.cost, lv.G, lv.idx,
-                                           lv.mask & (free[0] > 0),
-                                           lv.n_tex, ghost_margin(lv, cfg), lv.fixed_slots, cfg.use_para)
+                                           free_mask, lv.n_tex, ghost_margin(lv, cfg), lv.fixed_slots, cfg.use_para)
     fn = compiled_objective(lv, cfg.loss_mode, compute, slots=co.slots if co is not None else None)
     if fn is None and cfg.loss_mode == "render":
         fn = objective  # autograd needs the function; the texel loss has its own gradient
