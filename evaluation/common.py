@@ -70,16 +70,22 @@ def machine() -> dict:
     }
 
 
-def base_config(long_side: int, preset: str | None = "fast", overrides: dict | None = None) -> dict:
-    """The stage sections from config/config.yaml, a preset over them, then ``overrides`` (nested)."""
+def base_config(long_side: int | None, preset: str | None = "fast", overrides: dict | None = None) -> dict:
+    """The stage sections from config/config.yaml, a preset over them, then ``overrides`` (nested).
+
+    ``long_side``: every polygon's map gets this long side (``texture.density: null``); None keeps
+    the preset's density (``auto``: from the photos' ground sampling distance).
+    """
     import yaml
 
     cfg = yaml.safe_load((ROOT / "config" / "config.yaml").read_text())
     if preset:
         cfg = _merge(cfg, yaml.safe_load((ROOT / "config" / "presets" / f"{preset}.yaml").read_text()) or {})
     cfg = {k: v for k, v in cfg.items() if isinstance(v, dict) and k not in ("run",)}
-    cfg["texture"]["long_side"] = long_side
-    cfg["optimize"]["device"] = "cpu"
+    if long_side is not None:
+        cfg["texture"]["density"] = None
+        cfg["texture"]["long_side"] = long_side
+    cfg["compute"]["device"] = "cpu"
     return _merge(cfg, overrides or {})
 
 

@@ -1,7 +1,8 @@
 """Table 1 (synthetic scenes): Error 90/95, SSIM, LPIPS and time of difftex and the baselines.
 
-    python evaluation/table1.py                       # tiny synthetic building, 256-texel maps, preset fast
-    python evaluation/table1.py --long-side 512 --preset balanced --scene data/synth/paper/hall
+    python evaluation/table1.py                       # tiny synthetic building, preset fast (density auto)
+    python evaluation/table1.py --preset balanced --scene data/synth/paper/archive
+    python evaluation/table1.py --long-side 512       # every method, every polygon: 512 texels long side
 
 Generates the scene with `difftex synth --preset tiny` when it is missing, runs the photo filter
 and visibility once, textures every polygon with each method from the same visibility files,
@@ -32,7 +33,12 @@ def ensure_synth(scene: Path, preset: str = "tiny") -> float | None:
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--scene", default="evaluation/out/scenes/tiny", help="synthetic scene (generated if missing)")
-    ap.add_argument("--long-side", type=int, default=256, help="texture long side of every method")
+    ap.add_argument(
+        "--long-side",
+        type=int,
+        default=None,
+        help="texture long side of every polygon and method (default: the preset's density, auto)",
+    )
     ap.add_argument("--preset", default="fast", help="difftex preset (config/presets/<name>.yaml)")
     ap.add_argument("--methods", default="difftex,average,frontal,mrf,texrecon,meshlab-face,meshlab-blend")
     C.add_table_args(ap, "table1")
@@ -71,9 +77,14 @@ def main(argv=None) -> int:
             f"'{synth['building']['name']}', {len(synth['building']['polygons'])} polygons, {sc.get('views')} photos "
             f"{sc.get('width')}x{sc.get('height')}, exposure range +-{sc.get('exposure_range')} stops, occluders "
             f"{'on' if sc.get('occluders') else 'off'}; ground-truth maps {sc.get('gt_long_side')} texels long side).",
-            f"**Reduced sizes** (2 shared CPU cores): texture long side {args.long_side} for every method (paper: "
-            "2048); "
-            f"difftex preset `{args.preset}` ({cfg['optimize'].get('loss_mode')} loss, iteration caps "
+            (
+                f"**Reduced sizes**: texture long side {args.long_side} for every method (paper: 2048); "
+                if args.long_side
+                else f"Texel size: `density: {cfg['texture']['density']}` at density_scale "
+                f"{cfg['texture'].get('density_scale')} (max long side {cfg['texture'].get('max_long_side')}), "
+                "per polygon from its photos, the same frames for every method; "
+            )
+            + f"difftex preset `{args.preset}` ({cfg['optimize'].get('loss_mode')} loss, iteration caps "
             f"{cfg['optimize'].get('max_iters_per_level')}, coarse level {cfg['optimize'].get('long_side_start')}).",
             "Every method textures the same polygons from the same filtered photos and visibility masks; textures are "
             "resampled to the ground-truth map size and scored on the ground-truth texel masks (Error = RGB distance "
@@ -84,7 +95,8 @@ def main(argv=None) -> int:
             "Time: texturing only (sum over polygons of the method's per-polygon commands: init + optimize + histmatch "
             f"for difftex); shared filter {common['filter_s']:.0f} s + visibility {common['visibility_s']:.0f} s not "
             "included.",
-            "Lower is better for Error and LPIPS, higher for SSIM, PSNR, Q_front, Q_vc.",
+            "Lower is better for Error and LPIPS, higher for SSIM, PSNR, Q_front, Q_vc. Sharpness: mean colour "
+            "gradient over the ground truth's on the same texels (1 = as sharp; below: blurred; above: noise, seams).",
         ]
         + [n for n in [P.timing_note(rows)] if n]
         + skipped
@@ -99,13 +111,13 @@ def main(argv=None) -> int:
     ]
     lv = next((r["metrics"]["maps"]["overall"]["lpips_variant"] for r in rows if "maps" in r.get("metrics", {})), "n/a")
     lines.append(
-        f"| Method | Error (90%) | Error (95%) | SSIM | LPIPS ({lv}) | PSNR | views SSIM | views LPIPS | Q_front | "
-        "Q_vc | Time (s) |"
+        f"| Method | Error (90%) | Error (95%) | SSIM | LPIPS ({lv}) | PSNR | Sharpness vs GT | views SSIM | "
+        "views LPIPS | Q_front | Q_vc | Time (s) |"
     )
-    lines.append("|---|---|---|---|---|---|---|---|---|---|---|")
+    lines.append("|---|---|---|---|---|---|---|---|---|---|---|---|")
     for r in rows:
         if r.get("missing"):
-            lines.append(P.missing_line(C.LABELS[r["method"]], r["missing"], 11))
+            lines.append(P.missing_line(C.LABELS[r["method"]], r["missing"], 12))
             continue
         mm = r["metrics"]
         o = mm["maps"]["overall"]
@@ -113,7 +125,8 @@ def main(argv=None) -> int:
         q = mm.get("perspective", {})
         lines.append(
             f"| {C.LABELS.get(r['method'], r['method'])} | {C.fmt(o['error90'])} | {C.fmt(o['error95'])} | "
-            f"{C.fmt(o['ssim'])} | {C.fmt(o['lpips'])} | {C.fmt(o['psnr'], 2)} | {C.fmt(v.get('ssim'))} | "
+            f"{C.fmt(o['ssim'])} | {C.fmt(o['lpips'])} | {C.fmt(o['psnr'], 2)} | {C.fmt(o.get('sharpness'), 3)} | "
+            f"{C.fmt(v.get('ssim'))} | "
             f"{C.fmt(v.get('lpips'))} | {C.fmt(q.get('q_front'))} | {C.fmt(q.get('q_vc'))} | "
             f"{r['run']['total_s']:.0f} |"
         )

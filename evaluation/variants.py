@@ -27,14 +27,6 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from evaluation import common as C  # noqa: E402
 
 
-def grad_mag(img: np.ndarray, mask: np.ndarray) -> float:
-    """Mean absolute colour difference between 4-neighbour texels inside ``mask``."""
-    gx = np.abs(np.diff(img, axis=1)).mean(-1)
-    gy = np.abs(np.diff(img, axis=0)).mean(-1)
-    m, n = mask[:, 1:] & mask[:, :-1], mask[1:, :] & mask[:-1, :]
-    return float((gx[m].sum() + gy[n].sum()) / max(m.sum() + n.sum(), 1))
-
-
 def run(scene: Path, density_scale: float, max_long_side: int, variants: dict, polygons: list[str] | None) -> dict:
     import torch
 
@@ -79,8 +71,8 @@ def run(scene: Path, density_scale: float, max_long_side: int, variants: dict, p
             errs.append(metrics.texel_error(U, ref)[mk])
             ssims.append(metrics.ssim(U, ref, mk))
             weights.append(float(mk.sum()))
-            sharp.append(grad_mag(U, mk))
-            gsharp.append(grad_mag(ref, mk))
+            sharp.append(metrics.mean_gradient(U, mk))
+            gsharp.append(metrics.mean_gradient(ref, mk))
         e, w = np.concatenate(errs), np.asarray(weights)
         out[name] = {
             "overrides": overrides,

@@ -128,14 +128,18 @@ def occluded_region(inp: PolygonInput) -> np.ndarray:
     return (X[..., 0] > 1.5) & (X[..., 0] < 2.5) & (X[..., 2] > 1.0) & (X[..., 2] < 2.0)
 
 
-def paint_occluder(ph: Photo, img: np.ndarray, colour=(0.05, 0.6, 0.05), grow=0.15) -> np.ndarray:
-    """Paint the photo pixels of the occluded region (slightly enlarged) with a flat colour."""
+def paint_occluder(
+    ph: Photo, img: np.ndarray, colour=(0.05, 0.6, 0.05), grow=0.15, box=(1.5, 2.5, 1.0, 2.0)
+) -> np.ndarray:
+    """Paint the photo pixels of a wall rectangle (x0, x1, z0, z1), slightly enlarged, with a flat
+    colour (default: the occluded region)."""
+    x0, x1, z0, z1 = box
     img = img.copy()
     ys, xs = np.mgrid[0 : ph.height, 0 : ph.width] + 0.5
     d = ph.unproject(np.stack([xs, ys], -1))
     s = -ph.center[1] / d[..., 1]
     X = ph.center + s[..., None] * d
-    occ = (X[..., 0] > 1.5 - grow) & (X[..., 0] < 2.5 + grow) & (X[..., 2] > 1.0 - grow) & (X[..., 2] < 2.0 + grow)
+    occ = (X[..., 0] > x0 - grow) & (X[..., 0] < x1 + grow) & (X[..., 2] > z0 - grow) & (X[..., 2] < z1 + grow)
     img[occ] = colour
     return img
 

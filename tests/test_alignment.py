@@ -80,10 +80,10 @@ def test_corrections_recover_the_poses_and_the_texture(scene):
         after = reprojection_error(inp, given[k], true[k], corr.get(name))
         assert before > 1.9 and after < 0.3, (name, before, after)
     # misregistered photos ghost (a blend) or shift (a selection); aligned, the texture is as
-    # good as with the true poses. (Measured: E95 0.169 true poses, 0.303 off, 0.174 aligned;
-    # with settle_sigma 0, 0.173 / 0.614 / 0.180.)
-    assert e95_off > 1.5 * e95_true
-    assert e95_aligned < 1.15 * e95_true and e95_aligned < 0.65 * e95_off
+    # good as with the true poses. (Measured: E95 0.169 true poses, 0.249 off, 0.173 aligned;
+    # with the mean-based noise, 0.169 / 0.303 / 0.174; with settle_sigma 0, 0.173 / 0.614 / 0.180.)
+    assert e95_off > 1.35 * e95_true
+    assert e95_aligned < 1.15 * e95_true and e95_aligned < 0.75 * e95_off
 
 
 def test_correct_poses_get_no_correction(scene):

@@ -285,6 +285,9 @@ def evaluate_maps(
         pe = metrics.error_percentiles(img, ref, gmask)
         row.update(error90=pe[90.0], error95=pe[95.0], psnr=metrics.psnr(img, ref, gmask))
         row["ssim"] = metrics.ssim(img, ref, gmask) if min(gmask.shape) >= 11 else None
+        # Sharpness against the ground truth's: below 1 blurred, above 1 noise or seams.
+        g_ref = metrics.mean_gradient(ref, gmask) if min(gmask.shape) >= 2 else 0.0
+        row["sharpness"] = metrics.mean_gradient(img, gmask) / g_ref if g_ref > 0 else None
         if lp_variant and min(gmask.shape) >= metrics.LPIPS_MIN_SIDE:
             row["lpips"], lp_label = metrics.lpips(img, ref, gmask, variant=lp_variant, device=cfg.device)
         else:
@@ -309,12 +312,13 @@ def evaluate_maps(
         "error95": float(np.percentile(allerr, 95)),
         "ssim": wmean("ssim"),
         "lpips": wmean("lpips"),
+        "sharpness": wmean("sharpness"),
         "psnr": metrics.psnr_from_mse(mse),
         "lpips_variant": lp_label or "unavailable: no polygon has 32x32 ground-truth texels",
         "texels": int(tot),
         "polygons": len(rows),
-        "aggregation": "Error percentiles over all ground-truth texels of all polygons; SSIM/LPIPS texel-weighted "
-        "means of the per-polygon values",
+        "aggregation": "Error percentiles over all ground-truth texels of all polygons; SSIM/LPIPS/sharpness "
+        "texel-weighted means of the per-polygon values",
     }
     return {"overall": overall, "polygons": rows}
 

@@ -10,6 +10,7 @@ counts the mappings).
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -110,18 +111,56 @@ def quality(
 
 
 def level_noise(msd: torch.Tensor, count: torch.Tensor, floor: float) -> float:
-    """sigma_c: the median over texels seen by two photos or more of the RMS distance of their
-    colours to their mean, at least ``floor``.
+    """sigma_c from the streaming statistics: the median over texels seen by two photos or more
+    of the RMS distance of their colours to their mean, at least ``floor``.
 
-    Most texels of a polygon are photographed consistently (occluders, parallax and
-    misregistration touch a minority), so this is the level's photometric noise; L_Render is
-    measured in its units (OptimizeConfig.render_units), which puts colour disagreement on the
-    scale of the weight-valued L_Persp and L_Para at any exposure or contrast.
+    The fallback of :func:`robust_noise` where no texel has three candidates. An outlier (an
+    occluder in one photo) inflates a texel's RMS distance, so where occluders touch most texels
+    in some photo this median measures them, not the noise.
     """
     sel = count >= 2
     if not bool(sel.any()):
         return float(floor)
     return max(float(floor), float(msd[sel].median().sqrt()))
+
+
+CHI3_MEDIAN = 1.5382  # median of a chi distribution with 3 degrees of freedom
+NOISE_SAMPLES = 1 << 16  # texels a level's noise is estimated on (a median: a sample suffices)
+
+
+def robust_noise(colours: torch.Tensor, visible: torch.Tensor, floor: float) -> float | None:
+    """sigma_c: the level's photometric noise, robust to occluders and misregistration.
+
+    Per texel with three candidates or more: the median over its candidates of their colour's
+    distance to the per-channel median colour; sigma_c is the median of that over the texels,
+    scaled to the RMS distance of Gaussian noise (sqrt(3) / CHI3_MEDIAN), at least ``floor``.
+    A photo that disagrees at a texel (an occluder, relief parallax, a misregistered edge) moves
+    neither median while the other candidates agree, so sigma_c stays the noise even when
+    occluders reach most texels in some photo (the mean-based :func:`level_noise` then grows
+    with them, and L_Render's unit and the settling threshold with it). torch.nanquantile, not
+    nanmedian: nanmedian returns the lower of the two middle values of an even count, which is
+    0 for the distances of two photos.
+
+    Args:
+        colours: (K, 3, h, w) the candidates' colours.
+        visible: (K, h, w) bool, which candidates see each texel.
+        floor: noise floor (OptimizeConfig.sigma_min).
+    Returns:
+        sigma_c, or None when no texel has three candidates.
+    """
+    sel = visible.sum(0) >= 3
+    n = int(sel.sum())
+    if n == 0:
+        return None
+    flat = sel.flatten().nonzero()[:, 0]
+    flat = flat[:: max(1, n // NOISE_SAMPLES)]  # a regular subsample bounds memory and time
+    c = colours.flatten(2)[:, :, flat].float()  # (K, 3, n)
+    v = visible.flatten(1)[:, flat]
+    c = torch.where(v[:, None], c, torch.full_like(c, float("nan")))
+    med = torch.nanquantile(c, 0.5, dim=0)  # (3, n)
+    d = ((c - med[None]) ** 2).sum(1).sqrt()  # (K, n), NaN where not visible
+    s = torch.nanquantile(d, 0.5, dim=0)
+    return max(float(floor), float(s.median()) * math.sqrt(3.0) / CHI3_MEDIAN)
 
 
 LOG_ZERO = float(np.log(1e-6))  # the logit of a weight that starts at (practically) zero
@@ -406,6 +445,9 @@ def build_level(
         cost[:, y0:y1, x0:x1] = pick(cost[:, y0:y1, x0:x1], pc)
         w0[:, y0:y1, x0:x1] = pick(w0[:, y0:y1, x0:x1], weight)
     idx = torch.where(vis, idx, torch.full_like(idx, -1))
+    robust = robust_noise(cols, vis & mask, cfg.sigma_min)
+    if robust is not None:
+        noise = robust
     return Level(
         frame=frame,
         mask=mask,

@@ -346,6 +346,7 @@ def _run_level(
         "eliminated_pixels": n_elim,
         "dropped_photos": dropped_here,
         "settled_share": settled_share,
+        "noise": lv.noise,  # sigma_c: L_Render's unit and the settling threshold's
         # strip of the free texels' tiles against the level (1: the whole level was evaluated)
         "evaluated_share": co.layout.src.numel() / lv.mask.numel() if co is not None else 1.0,
         "active_slots_mean": float(st.active.sum(0).float()[lv.mask].mean()) if bool(lv.mask.any()) else 0.0,
