@@ -89,6 +89,17 @@ def base_config(long_side: int | None, preset: str | None = "fast", overrides: d
     return _merge(cfg, overrides or {})
 
 
+def size_note(long_side: int | None, cfg: dict) -> str:
+    """The tables' line on texel sizes: a fixed long side, or the preset's density."""
+    t = cfg["texture"]
+    if long_side:
+        return f"**Reduced sizes**: texture long side {long_side} for every method (paper: 2048); "
+    return (
+        f"Texel size: `density: {t['density']}` at density_scale {t.get('density_scale')} (max long side "
+        f"{t.get('max_long_side')}), per polygon from its photos, the same frames for every method; "
+    )
+
+
 def _merge(a: dict, b: dict) -> dict:
     out = copy.deepcopy(a)
     for k, v in b.items():

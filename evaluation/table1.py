@@ -77,13 +77,7 @@ def main(argv=None) -> int:
             f"'{synth['building']['name']}', {len(synth['building']['polygons'])} polygons, {sc.get('views')} photos "
             f"{sc.get('width')}x{sc.get('height')}, exposure range +-{sc.get('exposure_range')} stops, occluders "
             f"{'on' if sc.get('occluders') else 'off'}; ground-truth maps {sc.get('gt_long_side')} texels long side).",
-            (
-                f"**Reduced sizes**: texture long side {args.long_side} for every method (paper: 2048); "
-                if args.long_side
-                else f"Texel size: `density: {cfg['texture']['density']}` at density_scale "
-                f"{cfg['texture'].get('density_scale')} (max long side {cfg['texture'].get('max_long_side')}), "
-                "per polygon from its photos, the same frames for every method; "
-            )
+            C.size_note(args.long_side, cfg)
             + f"difftex preset `{args.preset}` ({cfg['optimize'].get('loss_mode')} loss, iteration caps "
             f"{cfg['optimize'].get('max_iters_per_level')}, coarse level {cfg['optimize'].get('long_side_start')}).",
             "Every method textures the same polygons from the same filtered photos and visibility masks; textures are "
@@ -143,7 +137,11 @@ def main(argv=None) -> int:
         for r in done:
             write_report(r["run"]["results"], scene=scene)
         comparison_page(
-            work / "index.html", "Table 1", "\n".join(lines), {r["method"]: r["run"]["results"] for r in done}
+            work / "index.html",
+            "Table 1",
+            "\n".join(lines),
+            {r["method"]: r["run"]["results"] for r in done},
+            scene=scene,
         )
         lines.append(
             f"HTML reports: `{work}/index.html` (one page per method with textures, source/error maps, loss curves)."

@@ -32,7 +32,8 @@ def main(argv=None) -> int:
                     help="comma-separated scene folders (default: every scene in ../shared/data)")
     ap.add_argument("--holdout", type=int, default=2, help="held-out photos per scene (evenly spread)")
     ap.add_argument("--holdout-names", default=None, help="comma-separated names instead (one scene only)")
-    ap.add_argument("--long-side", type=int, default=128)
+    ap.add_argument("--long-side", type=int, default=None,
+                    help="texture long side of every polygon and method (default: the preset's density, auto)")
     ap.add_argument("--preset", default="fast")
     ap.add_argument("--render-long-side", type=int, default=768, help="held-out views are compared at this size")
     ap.add_argument("--methods", default="difftex,average,frontal,mrf,texrecon,meshlab-face,meshlab-blend")
@@ -87,9 +88,8 @@ def main(argv=None) -> int:
                 for s in scenes
             )
             + ".",
-            f"**Reduced sizes** (2 shared CPU cores): texture long side {args.long_side} for every method (paper: "
-            "2048); "
-            f"difftex preset `{args.preset}` ({cfg['optimize'].get('loss_mode')} loss, iteration caps "
+            C.size_note(args.long_side, cfg)
+            + f"difftex preset `{args.preset}` ({cfg['optimize'].get('loss_mode')} loss, iteration caps "
             f"{cfg['optimize'].get('max_iters_per_level')}); held-out views compared at {args.render_long_side} px "
             "long side.",
             "SSIM / LPIPS / PSNR: the textured proxy rendered into each held-out camera against the held-out photo, "

@@ -37,7 +37,12 @@ torch.set_num_threads(1)  # the CI machine has 2 shared cores; intra-op threads 
 
 def test_level_sides():
     assert level_sides(2048, 256, True) == [256, 512, 1024, 2048]
-    assert level_sides(600, 256, True) == [256, 512, 600]
+    assert level_sides(600, 256, True) == [256, 600]  # 512 is within sqrt 2 of 600: left out
+    assert level_sides(912, 64, True) == [64, 128, 256, 512, 912]
+    assert level_sides(912, 64, True, step=4) == [64, 256, 912]
+    assert level_sides(1100, 64, True, step=4) == [64, 256, 1100]  # 1024 is within 2x of 1100
+    with pytest.raises(ValueError):
+        level_sides(912, 64, True, step=1.0)
     assert level_sides(200, 256, True) == [200]
     assert level_sides(2048, 256, False) == [2048]
 

@@ -47,7 +47,7 @@ def texture_polygon(
     device = pick_device(compute.device)
     photos = PhotoSet.load(inp, device, exact_decode=cfg.exact_decode)
     t_read = time.perf_counter() - t0
-    sides = level_sides(max(inp.frame.shape), cfg.long_side_start, cfg.coarse_to_fine)
+    sides = level_sides(max(inp.frame.shape), cfg.long_side_start, cfg.coarse_to_fine, cfg.level_step)
     match_frame = level_frame(inp.frame, min(cfg.long_side_start, max(inp.frame.shape)))
     mask = resample_nearest(inp.texel_mask, inp.frame, match_frame)
     raw = {n: photos.map(n, match_frame, mask) for n in sorted(photos.samplers)}

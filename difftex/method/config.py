@@ -30,6 +30,7 @@ class OptimizeConfig:
     """Parameters of the ``optimize:`` config section (paper defaults where the paper gives one)."""
 
     long_side_start: int = 256  # coarse-to-fine: first level's long side (paper: 256)
+    level_step: float = 2.0  # coarse-to-fine: ratio of a level's long side to the previous one's (paper: 2)
     top_k: int = 8  # candidate slots kept per texel
     loss_mode: LossMode = "texel"  # "texel" (mapped photos in texel space) or "render" (rendered into photo pixels)
     alpha: float = 1.0  # L_Render
@@ -80,6 +81,8 @@ class OptimizeConfig:
         _check_choice("histmatch_reference", self.histmatch_reference, ("best", "median", "pooled"))
         if not set(self.histmatch_channels) <= set("hsv") or not self.histmatch_channels:
             raise ValueError(f"histmatch_channels must be letters of 'hsv', got {self.histmatch_channels!r}")
+        if not 1.0 < float(self.level_step) <= 16.0:
+            raise ValueError(f"level_step must be in (1, 16], got {self.level_step}")
         if self.top_k < 1 or self.long_side_start < 1:
             raise ValueError("top_k and long_side_start must be >= 1")
         if not 0 <= self.tau < 1 or not 0 < self.tau_w <= 1:

@@ -101,8 +101,13 @@ def misalignment(U: torch.Tensor, colours: torch.Tensor, idx: torch.Tensor, visi
 
     h, w = mask.shape
     step = max(1, int(np.ceil(max(h, w) / max_side)))
-    grey_u = U.mean(0)[::step, ::step].cpu().numpy()
-    m = mask[::step, ::step].cpu().numpy()
+    # everything on the subsampled grid: the shares and coverage are estimates anyway, and the
+    # per-photo masks over the full (K, h, w) level cost more than the correlation
+    U, colours, idx, visible, W, mask = (
+        t[..., ::step, ::step] for t in (U, colours, idx, visible, W, mask)
+    )
+    grey_u = U.mean(0).cpu().numpy()
+    m = mask.cpu().numpy()
     n_tex = int(mask.sum())
     out: dict = {}
     mags, shares = [], []
@@ -112,8 +117,8 @@ def misalignment(U: torch.Tensor, colours: torch.Tensor, idx: torch.Tensor, visi
         share = float((W * (idx == n)).sum(0)[mask].sum()) / max(n_tex, 1)
         if int(seen.sum()) < min_share * n_tex or share <= 0:
             continue
-        col = (colours * sel[:, None]).sum(0).mean(0)[::step, ::step].cpu().numpy()
-        sm = seen[::step, ::step].cpu().numpy() & m
+        col = (colours * sel[:, None]).sum(0).mean(0).cpu().numpy()
+        sm = seen.cpu().numpy() & m
         if sm.sum() < 64:
             continue
         ys, xs = np.nonzero(m)

@@ -98,7 +98,7 @@ def optimize_polygon(
         "dropped": [],
         "config": cfg.to_dict(),
     }
-    sides = level_sides(max(inp.frame.shape), cfg.long_side_start, cfg.coarse_to_fine)
+    sides = level_sides(max(inp.frame.shape), cfg.long_side_start, cfg.coarse_to_fine, cfg.level_step)
     dropped: set[int] = set()
     prev: LevelState | None = None
     # Iterations against the levels' caps, on stderr, gone when done, and only on a terminal (a

@@ -1,0 +1,99 @@
+"""Side-by-side crops of the same polygon region from several methods and the ground truth.
+
+    python evaluation/side_by_side.py --scene data/synth/paper/archive \
+        --run difftex=evaluation/out/table1_archive/difftex \
+        --run texrecon=evaluation/out/table1_archive/texrecon \
+        --run "MeshLab blend=evaluation/out/table1_archive/meshlab-blend" \
+        --polygon wall00 --crop 0.3,0.2,0.6,0.6 --out docs/images/archive_wall00.png
+
+For a person to look at, not a metric: every method's texture is resampled into the ground
+truth's frame (the code Table 1 scores with, difftex.evaluation.evaluate.resample_texture), the
+same crop (fractions x0,y0,x1,y1 of the ground-truth map) is cut from each and the crops are
+written in one row, each under its label. Without ground truth (real scenes), the crops are cut
+from the first run's frame and the others are resampled into it.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+LABEL_H = 22  # pixels of the label strip above each crop
+GAP = 6  # pixels between crops
+
+
+def crop_box(shape: tuple[int, int], fractions: tuple[float, float, float, float]) -> tuple[int, int, int, int]:
+    """(y0, y1, x0, x1) pixels of the fractional box (x0, y0, x1, y1) in an (H, W) image."""
+    h, w = shape
+    fx0, fy0, fx1, fy1 = fractions
+    if not (0 <= fx0 < fx1 <= 1 and 0 <= fy0 < fy1 <= 1):
+        raise SystemExit(f"side_by_side: --crop {fractions}: need 0 <= x0 < x1 <= 1 and 0 <= y0 < y1 <= 1")
+    y0, x0 = round(fy0 * h), round(fx0 * w)
+    return y0, max(round(fy1 * h), y0 + 1), x0, max(round(fx1 * w), x0 + 1)
+
+
+def mosaic(crops: list[tuple[str, np.ndarray]], max_width: int):
+    """One row of labelled crops, each scaled (nearest) to fit ``max_width`` in all."""
+    from PIL import Image, ImageDraw
+
+    h, w = crops[0][1].shape[:2]
+    scale = max(1, (max_width - GAP * (len(crops) - 1)) // (w * len(crops)))
+    cw, ch = w * scale, h * scale
+    canvas = Image.new("RGB", (len(crops) * cw + GAP * (len(crops) - 1), ch + LABEL_H), "white")
+    draw = ImageDraw.Draw(canvas)
+    for i, (label, img) in enumerate(crops):
+        tile = Image.fromarray((np.clip(img, 0, 1) * 255 + 0.5).astype(np.uint8)).resize((cw, ch), Image.NEAREST)
+        x = i * (cw + GAP)
+        canvas.paste(tile, (x, LABEL_H))
+        draw.text((x + 3, 4), label, fill="black")
+    return canvas
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--scene", required=True, help="scene folder (its ground_truth/ is used when present)")
+    ap.add_argument("--run", action="append", required=True, help="LABEL=results folder (repeatable)")
+    ap.add_argument("--polygon", required=True)
+    ap.add_argument("--crop", default="0,0,1,1", help="x0,y0,x1,y1 as fractions of the map")
+    ap.add_argument("--max-width", type=int, default=1800, help="width of the written image, pixels")
+    ap.add_argument("--out", required=True, help="PNG to write")
+    args = ap.parse_args(argv)
+
+    from difftex.evaluation.evaluate import load_textures, resample_texture
+    from difftex.geometry.frames import UVFrame
+    from difftex.scene.files import read_image, read_json
+
+    runs = []
+    for spec in args.run:
+        label, _, folder = spec.partition("=")
+        if not folder:
+            raise SystemExit(f"side_by_side: --run {spec!r}: expected LABEL=FOLDER")
+        tex = load_textures(folder)
+        if args.polygon not in tex:
+            raise SystemExit(f"side_by_side: {folder}: no texture of polygon {args.polygon!r}")
+        runs.append((label, tex[args.polygon]))
+    gt = Path(args.scene) / "ground_truth"
+    if (gt / "frames" / f"{args.polygon}.json").is_file():
+        frame = UVFrame.from_dict(read_json(gt / "frames" / f"{args.polygon}.json"))
+        ref = [("ground truth", read_image(gt / "maps" / f"{args.polygon}.png"))]
+    else:
+        frame, ref = runs[0][1].frame, []
+    y0, y1, x0, x1 = crop_box(frame.shape, tuple(float(v) for v in args.crop.split(",")))
+    crops = [(label, resample_texture(pt.texture, pt.frame, frame)[y0:y1, x0:x1]) for label, pt in runs]
+    crops += [(label, img[y0:y1, x0:x1]) for label, img in ref]
+    out = Path(args.out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    tmp = out.with_name(out.stem + ".tmp.png")
+    mosaic(crops, args.max_width).save(tmp)
+    tmp.replace(out)
+    print(f"side_by_side: {out} ({len(crops)} crops of {x1 - x0}x{y1 - y0} texels)")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
