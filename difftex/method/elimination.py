@@ -78,21 +78,41 @@ def eliminate_pixels(lv: Level, active: torch.Tensor, W: torch.Tensor, cfg: Opti
     return out & one
 
 
-def photo_zero_share(lv: Level, base: torch.Tensor, W: torch.Tensor, tau: float, n_photos: int) -> torch.Tensor:
-    """Per photo: share of the texels it could serve (base) where its weight is zero (<= tau); -1 if none."""
-    idx = lv.idx.clamp_min(0).reshape(-1)
-    b = base.reshape(-1).double()
-    z = (base & (W <= tau)).reshape(-1).double()
-    tot = torch.bincount(idx, weights=b, minlength=n_photos)
-    zero = torch.bincount(idx, weights=z, minlength=n_photos)
+def _photo_counts(idx: torch.Tensor, base: torch.Tensor, W: torch.Tensor, tau: float, n_photos: int):
+    """Per photo: (texels it could serve, those where its weight is zero), float64 (n_photos,)."""
+    i = idx.clamp_min(0).reshape(-1)
+    tot = torch.bincount(i, weights=base.reshape(-1).double(), minlength=n_photos)
+    zero = torch.bincount(i, weights=(base & (W <= tau)).reshape(-1).double(), minlength=n_photos)
+    return tot, zero
+
+
+def settled_counts(
+    lv: Level, base: torch.Tensor, W: torch.Tensor, tau: float, n_photos: int, settled: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """photo_zero_share's counts over the settled texels alone ((h, w) bool ``settled``): the
+    constant part of the counts while the free texels are optimized on their own."""
+    keep = settled[None]
+    return _photo_counts(lv.idx, base & keep, W, tau, n_photos)
+
+
+def photo_zero_share(
+    lv: Level, base: torch.Tensor, W: torch.Tensor, tau: float, n_photos: int, extra: tuple | None = None
+) -> torch.Tensor:
+    """Per photo: share of the texels it could serve (base) where its weight is zero (<= tau); -1 if none.
+
+    ``extra``: counts (served, zero) of texels outside ``lv`` to add (settled_counts).
+    """
+    tot, zero = _photo_counts(lv.idx, base, W, tau, n_photos)
+    if extra is not None:
+        tot, zero = tot + extra[0], zero + extra[1]
     return torch.where(tot > 0, zero / tot.clamp_min(1), torch.full_like(tot, -1.0))
 
 
 def photos_to_drop(
-    lv: Level, base: torch.Tensor, W: torch.Tensor, tau: float, tau_w: float, n_photos: int
+    lv: Level, base: torch.Tensor, W: torch.Tensor, tau: float, tau_w: float, n_photos: int, extra: tuple | None = None
 ) -> list[int]:
     """Photos whose weight is zero (<= tau) on more than tau_w of the texels they could serve."""
-    share = photo_zero_share(lv, base, W, tau, n_photos)
+    share = photo_zero_share(lv, base, W, tau, n_photos, extra)
     return [int(k) for k in torch.nonzero(share > tau_w).flatten().tolist()]
 
 
@@ -116,20 +136,26 @@ def dropped_slot_mask(
     return ds & ~keep
 
 
-def settled_texels(lv: Level, active: torch.Tensor, k: float) -> torch.Tensor:
-    """(h, w) bool: texels whose active candidates all agree, within ``k`` times the level's
-    photometric noise sigma_c (Level.noise) of their Q-weighted mean.
+def settled_texels(
+    lv: Level, active: torch.Tensor, base: torch.Tensor, k: float
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Texels whose active candidates all agree, within ``k`` times the level's photometric
+    noise sigma_c (Level.noise) of their Q-weighted mean, and the candidates that agree there.
 
     There the objective has nothing to decide: no occluder to reject, no misregistration or
     relief to choose between, and a blend averages the photos' noise away. The optimization
-    leaves these texels at their Q-proportional blend and spends its iterations on the others
-    (a level where every texel is settled runs none).
+    leaves these texels at the Q-proportional blend of every candidate (``base``: active or not)
+    within the same distance of that mean, and spends its iterations on the others (a level
+    where every texel is settled runs none). Candidates that were left out and disagree (an
+    occluder the coarser level or the elimination removed) stay out.
 
-    Shapes: active (K, h, w) bool -> (h, w) bool.
+    Shapes: active, base (K, h, w) bool -> settled (h, w) bool, agree (K, h, w) bool.
     """
     a = active.to(lv.Q.dtype) * lv.Q
     wsum = a.sum(0)
     mu = (a[:, None] * lv.colours).sum(0) / wsum.clamp_min(1e-12)
     d2 = ((lv.colours - mu[None]) ** 2).sum(1)
-    worst = torch.where(active, d2, torch.zeros_like(d2)).amax(0)
-    return lv.mask & (wsum > 0) & (worst <= (k * lv.noise) ** 2)
+    near = d2 <= (k * lv.noise) ** 2
+    worst_ok = (near | ~active).all(0)
+    settled = lv.mask & (wsum > 0) & worst_ok
+    return settled, (base | active) & near & settled[None]

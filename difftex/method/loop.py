@@ -19,7 +19,7 @@ import torch
 from rich.console import Console
 from rich.progress import MofNCompleteColumn, Progress
 
-from difftex.method import alignment, compact, diagnostics, losses
+from difftex.method import alignment, diagnostics, losses, sparse
 from difftex.method.config import ComputeConfig, OptimizeConfig
 from difftex.method.elimination import (
     base_mask,
@@ -27,6 +27,7 @@ from difftex.method.elimination import (
     eliminate_pixels,
     photo_zero_share,
     photos_to_drop,
+    settled_counts,
     settled_texels,
     update_activation,
 )
@@ -57,9 +58,22 @@ class Result:
     stats: dict
 
 
-def weight_change(W: torch.Tensor, W_old: torch.Tensor, mask: torch.Tensor, q: float = 0.99) -> float:
+SPARSE_MAX_SHARE = 0.5  # iterate on the free texels' sub-level when they are at most this share
+
+
+def weight_change(
+    W: torch.Tensor, W_old: torch.Tensor, mask: torch.Tensor, q: float = 0.99, fixed_share: float = 0.0
+) -> float:
     """The ``q`` quantile over the polygon's texels of the total-variation distance between two
-    sets of blend weights: sum_k |W_k - W'_k| / 2 is the share of a texel's weight that moved."""
+    sets of blend weights: sum_k |W_k - W'_k| / 2 is the share of a texel's weight that moved.
+
+    ``fixed_share``: the share of the polygon's texels that are not in ``mask`` and did not move
+    (the settled texels when W is the free texels' sub-level): the quantile is the polygon's.
+    """
+    if fixed_share > 0.0:
+        if q <= fixed_share:
+            return 0.0
+        q = (q - fixed_share) / (1.0 - fixed_share)
     d = 0.5 * (W - W_old).abs().sum(0)[mask]
     if d.numel() == 0:
         return 0.0
@@ -243,8 +257,10 @@ def _run_level(
     settled_share = 0.0
     if cfg.settle_sigma > 0:
         with torch.no_grad():
-            settled = settled_texels(lv, st.active, cfg.settle_sigma)
-            st.z = torch.where(settled[None], init_logits(lv.Q * base), st.z)
+            settled, agree = settled_texels(lv, st.active, base, cfg.settle_sigma)
+            # the Q blend of the candidates that agree: Q x base would bring back the photos the
+            # coarser level or the first elimination left out for disagreeing (an occluder)
+            st.z = torch.where(settled[None], init_logits(lv.Q * agree), st.z)
             st.active = update_activation(st.z, base, cfg.tau)
             free = (~settled).to(st.z.dtype)[None]
             settled_share = float(settled.sum()) / lv.n_tex
@@ -255,28 +271,40 @@ def _run_level(
     if cfg.use_para:
         st.matches = {a: losses.neighbour_match(lv.idx, free_mask, a, fixed=lv.fixed_slots) for a in (1, 2)}
     anything = (cfg.use_render or cfg.use_persp or cfg.use_para) and settled_share < 1.0
-    co = None  # the objective on the free texels' tiles alone (difftex.method.compact)
-    if free is not None and anything and cfg.loss_mode == "texel":
-        lay = compact.tile_layout(free_mask)
-        if lay is not None:
-            co = compact.compact_objective(lay, lv.colours, render_weights(lv, cfg), lv.cost, lv.G, lv.idx,
-                                           free_mask, lv.n_tex, ghost_margin(lv, cfg), lv.fixed_slots, cfg.use_para)
-    fn = compiled_objective(lv, cfg.loss_mode, compute, slots=co.slots if co is not None else None)
+    # The iterations run on ``cur``: the level, or the sub-level of its free texels
+    # (difftex.method.sparse) when most texels are settled and the loss is the texel one.
+    sp = None
+    cur, lvc, extra = st, lv, None
+    if free is not None and anything and cfg.loss_mode == "texel" and 1.0 - settled_share <= SPARSE_MAX_SHARE:
+        with torch.no_grad():
+            sp = sparse.sparse_level(lv, free_mask, render_weights(lv, cfg), ghost_margin(lv, cfg))
+            lvc = sp.sub
+            cur = LevelState(level=lvc, z=sparse.gather(st.z, sp.src), active=sparse.gather(st.active, sp.src),
+                             eliminated=sparse.gather(st.eliminated, sp.src))
+            # the photo drop counts the settled texels as they stand (they do not change)
+            settled_in = settled & lv.mask
+            extra = settled_counts(lv, base, losses.blend_weights(st.z, base), cfg.tau, N, settled_in)
+            drop_slots = sparse.gather(drop_slots, sp.src)
+            base = sparse.gather(base, sp.src)
+            free = None
+    fn = compiled_objective(lvc, cfg.loss_mode, compute)
     if fn is None and cfg.loss_mode == "render":
         fn = objective  # autograd needs the function; the texel loss has its own gradient
     iter_times: list[float] = []
     W_check = losses.blend_weights(st.z, st.active)
     dominant_start = diagnostics.dominant_photo(lv.idx, W_check)
+    W_check = losses.blend_weights(cur.z, cur.active)
+    fixed_share = settled_share if sp is not None else 0.0  # texels outside ``cur`` that do not move
     changes: list[float] = []
     for it in range(1, cap + 1 if anything else 1):
-        st.it = it
+        cur.it = it
         t_it = time.perf_counter()
         try:
-            if co is not None:
+            if sp is not None:
                 due = it % max(cfg.eliminate_every, 1) == 0  # L_Para's edge weights are refreshed
-                terms, grad = compact.value_and_grad(st.z, st.active, co, cfg, due, fn)
+                terms, grad = sparse.value_and_grad(sp, cur.z, cur.active, cfg, due, fn)
             else:
-                terms, grad = value_and_grad(st, cfg, fn)
+                terms, grad = value_and_grad(cur, cfg, fn)
         except Exception as e:  # noqa: BLE001 - compilation needs a C++ toolchain; eager always works
             if fn is None or fn is objective:
                 raise
@@ -284,50 +312,57 @@ def _run_level(
             warnings.warn(f"torch.compile failed ({reason}); running eagerly", stacklevel=2)
             stats["compile_failed"] = reason
             fn = objective if cfg.loss_mode == "render" else None
-            if co is not None:
-                terms, grad = compact.value_and_grad(st.z, st.active, co, cfg, True, fn)
+            if sp is not None:
+                terms, grad = sparse.value_and_grad(sp, cur.z, cur.active, cfg, True, fn)
             else:
-                terms, grad = value_and_grad(st, cfg, fn)
+                terms, grad = value_and_grad(cur, cfg, fn)
         for k in hist:
             hist[k].append(float(terms[k]) if k in terms else 0.0)
         with torch.no_grad():
             assert grad is not None  # fn is set, so the gradient is
             if free is not None:
                 grad = grad * free  # settled texels keep their blend
-            adam.step(st.z, grad)
-            W = losses.blend_weights(st.z, base)
+            adam.step(cur.z, grad)
+            W = losses.blend_weights(cur.z, base)
             if cfg.data_elimination:
                 if it >= cfg.min_iters_per_level // 2:
-                    cand = [n for n in photos_to_drop(lv, base, W, cfg.tau, cfg.tau_w, N) if n not in dropped]
+                    cand = [n for n in photos_to_drop(lvc, base, W, cfg.tau, cfg.tau_w, N, extra) if n not in dropped]
                     if cand:
                         # one photo per check (the worst): dropping changes everyone's weights
-                        shares = photo_zero_share(lv, base, W, cfg.tau, N)
+                        shares = photo_zero_share(lvc, base, W, cfg.tau, N, extra)
                         n = max(cand, key=lambda k: (float(shares[k]), -k))
                         dropped.add(n)
                         dropped_here.append(stats["photos"][n])
                         stats["dropped"].append({"photo": stats["photos"][n], "level": li, "iteration": it})
-                        drop_slots = dropped_slot_mask(lv, st.eliminated, dropped, W)
+                        drop_slots = dropped_slot_mask(lvc, cur.eliminated, dropped, W)
                 if it % max(cfg.eliminate_every, 1) == 0:
-                    elim = eliminate_pixels(lv, st.active, losses.blend_weights(st.z, st.active), cfg)
-                    st.eliminated |= elim
+                    elim = eliminate_pixels(lvc, cur.active, losses.blend_weights(cur.z, cur.active), cfg)
+                    cur.eliminated |= elim
                     n_elim += int(elim.sum())
                     if dropped:
-                        drop_slots = dropped_slot_mask(lv, st.eliminated, dropped, W)
-            base = base_mask(lv, st.eliminated, drop_slots)
-            st.active = update_activation(st.z, base, cfg.tau)
+                        drop_slots = dropped_slot_mask(lvc, cur.eliminated, dropped, W)
+            base = base_mask(lvc, cur.eliminated, drop_slots)
+            cur.active = update_activation(cur.z, base, cfg.tau)
         iter_times.append(time.perf_counter() - t_it)
         advance(1)
         if it % cfg.conv_window == 0:
             # Converged: over the last conv_window iterations almost every texel (99 %) moved
             # less than conv_tol of its weight.
-            W_now = losses.blend_weights(st.z, st.active)
-            changes.append(weight_change(W_now, W_check, lv.mask))
+            W_now = losses.blend_weights(cur.z, cur.active)
+            changes.append(weight_change(W_now, W_check, lvc.mask, fixed_share=fixed_share))
             W_check = W_now
             if it >= cfg.min_iters_per_level and changes[-1] < cfg.conv_tol:
                 converged = True
                 break
     if it < cap:
         advance(cap - it)
+    if sp is not None:
+        with torch.no_grad():  # the free texels back into the level; drops reach the settled ones too
+            sparse.scatter_into(st.z, cur.z, sp.src)
+            sparse.scatter_into(st.eliminated, cur.eliminated, sp.src)
+            W_full = losses.blend_weights(st.z, st.active)
+            full_drop = dropped_slot_mask(lv, st.eliminated, dropped, W_full)
+            st.active = update_activation(st.z, base_mask(lv, st.eliminated, full_drop), cfg.tau)
     final_terms = {k: float(v) for k, v in value_and_grad(st, cfg)[0].items()}
     W_end = losses.blend_weights(st.z, st.active)
     lvl_stats = {
@@ -347,8 +382,8 @@ def _run_level(
         "dropped_photos": dropped_here,
         "settled_share": settled_share,
         "noise": lv.noise,  # sigma_c: L_Render's unit and the settling threshold's
-        # strip of the free texels' tiles against the level (1: the whole level was evaluated)
-        "evaluated_share": co.layout.src.numel() / lv.mask.numel() if co is not None else 1.0,
+        # texels the iterations ran on against the level's (1: the whole level, not the sub-level)
+        "evaluated_share": sp.src.numel() / lv.mask.numel() if sp is not None else 1.0,
         "active_slots_mean": float(st.active.sum(0).float()[lv.mask].mean()) if bool(lv.mask.any()) else 0.0,
         "tensor_bytes": lv.nbytes(),
         "final": final_terms,

@@ -209,7 +209,6 @@ def neighbour_match(idx: torch.Tensor, mask: torch.Tensor, axis: int, fixed: boo
     ``fixed``: every slot holds one photo at all texels (weights of photos that do not see a
     texel are 0 there), so slots correspond directly and no gather is needed.
     """
-    K = idx.shape[0]
     if axis == 1:
         io, iq = idx[:, 1:, :], idx[:, :-1, :]
         ok = mask[1:, :] & mask[:-1, :]
@@ -218,15 +217,23 @@ def neighbour_match(idx: torch.Tensor, mask: torch.Tensor, axis: int, fixed: boo
         ok = mask[:, 1:] & mask[:, :-1]
     if fixed:
         return NeighbourMatch(match=None, q_alone=None, pair_ok=ok)
+    match, q_alone = slot_match(io, iq)
+    return NeighbourMatch(match=match, q_alone=q_alone, pair_ok=ok)
+
+
+def slot_match(io: torch.Tensor, iq: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """For texels o and their neighbours q (photo per slot, -1 empty, same shape (K, ...)):
+    ``match[j]``, the slot of q holding the photo of slot j of o (-1: none), and ``q_alone[l]``,
+    the slots of q whose photo is not among o's."""
+    K = io.shape[0]
     match = torch.full_like(io, -1)
-    q_in_o = torch.zeros(io.shape, dtype=torch.bool, device=idx.device)
-    # K x K comparisons, done slot by slot to keep the temporary at (h, w).
+    q_in_o = torch.zeros(io.shape, dtype=torch.bool, device=io.device)
+    # K x K comparisons, done slot by slot to keep the temporary at the texels' size.
     for slot in range(K):
         same = (io == iq[slot : slot + 1]) & (io >= 0)
         match = torch.where(same & (match < 0), torch.full_like(match, slot), match)
         q_in_o[slot] = same.any(0)
-    q_alone = (~q_in_o) & (iq >= 0)
-    return NeighbourMatch(match=match, q_alone=q_alone, pair_ok=ok)
+    return match, (~q_in_o) & (iq >= 0)
 
 
 def crop_pair(x: torch.Tensor, axis: int, which: str) -> torch.Tensor:
