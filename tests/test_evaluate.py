@@ -14,11 +14,11 @@ from difftex.evaluation.evaluate import (
     PolygonTexture,
     check_same_plane,
     evaluate_maps,
-    render_proxy,
     resample_texture,
     view_weights,
 )
 from difftex.evaluation.holdout import prepare_holdout
+from difftex.evaluation.views import render_proxy
 from difftex.geometry.frames import UVFrame, texel_mask, uv_frame
 from difftex.scene.files import write_image, write_json
 from difftex.scene.proxy import Polygon

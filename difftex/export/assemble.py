@@ -411,7 +411,7 @@ def render_view(glb: str | Path, proxy, photo, long_side: int = 512) -> tuple[np
     Returns (render (h, w, 3), covered (h, w) bool, pixel centres (h, w, 2)) at a stride that
     makes the long side about ``long_side``.
 
-    Not shared with ``difftex.evaluation.evaluate.render_proxy`` on purpose: this one checks the
+    Not shared with ``difftex.evaluation.views.render_proxy`` on purpose: this one checks the
     written file, so it reads everything from the reloaded GLB (its UVs, its 8-bit atlas pages with
     their dilated borders, the grey patch of untextured polygons, which it counts as covered);
     render_proxy scores a results folder's own per-polygon textures (any method's: baselines and
