@@ -299,6 +299,7 @@ def _run_level(
     for it in range(1, cap + 1 if anything else 1):
         cur.it = it
         t_it = time.perf_counter()
+        grad: torch.Tensor | None  # None only from an evaluation without a gradient
         try:
             if sp is not None:
                 due = it % max(cfg.eliminate_every, 1) == 0  # L_Para's edge weights are refreshed
