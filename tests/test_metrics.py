@@ -501,3 +501,21 @@ def test_texture_metrics_keys():
     assert set(out) == {"error90", "error95", "ssim", "psnr", "lpips", "lpips_variant"}
     assert out["error90"] <= out["error95"] and 0 < out["ssim"] < 1 and out["lpips"] > 0
     assert out["lpips_variant"].startswith("ST-LPIPS")
+
+
+def test_mean_gradient_orders_blur_sharp_and_noise():
+    rng = np.random.default_rng(0)
+    x = np.linspace(0, 8 * np.pi, 64)
+    sharp = np.repeat(np.repeat((np.sin(x) > 0).astype(float)[None, :, None], 64, 0), 3, 2) * 0.8 + 0.1
+    from scipy.ndimage import uniform_filter
+
+    blurred = uniform_filter(sharp, size=(1, 5, 1), mode="nearest")
+    noisy = np.clip(sharp + rng.normal(0, 0.1, sharp.shape), 0, 1)
+    g = {k: metrics.mean_gradient(v) for k, v in (("blur", blurred), ("sharp", sharp), ("noise", noisy))}
+    assert g["blur"] < g["sharp"] < g["noise"]
+    # 8 edges of height 0.8 across 63 column pairs per row, none between rows; half the pairs are vertical
+    assert g["sharp"] == pytest.approx(0.8 * 8 / 63 / 2, rel=0.15)
+    one = np.zeros((64, 64), bool)
+    one[5, 5] = True
+    with pytest.raises(DifftexError, match="no pair"):
+        metrics.mean_gradient(sharp, one)
