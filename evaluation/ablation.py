@@ -1,7 +1,7 @@
 """Ablation (paper Fig. 5): difftex with each loss term and each data-quality step off in turn.
 
-    python evaluation/ablation.py                      # tiny synthetic scene, 2 facades, 128-texel maps
-    python evaluation/ablation.py --polygons all --long-side 256
+    python evaluation/ablation.py                      # tiny synthetic scene, 2 facades, preset fast
+    python evaluation/ablation.py --scene data/synth/paper/archive --polygons all --peers ""
 
 Every variant textures the same polygons from the same visibility files and is scored against
 the ground-truth maps (Error 90/95, SSIM, LPIPS) and for perspective quality (Q_front, Q_vc).
@@ -22,10 +22,12 @@ from evaluation import peers as P  # noqa: E402
 VARIANTS = {
     "full": ({}, "all terms and steps on"),
     "no_render": ({"use_render": False}, "without L_Render (and its sparsity term)"),
-    "no_sparsity": ({"use_sparsity": False}, "without the L1 sparsity term inside L_Render"),
+    "no_ghost": ({"ghost": 0.0}, "without the ghost term beside L_Render (the paper's L_Render alone)"),
     "no_persp": ({"use_persp": False}, "without L_Persp"),
     "no_para": ({"use_para": False}, "without L_Para"),
     "no_elimination": ({"data_elimination": False}, "without photo / pixel elimination"),
+    "no_settling": ({"settle_sigma": 0.0}, "every texel optimized (no settled texels)"),
+    "no_alignment": ({"align": False}, "without the photos' alignment"),
     "no_histmatch": ({"histogram_matching": False}, "without HSV histogram matching"),
     "histmatch_best": (
         {"histmatch_reference": "best"},
@@ -43,7 +45,8 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--scene", default="evaluation/out/scenes/tiny")
     ap.add_argument("--polygons", default="wall00,wall01", help="comma-separated ids, or 'all'")
-    ap.add_argument("--long-side", type=int, default=128)
+    ap.add_argument("--long-side", type=int, default=None,
+                    help="texture long side of every polygon (default: the preset's density, auto)")
     ap.add_argument("--preset", default="fast")
     ap.add_argument("--variants", default=",".join(VARIANTS))
     ap.add_argument("--peers", default=",".join(P.PEERS), help="peer programs as reference rows ('' for none)")
@@ -78,11 +81,11 @@ def main(argv=None) -> int:
     mach = C.machine()
     notes = [
         f"Scene `{scene}`, polygons: {', '.join(r['id'] for r in common['polygons'])}.",
-        f"**Reduced sizes**: texture long side {args.long_side}, difftex preset `{args.preset}` "
+        C.size_note(args.long_side, cfg) + f"difftex preset `{args.preset}` "
         f"({cfg['optimize'].get('loss_mode')} loss, iteration caps {cfg['optimize'].get('max_iters_per_level')}).",
-        "One switch of the `optimize:` section off per row (OptimizeConfig: use_render, use_sparsity, use_persp, "
-        "use_para, data_elimination, histogram_matching, coarse_to_fine), or another histogram-matching reference "
-        "(histmatch_reference; default median); everything else as in `full`.",
+        "One switch of the `optimize:` section off per row (OptimizeConfig: use_render, ghost, use_persp, "
+        "use_para, data_elimination, settle_sigma, align, histogram_matching, coarse_to_fine), or another "
+        "histogram-matching reference (histmatch_reference; default median); everything else as in `full`.",
         "Maps scored against ground truth as in Table 1; time is texturing (init + optimize + histmatch) summed over "
         "the polygons.",
         "Peer rows: the peer programs on the same polygons and photos, for reference (not difftex variants).",
@@ -97,17 +100,20 @@ def main(argv=None) -> int:
         )
     ]
     lv = next((r["metrics"]["maps"]["overall"]["lpips_variant"] for r in rows if r.get("metrics")), "n/a")
-    lines.append(f"| Variant | Error (90%) | Error (95%) | SSIM | LPIPS ({lv}) | PSNR | Q_front | Q_vc | Time (s) |")
-    lines.append("|---|---|---|---|---|---|---|---|---|")
+    lines.append(
+        f"| Variant | Error (90%) | Error (95%) | SSIM | LPIPS ({lv}) | Sharpness vs GT | PSNR | Q_front | Q_vc | "
+        "Time (s) |"
+    )
+    lines.append("|---|---|---|---|---|---|---|---|---|---|")
     for r in rows:
         if r.get("missing"):
-            lines.append(P.missing_line(r["what"], r["missing"], 9))
+            lines.append(P.missing_line(r["what"], r["missing"], 10))
             continue
         o = r["metrics"]["maps"]["overall"]
         q = r["metrics"].get("perspective", {})
         lines.append(
             f"| {r['what']} | {C.fmt(o['error90'])} | {C.fmt(o['error95'])} | {C.fmt(o['ssim'])} | "
-            f"{C.fmt(o['lpips'])} | "
+            f"{C.fmt(o['lpips'])} | {C.fmt(o.get('sharpness'), 3)} | "
             f"{C.fmt(o['psnr'], 2)} | {C.fmt(q.get('q_front'))} | {C.fmt(q.get('q_vc'))} | {r['run']['total_s']:.0f} |"
         )
     C.finish_table(Path(args.out), lines, t_all, mach, args, rows)
