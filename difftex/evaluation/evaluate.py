@@ -211,7 +211,8 @@ def evaluate_maps(
         row.update(error90=pe[90.0], error95=pe[95.0], psnr=metrics.psnr(img, ref, gmask))
         row["ssim"] = metrics.ssim(img, ref, gmask) if min(gmask.shape) >= 11 else None
         # Sharpness against the ground truth's: below 1 blurred, above 1 noise or seams.
-        g_ref = metrics.mean_gradient(ref, gmask) if min(gmask.shape) >= 2 else 0.0
+        pairs = bool((gmask[:, 1:] & gmask[:, :-1]).any() or (gmask[1:] & gmask[:-1]).any())
+        g_ref = metrics.mean_gradient(ref, gmask) if pairs else 0.0
         row["sharpness"] = metrics.mean_gradient(img, gmask) / g_ref if g_ref > 0 else None
         if lp_variant and min(gmask.shape) >= metrics.LPIPS_MIN_SIDE:
             row["lpips"], lp_label = metrics.lpips(img, ref, gmask, variant=lp_variant, device=cfg.device)

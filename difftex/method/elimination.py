@@ -149,7 +149,8 @@ def settled_texels(
     where every texel is settled runs none). Candidates that were left out and disagree (an
     occluder the coarser level or the elimination removed) stay out.
 
-    Shapes: active, base (K, h, w) bool -> settled (h, w) bool, agree (K, h, w) bool.
+    Shapes: active, base (K, h, w) bool (active within base, as update_activation makes it)
+    -> settled (h, w) bool, agree (K, h, w) bool.
     """
     a = active.to(lv.Q.dtype) * lv.Q
     wsum = a.sum(0)
@@ -158,4 +159,4 @@ def settled_texels(
     near = d2 <= (k * lv.noise) ** 2
     worst_ok = (near | ~active).all(0)
     settled = lv.mask & (wsum > 0) & worst_ok
-    return settled, (base | active) & near & settled[None]
+    return settled, base & near & settled[None]

@@ -226,6 +226,13 @@ def _align(photos: PhotoSet, frame, transfers, prev: LevelState | None, cfg: Opt
             "max_update_px": max(moved, default=0.0), "time_s": time.perf_counter() - t0}
 
 
+def _evaluate(cur: LevelState, sp: sparse.SparseLevel | None, cfg: OptimizeConfig, fn, refresh: bool):
+    """The terms of L and dL/dz on the level, or on its free texels' sub-level ``sp``."""
+    if sp is not None:
+        return sparse.value_and_grad(sp, cur.z, cur.active, cfg, refresh, fn)
+    return value_and_grad(cur, cfg, fn)
+
+
 def _run_level(
     lv: Level, li: int, cfg: OptimizeConfig, compute: ComputeConfig, dropped: set[int], stats: dict,
     advance: Callable[[float], None],
@@ -282,8 +289,7 @@ def _run_level(
             cur = LevelState(level=lvc, z=sparse.gather(st.z, sp.src), active=sparse.gather(st.active, sp.src),
                              eliminated=sparse.gather(st.eliminated, sp.src))
             # the photo drop counts the settled texels as they stand (they do not change)
-            settled_in = settled & lv.mask
-            extra = settled_counts(lv, base, losses.blend_weights(st.z, base), cfg.tau, N, settled_in)
+            extra = settled_counts(lv, base, losses.blend_weights(st.z, base), cfg.tau, N, settled)
             drop_slots = sparse.gather(drop_slots, sp.src)
             base = sparse.gather(base, sp.src)
             free = None
@@ -293,19 +299,16 @@ def _run_level(
     iter_times: list[float] = []
     W_check = losses.blend_weights(st.z, st.active)
     dominant_start = diagnostics.dominant_photo(lv.idx, W_check)
-    W_check = losses.blend_weights(cur.z, cur.active)
+    if sp is not None:
+        W_check = losses.blend_weights(cur.z, cur.active)
     fixed_share = settled_share if sp is not None else 0.0  # texels outside ``cur`` that do not move
     changes: list[float] = []
     for it in range(1, cap + 1 if anything else 1):
         cur.it = it
         t_it = time.perf_counter()
-        grad: torch.Tensor | None  # None only from an evaluation without a gradient
+        due = it % max(cfg.eliminate_every, 1) == 0  # L_Para's edge weights are refreshed
         try:
-            if sp is not None:
-                due = it % max(cfg.eliminate_every, 1) == 0  # L_Para's edge weights are refreshed
-                terms, grad = sparse.value_and_grad(sp, cur.z, cur.active, cfg, due, fn)
-            else:
-                terms, grad = value_and_grad(cur, cfg, fn)
+            terms, grad = _evaluate(cur, sp, cfg, fn, due)
         except Exception as e:  # noqa: BLE001 - compilation needs a C++ toolchain; eager always works
             if fn is None or fn is objective:
                 raise
@@ -313,10 +316,7 @@ def _run_level(
             warnings.warn(f"torch.compile failed ({reason}); running eagerly", stacklevel=2)
             stats["compile_failed"] = reason
             fn = objective if cfg.loss_mode == "render" else None
-            if sp is not None:
-                terms, grad = sparse.value_and_grad(sp, cur.z, cur.active, cfg, True, fn)
-            else:
-                terms, grad = value_and_grad(cur, cfg, fn)
+            terms, grad = _evaluate(cur, sp, cfg, fn, True)
         for k in hist:
             hist[k].append(float(terms[k]) if k in terms else 0.0)
         with torch.no_grad():

@@ -105,7 +105,7 @@ def value_and_grad(st: LevelState, cfg: OptimizeConfig, fn=None) -> tuple[dict[s
     return {k: v.detach() for k, v in terms.items()}, z.grad
 
 
-def compiled_objective(lv: Level, loss_mode: str, compute: ComputeConfig, slots: int | None = None):
+def compiled_objective(lv: Level, loss_mode: str, compute: ComputeConfig):
     """The level's loss function torch.compile'd, or None to run it eagerly: ``objective``
     (autograd through it) for the render loss, ``texel_value_and_grad`` for the texel loss.
 
@@ -117,10 +117,9 @@ def compiled_objective(lv: Level, loss_mode: str, compute: ComputeConfig, slots:
     0.70 vs 0.34 s (evaluation/bench_optimize_texel_compile.md). Saving ~0.1 us per slot and
     iteration repays the compilation at about 130 M slot-iterations, i.e. from ~4 M slots at the
     finer levels' 40-80 iteration caps: ``auto`` compiles levels with at least
-    ``compile_min_slots`` slot entries (``slots``: the number evaluated, when not the level's).
+    ``compile_min_slots`` slot entries (a sub-level of free texels counts its own).
     """
     mode = compute.compile
-    n = slots if slots is not None else lv.idx.numel()
-    if mode == "off" or (mode == "auto" and n < compute.compile_min_slots):
+    if mode == "off" or (mode == "auto" and lv.idx.numel() < compute.compile_min_slots):
         return None
     return torch.compile(objective if loss_mode == "render" else texel_value_and_grad, dynamic=False)

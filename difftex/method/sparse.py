@@ -18,6 +18,7 @@ loss only) and elimination on settled texels (they are settled because their pho
 from __future__ import annotations
 
 import dataclasses
+import functools
 from dataclasses import dataclass
 
 import torch
@@ -160,6 +161,13 @@ def para_value_and_grad(
     return total, g
 
 
+@functools.lru_cache(maxsize=8)
+def _without_para(cfg):
+    """``cfg`` with L_Para off, for texel_value_and_grad (L_Para runs on the edges here): one
+    object per config, so a compiled gradient sees the same argument every iteration."""
+    return dataclasses.replace(cfg, use_para=False)
+
+
 def value_and_grad(
     sp: SparseLevel, z: torch.Tensor, active: torch.Tensor, cfg, refresh: bool, fn=None
 ) -> tuple[dict[str, torch.Tensor], torch.Tensor]:
@@ -171,9 +179,8 @@ def value_and_grad(
         refresh: recompute L_Para's edge weights first (every ``eliminate_every`` iterations).
         fn: the compiled gradient.texel_value_and_grad, or None (eager).
     """
-    local = dataclasses.replace(cfg, use_para=False)
     with torch.no_grad():
-        terms, grad = (fn or texel_value_and_grad)(z, active, sp.texel, None, {}, local)
+        terms, grad = (fn or texel_value_and_grad)(z, active, sp.texel, None, {}, _without_para(cfg))
         if cfg.use_para:
             if refresh or any(e.D is None for e in sp.edges.values()):
                 refresh_edge_weights(sp, z, active)
