@@ -13,6 +13,7 @@ from pathlib import Path
 
 import pytest
 
+from difftex.cli import main as cli_main
 from difftex.errors import DifftexError
 from difftex.workflow import glue as wf
 
@@ -98,7 +99,8 @@ def test_stage_files_hold_only_their_sections_and_are_named_by_their_content(tmp
     paths2 = wf.stage_config_paths(tmp_path, {s: wf.stage_config_text(cfg2, s) for s in wf.STAGE_SECTIONS})
     # only the texture stage's file changes name, so only what reads it reruns
     assert {s for s in paths if paths[s] != paths2[s]} == {"texture"}
-    wf.write_stage_config(paths2["texture"], wf.stage_config_text(cfg2, "texture"))
+    # the stage_config rule's command
+    assert cli_main(["stage-config", "--out", str(paths2["texture"]), "--text", wf.stage_config_text(cfg2, "texture")]) == 0
     assert "0.02" in Path(paths2["texture"]).read_text()
 
 

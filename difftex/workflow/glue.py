@@ -188,23 +188,6 @@ def stage_config_paths(results: str | Path, texts: dict[str, str]) -> dict[str, 
     }
 
 
-def write_stage_config(path: str | Path, text: str, log: str | Path | None = None) -> None:
-    """The ``stage_config`` rule's job: write ``text`` (atomically) to ``path``. A failure (a full
-    disk) goes to ``log`` as the one error line the end-of-run report shows, then stops the job."""
-    from difftex.errors import ERROR_PREFIX, one_line
-    from difftex.scene.files import write_text
-
-    try:
-        write_text(path, text)
-    except DifftexError as exc:
-        if log is not None:
-            try:
-                Path(log).write_text(ERROR_PREFIX + one_line(str(exc)) + "\n")
-            except OSError:
-                pass
-        raise
-
-
 # ---------------------------------------------------------------------------------------------
 # Scene
 
@@ -499,20 +482,6 @@ def write_report(results: str | Path, out: str | Path) -> None:
     if s.get("evaluation"):
         md += ["## Evaluation", "", "```json", json.dumps(read_json(s["evaluation"]), indent=2)[:20000], "```", ""]
     write_text(out, "\n".join(md))
-
-
-def finish_polygon_job(composite: str | Path, config: str | Path, out_dir: str | Path, log: str | Path) -> None:
-    """The ``finish`` rule (run inside Snakemake, no interpreter start-up): a polygon's PNGs and
-    report from its composite.npz, in the format of the config's ``output`` section."""
-    from difftex.compose.outputs import OutputConfig, finish_polygon
-    from difftex.config import section
-    from difftex.scene.files import write_text
-
-    cfg = section(config, "output", OutputConfig)
-    report = finish_polygon(composite, out_dir, cfg)
-    write_text(
-        log, f"finish {report.get('polygon_id')}: {out_dir} ({cfg.bits}-bit" + (", exr" if cfg.exr else "") + ")\n"
-    )
 
 
 def want_evaluation(cfg: dict) -> bool:
