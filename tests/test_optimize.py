@@ -10,10 +10,9 @@ import numpy as np
 import pytest
 import torch
 
-from difftex.geometry.frames import map_texels, sample_photo
+from difftex.geometry.frames import level_sides, map_texels, sample_photo
 from difftex.method.config import OptimizeConfig
 from difftex.method.loop import photo_weight
-from difftex.sampling.texels import level_sides
 
 from analytic import (
     UP,
@@ -329,6 +328,20 @@ def test_command_chain_on_the_analytic_wall(tmp_path):
     assert np.abs(tex - gt).mean(-1)[reg].mean() < 0.5 * np.abs(avg - gt).mean(-1)[reg].mean()
     # a stage given a missing visibility file fails with one line
     assert main(["texture", "--scene", str(scene), "--visibility", str(R / "nope.npz"), "--out-dir", str(R / "x")]) == 2
+
+    # several polygons in one job (the workflow packs small ones): each gets its own files, the
+    # photos are decoded once for the job, and the results are those of a job per polygon
+    two = ["--scene", str(scene), "--visibility", vis, vis, "--config", str(cfg), "--threads", "1", "--no-progress"]
+    done = R / "jobs" / "two.json"
+    assert main(["texture", *two, "--out-dir", str(R / "a"), str(R / "b"), "--done", str(done)]) == 0
+    assert [p["polygon"] for p in json.loads(done.read_text())["polygons"]] == ["wall", "wall"]
+    one = np.load(R / "opt" / "composite.npz")
+    for d in ("a", "b"):
+        got = np.load(R / d / "composite.npz")
+        assert set(got.files) == set(one.files)
+        for k in set(one.files) - {"report"}:  # the report holds timings
+            assert np.array_equal(got[k], one[k]), k
+    assert main(["texture", *two, "--out-dir", str(R / "a")]) == 2  # one folder for two polygons
 
 
 def test_ablation_switches():

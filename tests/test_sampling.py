@@ -119,3 +119,33 @@ def test_a_level_stops_early_when_the_photos_agree():
     levels = res.stats["levels"]
     assert all(lv["converged"] for lv in levels)
     assert all(lv["iterations"] < lv["cap"] for lv in levels)
+
+
+def test_decode_cache_returns_the_decode_and_keeps_within_its_budget(tmp_path):
+    from PIL import Image
+
+    from difftex.scene.files import DecodeCache, decode_photo
+
+    rng = np.random.default_rng(0)
+    paths = []
+    for i in range(3):
+        p = tmp_path / f"p{i}.jpg"
+        Image.fromarray((rng.random((64, 96, 3)) * 255).astype(np.uint8)).save(p, quality=95)
+        paths.append(p)
+    cache = DecodeCache(budget_mb=1.0)
+    first = cache(paths[0], (96, 64), 2)
+    again = cache(paths[0], (96, 64), 2)
+    assert again is first and (cache.decodes, cache.hits) == (1, 1)
+    assert np.array_equal(first, decode_photo(paths[0], (96, 64), 2))
+    # another scale is another decode
+    assert cache(paths[0], (96, 64), 1).shape == (64, 96, 3) and cache.decodes == 2
+    # a budget for one full-size photo: the least recently used goes
+    one = 64 * 96 * 3 * 4 / 2**20
+    small = DecodeCache(budget_mb=one * 1.5)
+    for p in paths:
+        small(p, (96, 64), 1)
+    assert len(small.entries) == 1 and small.nbytes() <= small.budget
+    small(paths[0], (96, 64), 1)
+    assert small.decodes == 4  # evicted, decoded again
+    # nothing kept at budget zero, the decode still returned
+    assert DecodeCache(budget_mb=0)(paths[1], (96, 64), 1).shape == (64, 96, 3)

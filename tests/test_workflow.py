@@ -16,6 +16,7 @@ import pytest
 from difftex.cli import main as cli_main
 from difftex.errors import DifftexError
 from difftex.workflow import glue as wf
+from difftex.workflow import jobs
 
 REPO = Path(__file__).resolve().parents[1]
 SNAKEFILE = REPO / "Snakefile"
@@ -100,18 +101,19 @@ def test_stage_files_hold_only_their_sections_and_are_named_by_their_content(tmp
     # only the texture stage's file changes name, so only what reads it reruns
     assert {s for s in paths if paths[s] != paths2[s]} == {"texture"}
     # the stage_config rule's command
-    assert cli_main(["stage-config", "--out", str(paths2["texture"]), "--text", wf.stage_config_text(cfg2, "texture")]) == 0
+    text = wf.stage_config_text(cfg2, "texture")
+    assert cli_main(["stage-config", "--out", str(paths2["texture"]), "--text", text]) == 0
     assert "0.02" in Path(paths2["texture"]).read_text()
 
 
 def test_memory_estimate_grows_with_texels_and_photos():
     run = wf.resolve_config(REPO, {})["run"]
-    small = wf.polygon_mem_mb(".", {"width": 256, "height": 256, "photos": ["a"]}, run)
-    big = wf.polygon_mem_mb(".", {"width": 2048, "height": 2048, "photos": ["a"] * 8}, run)
+    small = jobs.polygon_mem_mb(".", {"width": 256, "height": 256, "photos": ["a"]}, run)
+    big = jobs.polygon_mem_mb(".", {"width": 2048, "height": 2048, "photos": ["a"] * 8}, run)
     assert run["base_mem_mb"] < small < big
     # slots are capped at top_k: 40 candidates cost 8 slots per texel plus their (cropped) photos
     row = {"width": 2048, "height": 2048, "photos": ["a"] * 40}
-    capped, uncapped = wf.polygon_mem_mb(".", row, run, top_k=8), wf.polygon_mem_mb(".", row, run)
+    capped, uncapped = jobs.polygon_mem_mb(".", row, run, top_k=8), jobs.polygon_mem_mb(".", row, run)
     slot_mb = 2048 * 2048 * float(run["bytes_per_texel_photo"]) / 2**20
     assert abs((uncapped - capped) - 32 * slot_mb) < 2
 
@@ -218,9 +220,13 @@ def test_workflow_end_to_end(tiny_scene, tmp_path):
 
     # an optimization-only change reruns texturing and what follows, not filter/visibility
     n_tex = len([p for p in summary["polygons"] if p["textured"]])
+    # the tiny scene's polygons are small: they share texture jobs, each polygon's files apart
+    n_jobs = len(list((R / "optimized" / "jobs").glob("*.json")))
+    assert 1 <= n_jobs < n_tex
+    assert len(list((R / "optimized").glob("*/composite.npz"))) == n_tex
     changed = snakemake(work, "-n", *args, "optimize={lr: 0.01}")
     counts = job_counts(changed.stdout)
-    assert counts.get("texture", 0) == n_tex
+    assert counts.get("texture", 0) == n_jobs
     assert "filter" not in counts and "visibility" not in counts
     # device or compilation: only their file is rewritten, no texturing (same result to float tolerance)
     same = snakemake(work, "-n", *args, "compute={device: cpu, compile: 'off'}")
@@ -278,3 +284,30 @@ def test_version_names_torch_and_the_device():
 
     assert lines[0].startswith("difftex ") and lines[1] == f"torch {torch.__version__}"
     assert lines[2].startswith("device: cuda" if torch.cuda.is_available() else "device: cpu")
+
+
+def test_small_polygons_share_texture_jobs_and_large_ones_keep_their_own():
+    cfg = wf.resolve_config(REPO, {"preset": "fast"})
+    rate = float(cfg["run"]["texels_per_minute"]) / 60.0
+    rows = [{"id": "facade", "width": 1024, "height": 600, "photos": ["a"] * 8}]
+    rows += [{"id": f"jamb{i}", "width": 60 + i, "height": 200, "photos": ["a"] * 5} for i in range(12)]
+    limit = float(cfg["run"]["pack_seconds"])
+    assert jobs.polygon_work(rows[0], cfg) / rate >= limit  # the facade is above the limit ...
+    assert all(jobs.polygon_work(r, cfg) / rate < limit for r in rows[1:])  # ... the jambs below
+    plan = jobs.texture_jobs(rows, cfg)
+    members = [pid for pids in plan.values() for pid in pids]
+    assert sorted(members) == sorted(r["id"] for r in rows)  # every polygon once
+    assert plan["facade"] == ["facade"]  # named by its polygon, alone
+    groups = [pids for name, pids in plan.items() if name != "facade"]
+    assert len(groups) < len(rows) - 1 and all(name.startswith("group-") for name in plan if name != "facade")
+    work = {r["id"]: jobs.polygon_work(r, cfg) / rate for r in rows}
+    assert all(sum(work[p] for p in g) <= limit + 1e-9 for g in groups)
+    assert jobs.texture_jobs(rows, cfg) == plan  # stable
+    # another membership is another job name; pack_seconds 0 is a job per polygon
+    assert set(jobs.texture_jobs(rows[:-1], cfg)) != set(plan)
+    alone = jobs.texture_jobs(rows, wf.deep_merge(cfg, {"run": {"pack_seconds": 0}}))
+    assert alone == {r["id"]: [r["id"]] for r in rows}
+    # a shared job asks for its largest polygon's memory plus the decoded photos it keeps
+    big = max(jobs.polygon_mem_mb(".", r, cfg["run"], cfg["optimize"]["top_k"]) for r in rows[1:])
+    assert big < jobs.job_mem_mb(".", rows[1:], cfg) <= big + cfg["run"]["decode_cache_mb"] + 1
+    assert jobs.runtime_min(rows, cfg) >= jobs.runtime_min(rows[:1], cfg) >= 10

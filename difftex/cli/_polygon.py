@@ -3,9 +3,13 @@
 from __future__ import annotations
 
 
-def add_common(parser, config=True) -> None:
+def add_common(parser, config=True, many=False) -> None:
     parser.add_argument("--scene", required=True, help="scene folder (images/, sparse/0/, proxy)")
-    parser.add_argument("--visibility", required=True, help="the polygon's visibility .npz (difftex visibility)")
+    if many:
+        parser.add_argument("--visibility", required=True, nargs="+",
+                            help="the polygons' visibility .npz files (difftex visibility), textured one after another")
+    else:
+        parser.add_argument("--visibility", required=True, help="the polygon's visibility .npz (difftex visibility)")
     if config:
         parser.add_argument(
             "--config", default=None, help="YAML config; its 'optimize:' and 'compute:' sections are read"
@@ -21,6 +25,13 @@ def add_common(parser, config=True) -> None:
 
 def load(args):
     """(OptimizeConfig, ComputeConfig, PolygonInput) for the command's scene, visibility file and config."""
+    cfg, compute, inputs = load_many(args, [args.visibility])
+    return cfg, compute, next(inputs)
+
+
+def load_many(args, visibility: list[str]):
+    """(OptimizeConfig, ComputeConfig, iterator of PolygonInput): the scene is read once, each
+    polygon's visibility file when the iterator reaches it (so one polygon's inputs are held at a time)."""
     import dataclasses
 
     import torch
@@ -39,6 +50,6 @@ def load(args):
     over = {"device": args.device, "compile": args.compile, "compile_min_slots": args.compile_min_slots}
     compute = dataclasses.replace(compute, **{k: v for k, v in over.items() if v is not None})
     scene = load_scene(args.scene, check_images=False)
-    vis = load_visibility(args.visibility)
-    inp = polygon_input_from_visibility(vis, {p.name: p for p in scene.photos})
-    return cfg, compute, inp
+    photos = {p.name: p for p in scene.photos}
+    inputs = (polygon_input_from_visibility(load_visibility(v), photos) for v in visibility)
+    return cfg, compute, inputs

@@ -10,6 +10,7 @@ the importable stage; the ``difftex texture`` command and the workflow's ``textu
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -18,10 +19,12 @@ import numpy as np
 from difftex.compose.composite import dominant_from_slots, finish_texture
 from difftex.compose.histmatch import mapped_transfers
 from difftex.compose.outputs import write_composite
+from difftex.geometry.frames import level_sides
 from difftex.method.config import ComputeConfig, OptimizeConfig
 from difftex.method.loop import optimize_polygon
 from difftex.sampling.photos import PhotoSet, PolygonInput, pick_device, with_transfer
-from difftex.sampling.texels import level_frame, level_sides, resample_nearest
+from difftex.sampling.texels import level_frame, resample_nearest
+from difftex.scene.files import decode_photo
 
 
 @dataclass
@@ -40,12 +43,17 @@ class TexturedPolygon:
 
 
 def texture_polygon(
-    inp: PolygonInput, cfg: OptimizeConfig, compute: ComputeConfig = ComputeConfig(), progress: bool = False
+    inp: PolygonInput,
+    cfg: OptimizeConfig,
+    compute: ComputeConfig = ComputeConfig(),
+    progress: bool = False,
+    decode: Callable[..., np.ndarray] = decode_photo,
 ) -> TexturedPolygon:
-    """Texture one polygon: transfers, optimization and composition from one decode per photo."""
+    """Texture one polygon: transfers, optimization and composition from one decode per photo
+    (``decode``: ``decode_photo``, or a DecodeCache that several polygons of a job share)."""
     t0 = time.perf_counter()
     device = pick_device(compute.device)
-    photos = PhotoSet.load(inp, device, exact_decode=cfg.exact_decode)
+    photos = PhotoSet.load(inp, device, exact_decode=cfg.exact_decode, decode=decode)
     t_read = time.perf_counter() - t0
     sides = level_sides(max(inp.frame.shape), cfg.long_side_start, cfg.coarse_to_fine, cfg.level_step)
     match_frame = level_frame(inp.frame, min(cfg.long_side_start, max(inp.frame.shape)))

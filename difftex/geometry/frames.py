@@ -282,3 +282,25 @@ def sample_photo(image: np.ndarray, pix: np.ndarray) -> np.ndarray:
     res = out[0, :, :, 0].permute(1, 0).numpy()
     res[bad.reshape(-1)] = 0.0
     return res.reshape(*shape, image.shape[2])
+
+
+def level_sides(target_long: int, start: int, coarse_to_fine: bool, step: float = 2.0) -> list[int]:
+    """Long sides of the levels: start, start x step, ... then the target (paper: 256 -> 2048, step 2).
+
+    A last intermediate level within sqrt(step) of the target is left out (600 texels: 256 -> 600,
+    not 256 -> 512 -> 600): it would cost a level's set-up and iterations (a mapping of every
+    photo at nearly the full size) to refine weights that the target level refines again.
+    """
+    if step <= 1.0:
+        raise ValueError(f"level step must be > 1, got {step}")
+    if not coarse_to_fine or target_long <= start:
+        return [target_long]
+    sides = []
+    s = float(start)
+    while s < target_long:
+        sides.append(round(s))
+        s *= step
+    if len(sides) > 1 and target_long < sides[-1] * step**0.5:
+        sides.pop()
+    sides.append(target_long)
+    return sides

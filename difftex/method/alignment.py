@@ -100,13 +100,11 @@ def gauss_newton(
         ex[:, 0] = 1.0
         ey = torch.zeros_like(pix)
         ey[:, 1] = 1.0
-        col = _sample(photos, n, pix, fp, transfer)
-        gx = (_sample(photos, n, pix + h * ex, fp, transfer) - _sample(photos, n, pix - h * ex, fp, transfer)) / (
-            2 * h.T
-        )
-        gy = (_sample(photos, n, pix + h * ey, fp, transfer) - _sample(photos, n, pix - h * ey, fp, transfer)) / (
-            2 * h.T
-        )
+        # the five samples in one call: the pyramid levels are read (and widened from float16) once
+        at = torch.cat([pix, pix + h * ex, pix - h * ex, pix + h * ey, pix - h * ey])
+        col, xp, xm, yp, ym = _sample(photos, n, at, fp.repeat(5), transfer).chunk(5, dim=1)
+        gx = (xp - xm) / (2 * h.T)
+        gy = (yp - ym) / (2 * h.T)
         r = (col - target).double()  # (3, m)
         grad = torch.stack([gx, gy], -1).double()  # (3, m, 2)
         J = torch.einsum("cmk,mkp->cmp", grad, B)  # (3, m, 6)

@@ -19,6 +19,7 @@ import torch
 from rich.console import Console
 from rich.progress import MofNCompleteColumn, Progress
 
+from difftex.geometry.frames import level_sides
 from difftex.method import alignment, diagnostics, losses, sparse
 from difftex.method.config import ComputeConfig, OptimizeConfig
 from difftex.method.elimination import (
@@ -43,7 +44,7 @@ from difftex.method.objective import (
 )
 from difftex.method.render import build_pixel_sets
 from difftex.sampling.photos import MappedPhoto, PhotoSet
-from difftex.sampling.texels import level_frame, level_sides, resample_nearest
+from difftex.sampling.texels import level_frame, resample_nearest
 
 LOSS_KEYS = ("total", "render", "ghost", "persp", "para")
 

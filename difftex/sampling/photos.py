@@ -233,6 +233,7 @@ class PhotoSet:
         finest: UVFrame | None = None,
         exact_decode: bool = False,
         progress: Callable[[], None] | None = None,
+        decode: Callable[..., np.ndarray] = decode_photo,
     ) -> PhotoSet:
         """Decode, crop and pyramid every candidate photo that sees a texel of ``inp``.
 
@@ -240,7 +241,8 @@ class PhotoSet:
         decoded at the largest power-of-two reduction r with r <= the smallest texel footprint
         (in pixels) over the texels it sees, so no sampled pyramid level is lost. ``exact_decode``
         decodes every photo at full size (a JPEG's DCT-scaled decode differs from box-averaging
-        the full decode by about one 8-bit step).
+        the full decode by about one 8-bit step). ``decode``: ``decode_photo`` or a cache around
+        it (difftex.scene.files.DecodeCache) shared by the polygons of one job.
         """
         device = pick_device(device)
         finest = finest or inp.frame
@@ -276,7 +278,7 @@ class PhotoSet:
                         f"{ph.image_path}: image is {img.shape[1]}x{img.shape[0]}, camera says {ph.width}x{ph.height}"
                     )
             else:
-                img = decode_photo(ph.image_path, (ph.width, ph.height), reduce)
+                img = decode(ph.image_path, (ph.width, ph.height), reduce)
             ps.reads += 1
             base = int(math.log2(reduce))
             ps.samplers[n] = PhotoSampler(img, box, device, base=base)

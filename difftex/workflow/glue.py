@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import copy
 import json
-import math
 from pathlib import Path
 from typing import Any
 
@@ -252,6 +251,30 @@ def textured_ids(summary: str | Path) -> list[str]:
     return [str(p["id"]) for p in polygons(summary) if p.get("photos") and float(p.get("coverage", 0)) > 0]
 
 
+_JOBS_CACHE: dict[tuple, dict[str, list[str]]] = {}
+
+
+def texture_jobs(summary: str | Path, cfg: dict) -> dict[str, list[str]]:
+    """The texture jobs of the polygons worth optimizing (``jobs.texture_jobs``), cached per
+    summary version and config: the workflow asks once per job and input of every polygon."""
+    from difftex.workflow.jobs import texture_jobs as plan
+
+    path = Path(summary)
+    key = (str(path.resolve()), path.stat().st_mtime_ns, json.dumps([cfg["optimize"], cfg["run"]], sort_keys=True))
+    if key not in _JOBS_CACHE:
+        ids = set(textured_ids(summary))
+        _JOBS_CACHE[key] = plan([p for p in polygons(summary) if str(p["id"]) in ids], cfg)
+    return _JOBS_CACHE[key]
+
+
+def job_of(summary: str | Path, cfg: dict, pid: str) -> str:
+    """The texture job that textures polygon ``pid``."""
+    for job, pids in texture_jobs(summary, cfg).items():
+        if pid in pids:
+            return job
+    raise DifftexError(f"{summary}: polygon '{pid}' has no texture job (no photo sees it)")
+
+
 def polygon_row(summary: str | Path, pid: str) -> dict:
     for p in polygons(summary):
         if str(p["id"]) == pid:
@@ -261,75 +284,6 @@ def polygon_row(summary: str | Path, pid: str) -> dict:
 
 def photo_paths(scene: str | Path, row: dict) -> list[str]:
     return [str(Path(scene) / "images" / name) for name in row.get("photos", [])]
-
-
-# ---------------------------------------------------------------------------------------------
-# Resources
-
-
-def _photo_pixels(scene: str | Path, row: dict) -> int:
-    from difftex.scene.files import image_size
-
-    for name in row.get("photos", [])[:1]:
-        try:
-            w, h = image_size(Path(scene) / "images" / name)
-            return w * h
-        except Exception:  # noqa: BLE001 -- an estimate only; the stage reports a bad photo itself
-            break
-    return 4000 * 3000
-
-
-def polygon_mem_mb(scene: str | Path, row: dict, run: dict, top_k: int | None = None) -> int:
-    """Memory of one polygon's optimization: texels x slots x bytes per slot (parameters, Adam
-    state, mapped colours, masks, autograd temporaries), plus the candidate photos as float32 RGB,
-    plus Python/torch. The optimizer keeps min(candidates, top_k) slots per texel, not one per
-    candidate; every candidate photo is held (cropped) to map it at each level."""
-    texels = int(row.get("width", 0)) * int(row.get("height", 0))
-    k = len(row.get("photos", []))
-    slots = min(k, int(top_k)) if top_k else k
-    data = texels * slots * float(run["bytes_per_texel_photo"]) + k * _photo_pixels(scene, row) * 12
-    return int(run["base_mem_mb"] + math.ceil(data / 2**20))
-
-
-def polygon_runtime_min(row: dict, cfg: dict) -> int:
-    """Wall-clock minutes for a cluster's time limit: coarse-to-fine levels doubling from
-    long_side_start to the target, each at most its iteration cap over texels x slots
-    (min(candidates, top_k)); 3x margin."""
-    texels = int(row.get("width", 0)) * int(row.get("height", 0))
-    k = max(1, min(len(row.get("photos", [])), int(cfg["optimize"].get("top_k", 8))))
-    long_side = max(int(row.get("width", 1)), int(row.get("height", 1)))
-    start = int(cfg["optimize"]["long_side_start"])
-    levels = max(1, math.ceil(math.log2(max(long_side / max(start, 1), 1))) + 1)
-    caps = cfg["optimize"]["max_iters_per_level"]
-    caps = [int(c) for c in (caps if isinstance(caps, list) else [caps])]
-    work = sum(texels / 4 ** (levels - 1 - lv) * k * caps[min(lv, len(caps) - 1)] for lv in range(levels))
-    return int(max(10, math.ceil(3 * work / float(cfg["run"]["texels_per_minute"]))))
-
-
-def scene_mem_mb(scene_inputs_list: list[str], run: dict, factor: float = 4.0) -> int:
-    """Whole-scene stages hold about one full-resolution photo and its id buffer at a time."""
-    from difftex.scene.files import image_size
-
-    pixels = 4000 * 3000
-    for p in scene_inputs_list:
-        if Path(p).suffix.lower() in IMAGE_SUFFIXES and "images" in Path(p).parts:
-            try:
-                w, h = image_size(p)
-                pixels = w * h
-            except Exception:  # noqa: BLE001 -- an estimate only
-                pass
-            break
-    return int(run["base_mem_mb"] + math.ceil(pixels * 3 * 4 * factor / 2**20))
-
-
-def assemble_mem_mb(summary: str | Path, cfg: dict) -> int:
-    """Two float32 pages of the atlas at most plus the textures (as float32) of all polygons."""
-    if not Path(summary).is_file():  # asked before the checkpoint ran (dry run)
-        return int(cfg["run"]["base_mem_mb"])
-    texels = sum(int(p.get("width", 0)) * int(p.get("height", 0)) for p in polygons(summary))
-    page = int(cfg["assemble"]["max_page_size"]) ** 2
-    page = min(page, int(texels * 1.3) + 1)
-    return int(cfg["run"]["base_mem_mb"] + math.ceil((3 * page * 12 + texels * 13) / 2**20))
 
 
 # ---------------------------------------------------------------------------------------------

@@ -29,7 +29,7 @@ rule assemble:
         f"{R}/benchmarks/assemble/assemble.tsv"
     threads: 1
     resources:
-        mem_mb=lambda wc, input: wf.assemble_mem_mb(input.summary, config),
+        mem_mb=get_assemble_mem_mb,
         runtime=60,
     shell:
         "difftex assemble --scene {params.scene:q} --textures {params.textures} "

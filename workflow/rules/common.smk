@@ -12,6 +12,7 @@ sys.path.insert(0, str(Path(workflow.basedir)))
 shell.prefix(f"set -euo pipefail; export PATH={shlex.quote(str(Path(sys.executable).parent))}:$PATH; ")
 
 import difftex.workflow.glue as wf
+import difftex.workflow.jobs as jobs
 from difftex.workflow import runguard, runlog
 from difftex.errors import DifftexError
 
@@ -56,27 +57,55 @@ RUN_GUARD = runguard.RunGuard(R)
 
 wildcard_constraints:
     pid="[A-Za-z0-9_-]+",
+    job="[A-Za-z0-9_-]+",
     stage="|".join(wf.STAGE_SECTIONS),
     digest="[0-9a-f]{12}",
 
 
 # Named input functions of the per-polygon rules (their rows come from the visibility checkpoint).
+# Small polygons share a texture job (difftex/workflow/jobs.py); `finish` stays one job per polygon.
 
 
-def get_polygon_row(wc):
-    return wf.polygon_row(checkpoints.visibility.get().output.summary, wc.pid)
+def get_summary():
+    return checkpoints.visibility.get().output.summary
 
 
-def get_polygon_photos(wc):
-    return wf.photo_paths(SCENE, get_polygon_row(wc))
+def get_job_pids(wc):
+    return wf.texture_jobs(get_summary(), config)[wc.job]
 
 
-def get_polygon_mem_mb(wc):
-    return wf.polygon_mem_mb(SCENE, get_polygon_row(wc), RUN, config["optimize"]["top_k"])
+def get_job_rows(wc):
+    return [wf.polygon_row(get_summary(), pid) for pid in get_job_pids(wc)]
 
 
-def get_polygon_runtime(wc):
-    return wf.polygon_runtime_min(get_polygon_row(wc), config)
+def get_job_visibility(wc):
+    return [f"{R}/visibility/{pid}.npz" for pid in get_job_pids(wc)]
+
+
+def get_job_out_dirs(wc):
+    return [f"{R}/optimized/{pid}" for pid in get_job_pids(wc)]
+
+
+def get_job_photos(wc):
+    return sorted({path for row in get_job_rows(wc) for path in wf.photo_paths(SCENE, row)})
+
+
+def get_job_mem_mb(wc):
+    return jobs.job_mem_mb(SCENE, get_job_rows(wc), config)
+
+
+def get_job_runtime(wc):
+    return jobs.runtime_min(get_job_rows(wc), config)
+
+
+def get_polygon_job(wc):
+    return f"{R}/optimized/jobs/{wf.job_of(get_summary(), config, wc.pid)}.json"
+
+
+def get_assemble_mem_mb(wc, input):
+    # asked before the checkpoint ran in a dry run
+    rows = wf.polygons(input.summary) if Path(input.summary).is_file() else []
+    return jobs.assemble_mem_mb(rows, config)
 
 
 def get_textured_ids():

@@ -19,7 +19,7 @@ rule filter:
         f"{R}/benchmarks/filter/filter.tsv"
     threads: RUN["scene_threads"]
     resources:
-        mem_mb=lambda wc, input: wf.scene_mem_mb(input.scene, RUN),
+        mem_mb=lambda wc, input: jobs.scene_mem_mb(input.scene, RUN),
         runtime=60,
     shell:
         "OMP_NUM_THREADS={threads} difftex filter --quiet --scene {params.scene:q} "

@@ -33,6 +33,8 @@ rule stage_config:
     log:
         f"{R}/logs/stage_config/{{stage}}-{{digest}}.log",
     localrule: True
+    conda:
+        "../envs/difftex.yaml"
     # a shell job, not run: (Snakemake 9 spawns a second Snakemake, ~1.5 s, for each run: job)
     shell:
         "difftex stage-config --out {output:q} --text {params.text:q} > {log:q} 2>&1"
@@ -46,5 +48,7 @@ rule compute_config:
     log:
         f"{R}/logs/stage_config/compute.log",
     localrule: True
+    conda:
+        "../envs/difftex.yaml"
     shell:
         "difftex stage-config --out {output:q} --text {params.text:q} > {log:q} 2>&1"

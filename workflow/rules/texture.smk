@@ -1,47 +1,50 @@
 # Per-polygon stages: `texture` (brightness transfers, blend-weight optimization and composition,
-# one pass over the polygon's photos) and `finish` (the PNGs and report from the float texture,
+# one pass over each polygon's photos) and `finish` (the PNGs and report from the float texture,
 # in the output format). Polygon ids, sizes and candidate photos come from the visibility
-# checkpoint, so a cluster runs the polygons in parallel. `run.gpu` > 0 requests GPUs; the
+# checkpoint, so a cluster runs the polygons in parallel; polygons smaller than run.pack_seconds
+# share a texture job (difftex/workflow/jobs.py), named by its polygon or `group-<digest>`. `run.gpu` > 0 requests GPUs; the
 # `compute` section (device, torch.compile) changes no result, so changing it reruns nothing.
 
 
 rule texture:
     input:
         scene=SCENE_MODEL,
-        vis=f"{R}/visibility/{{pid}}.npz",
-        photos=get_polygon_photos,
+        vis=get_job_visibility,
+        photos=get_job_photos,
         config=STAGE_CFG["texture"],
         # device and compilation: read, but ancient() and a fixed name keep a change of them
         # from rerunning anything (they change no result beyond float tolerance)
         compute=ancient(f"{R}/config/compute.yaml"),
     output:
-        weights=f"{R}/optimized/{{pid}}/weights.npz",
-        stats=f"{R}/optimized/{{pid}}/stats.json",
-        composite=f"{R}/optimized/{{pid}}/composite.npz",
+        # the job's list of its polygons, written last; each polygon's weights.npz, stats.json and
+        # composite.npz are in R/optimized/<polygon>/ (written atomically, one polygon at a time)
+        f"{R}/optimized/jobs/{{job}}.json",
     params:
         stage_config=STAGE_TEXT["texture"],
         scene=lambda wc, input: Path(input.scene[0]).parent,
-        out_dir=lambda wc, output: Path(output.weights).parent,
+        out_dirs=get_job_out_dirs,
+        decode_cache_mb=RUN["decode_cache_mb"],
     conda:
         "../envs/difftex.yaml"
     log:
-        f"{R}/logs/texture/{{pid}}.log",
+        f"{R}/logs/texture/{{job}}.log",
     benchmark:
-        f"{R}/benchmarks/texture/{{pid}}.tsv"
+        f"{R}/benchmarks/texture/{{job}}.tsv"
     threads: RUN["polygon_threads"]
     resources:
-        mem_mb=get_polygon_mem_mb,
-        runtime=get_polygon_runtime,
+        mem_mb=get_job_mem_mb,
+        runtime=get_job_runtime,
         gpu=RUN["gpu"],
     shell:
         "OMP_NUM_THREADS={threads} difftex texture --threads {threads} --no-progress --scene {params.scene:q} "
-        "--visibility {input.vis:q} --config {input.config:q} --compute-config {input.compute:q} "
-        "--out-dir {params.out_dir:q} > {log:q} 2>&1"
+        "--visibility {input.vis:q} --out-dir {params.out_dirs:q} --config {input.config:q} "
+        "--compute-config {input.compute:q} --decode-cache-mb {params.decode_cache_mb} --done {output:q} > {log:q} 2>&1"
 
 
 rule finish:
     input:
-        composite=f"{R}/optimized/{{pid}}/composite.npz",
+        # the polygon's texture job; it wrote R/optimized/<pid>/composite.npz
+        job=get_polygon_job,
         config=STAGE_CFG["output"],
     output:
         texture=f"{R}/textures/{{pid}}/texture.png",
@@ -51,10 +54,13 @@ rule finish:
         report=f"{R}/textures/{{pid}}/report.json",
     params:
         stage_config=STAGE_TEXT["output"],
+        composite=lambda wc: f"{R}/optimized/{wc.pid}/composite.npz",
         out_dir=lambda wc, output: Path(output.texture).parent,
     log:
         f"{R}/logs/finish/{{pid}}.log",
+    conda:
+        "../envs/difftex.yaml"
     # a shell job that imports no torch (0.2 s): a run: job would spawn a second Snakemake (~1.5 s)
     shell:
-        "difftex finish --composite {input.composite:q} --config {input.config:q} "
+        "difftex finish --composite {params.composite:q} --config {input.config:q} "
         "--out-dir {params.out_dir:q} > {log:q} 2>&1"

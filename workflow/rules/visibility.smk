@@ -21,7 +21,7 @@ checkpoint visibility:
         f"{R}/benchmarks/visibility/visibility.tsv"
     threads: RUN["scene_threads"]
     resources:
-        mem_mb=lambda wc, input: wf.scene_mem_mb(input.scene, RUN, factor=8.0),
+        mem_mb=lambda wc, input: jobs.scene_mem_mb(input.scene, RUN, factor=8.0),
         runtime=120,
     shell:
         "OMP_NUM_THREADS={threads} difftex visibility --quiet --scene {params.scene:q} "

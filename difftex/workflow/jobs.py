@@ -1,0 +1,140 @@
+"""The workflow's jobs: which polygons share a texture job, and each job's memory and time limits.
+
+A texture job starts a Python that imports torch and reads the scene (about 2 s of CPU on a
+workstation, tens of seconds of queueing on a cluster); a small polygon's own work (a few
+photos, a few thousand texels) is less than that. Polygons whose estimated work is below
+``run.pack_seconds`` therefore share a job, packed largest first up to that much work per job;
+larger polygons keep a job of their own, so a cluster still runs them side by side. Jobs are
+named by their polygons (one polygon: its id; several: a digest of their ids), so a rerun with
+the same polygons and config finds its jobs done.
+
+No torch here: the Snakefile's process calls these for every job.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import math
+from pathlib import Path
+
+from difftex.geometry.frames import level_sides
+from difftex.scene.camera import IMAGE_SUFFIXES
+
+
+def _photo_pixels(scene: str | Path, row: dict) -> int:
+    from difftex.scene.files import image_size
+
+    for name in row.get("photos", [])[:1]:
+        try:
+            w, h = image_size(Path(scene) / "images" / name)
+            return w * h
+        except Exception:  # noqa: BLE001 -- an estimate only; the stage reports a bad photo itself
+            break
+    return 4000 * 3000
+
+
+def polygon_mem_mb(scene: str | Path, row: dict, run: dict, top_k: int | None = None) -> int:
+    """Memory of one polygon's optimization: texels x slots x bytes per slot (parameters, Adam
+    state, mapped colours, masks, autograd temporaries), plus the candidate photos as float32 RGB,
+    plus Python/torch. The optimizer keeps min(candidates, top_k) slots per texel, not one per
+    candidate; every candidate photo is held (cropped) to map it at each level."""
+    texels = int(row.get("width", 0)) * int(row.get("height", 0))
+    k = len(row.get("photos", []))
+    slots = min(k, int(top_k)) if top_k else k
+    data = texels * slots * float(run["bytes_per_texel_photo"]) + k * _photo_pixels(scene, row) * 12
+    return int(run["base_mem_mb"] + math.ceil(data / 2**20))
+
+
+def polygon_work(row: dict, cfg: dict) -> float:
+    """Texel x slot x iteration count of a polygon's optimization at its iteration caps: every
+    coarse-to-fine level (as the optimizer plans them) at min(candidates, top_k) slots."""
+    opt = cfg["optimize"]
+    w, h = int(row.get("width", 0)), int(row.get("height", 0))
+    long_side = max(w, h, 1)
+    k = max(1, min(len(row.get("photos", [])), int(opt.get("top_k", 8))))
+    sides = level_sides(long_side, int(opt["long_side_start"]), bool(opt.get("coarse_to_fine", True)),
+                        float(opt.get("level_step", 2.0)))
+    caps = opt["max_iters_per_level"]
+    caps = [int(c) for c in (caps if isinstance(caps, list) else [caps])]
+    return sum(w * h * (s / long_side) ** 2 * k * caps[min(i, len(caps) - 1)] for i, s in enumerate(sides))
+
+
+def runtime_min(rows: list[dict], cfg: dict) -> int:
+    """Wall-clock minutes for a cluster's time limit of a job of these polygons: their work at
+    ``run.texels_per_minute``, 3x margin, at least 10."""
+    work = sum(polygon_work(r, cfg) for r in rows)
+    return int(max(10, math.ceil(3 * work / float(cfg["run"]["texels_per_minute"]))))
+
+
+def job_mem_mb(scene: str | Path, rows: list[dict], cfg: dict) -> int:
+    """A job holds one polygon's data at a time (the largest of its polygons' estimates) and,
+    with several polygons, up to ``run.decode_cache_mb`` of decoded photos."""
+    mem = max(polygon_mem_mb(scene, r, cfg["run"], cfg["optimize"]["top_k"]) for r in rows)
+    if len(rows) > 1:
+        photos = {name for r in rows for name in r.get("photos", [])}
+        mem += min(float(cfg["run"]["decode_cache_mb"]), len(photos) * _photo_pixels(scene, rows[0]) * 12 / 2**20)
+    return int(math.ceil(mem))
+
+
+def job_name(pids: list[str]) -> str:
+    """One polygon: its id (its log is logs/texture/<id>.log); several: ``group-`` and a digest of
+    their ids, so that another grouping is another job, never a stale one."""
+    if len(pids) == 1:
+        return pids[0]
+    return "group-" + hashlib.sha1("\n".join(sorted(pids)).encode()).hexdigest()[:10]
+
+
+def texture_jobs(rows: list[dict], cfg: dict) -> dict[str, list[str]]:
+    """Polygon ids per texture job, in a stable order.
+
+    Polygons estimated (``polygon_work`` at ``run.texels_per_minute``) at ``run.pack_seconds``
+    or more get a job each; the others are packed first-fit, largest first, into jobs of at most
+    that much work. ``pack_seconds: 0`` gives every polygon its own job.
+
+    Args:
+        rows: the visibility summary's rows of the polygons to texture.
+        cfg: the resolved config (``optimize`` and ``run`` sections).
+
+    Returns:
+        {job name: [polygon ids]}, jobs in order of their first polygon in ``rows``.
+    """
+    limit = float(cfg["run"].get("pack_seconds", 0)) * float(cfg["run"]["texels_per_minute"]) / 60.0
+    order = {str(r["id"]): i for i, r in enumerate(rows)}
+    groups: list[tuple[float, list[str]]] = []
+    for work, pid in sorted(((polygon_work(r, cfg), str(r["id"])) for r in rows), key=lambda t: (-t[0], order[t[1]])):
+        if work < limit:
+            for i, (load, members) in enumerate(groups):
+                if load + work <= limit:
+                    groups[i] = (load + work, members + [pid])
+                    break
+            else:
+                groups.append((work, [pid]))
+        else:
+            groups.append((math.inf, [pid]))  # a job of its own, closed to others
+    jobs = [sorted(members, key=order.__getitem__) for _, members in groups]
+    jobs.sort(key=lambda m: order[m[0]])
+    return {job_name(m): m for m in jobs}
+
+
+def scene_mem_mb(scene_inputs_list: list[str], run: dict, factor: float = 4.0) -> int:
+    """Whole-scene stages hold about one full-resolution photo and its id buffer at a time."""
+    from difftex.scene.files import image_size
+
+    pixels = 4000 * 3000
+    for p in scene_inputs_list:
+        if Path(p).suffix.lower() in IMAGE_SUFFIXES and "images" in Path(p).parts:
+            try:
+                w, h = image_size(p)
+                pixels = w * h
+            except Exception:  # noqa: BLE001 -- an estimate only
+                pass
+            break
+    return int(run["base_mem_mb"] + math.ceil(pixels * 3 * 4 * factor / 2**20))
+
+
+def assemble_mem_mb(polygon_rows: list[dict], cfg: dict) -> int:
+    """Two float32 pages of the atlas at most plus the textures (as float32) of all polygons."""
+    texels = sum(int(p.get("width", 0)) * int(p.get("height", 0)) for p in polygon_rows)
+    page = int(cfg["assemble"]["max_page_size"]) ** 2
+    page = min(page, int(texels * 1.3) + 1)
+    return int(cfg["run"]["base_mem_mb"] + math.ceil((3 * page * 12 + texels * 13) / 2**20))
