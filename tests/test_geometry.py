@@ -165,3 +165,23 @@ def test_ngon_faces_are_kept_and_ids_are_stable(tmp_path):
     # names equal once made safe: deterministic suffixes in file order (a warning lists them)
     write_obj(path, {"dup": wall(0, 4, 0, 3), "dup ": wall(4, 6, 0, 3)})
     assert load_proxy(path).ids == ["dup_1", "dup_2"]
+
+
+@pytest.mark.parametrize(
+    "model,params", [("PINHOLE", (500.0, 520.0, 61.0, 39.5)), ("SIMPLE_PINHOLE", (480.0, 64.0, 40.0))]
+)
+@pytest.mark.parametrize("stride", [1, 3])
+def test_pinhole_camera_rays_match_colmap_unprojection(model, params, stride):
+    from difftex.geometry.raycast import _camera_rays
+
+    w, h = 128, 80
+    d = _camera_rays(model, w, h, params, stride)
+    ys = np.minimum(np.arange(0, h, stride) + 0.5 * stride, h - 0.5)
+    xs = np.minimum(np.arange(0, w, stride) + 0.5 * stride, w - 0.5)
+    gx, gy = np.meshgrid(xs, ys)
+    cam = pycolmap.Camera(model=model, width=w, height=h, params=list(params))
+    xy = np.asarray(cam.cam_from_img(np.stack([gx, gy], -1).reshape(-1, 2)))
+    ref = np.concatenate([xy, np.ones((len(xy), 1))], 1)
+    ref /= np.linalg.norm(ref, axis=1, keepdims=True)
+    assert d.shape == (len(ys), len(xs), 3) and d.dtype == np.float32
+    assert np.abs(d.reshape(-1, 3) - ref).max() < 1e-6

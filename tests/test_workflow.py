@@ -290,18 +290,22 @@ def test_small_polygons_share_texture_jobs_and_large_ones_keep_their_own():
     cfg = wf.resolve_config(REPO, {"preset": "fast"})
     rate = float(cfg["run"]["texels_per_minute"]) / 60.0
     rows = [{"id": "facade", "width": 1024, "height": 600, "photos": ["a"] * 8}]
-    rows += [{"id": f"jamb{i}", "width": 60 + i, "height": 200, "photos": ["a"] * 5} for i in range(12)]
-    limit = float(cfg["run"]["pack_seconds"])
-    assert jobs.polygon_work(rows[0], cfg) / rate >= limit  # the facade is above the limit ...
-    assert all(jobs.polygon_work(r, cfg) / rate < limit for r in rows[1:])  # ... the jambs below
+    rows += [{"id": f"jamb{i}", "width": 80 + i, "height": 300, "photos": ["a"] * 5} for i in range(30)]
+    pack = float(cfg["run"]["pack_seconds"])
+    work = {r["id"]: jobs.polygon_work(r, cfg) / rate for r in rows}
+    limit = min(pack, max(work["facade"], pack / 4))  # no shared job larger than the facade's
+    assert all(work[r["id"]] < limit for r in rows[1:])  # the jambs are below it
+    assert sum(work[r["id"]] for r in rows[1:]) > limit  # ... and need more than one job
     plan = jobs.texture_jobs(rows, cfg)
     members = [pid for pids in plan.values() for pid in pids]
     assert sorted(members) == sorted(r["id"] for r in rows)  # every polygon once
     assert plan["facade"] == ["facade"]  # named by its polygon, alone
     groups = [pids for name, pids in plan.items() if name != "facade"]
     assert len(groups) < len(rows) - 1 and all(name.startswith("group-") for name in plan if name != "facade")
-    work = {r["id"]: jobs.polygon_work(r, cfg) / rate for r in rows}
     assert all(sum(work[p] for p in g) <= limit + 1e-9 for g in groups)
+    # many equal small polygons, none large: they share jobs of a quarter of pack_seconds
+    same = [{"id": f"w{i}", "width": 200, "height": 200, "photos": ["a"] * 4} for i in range(40)]
+    assert 1 < len(jobs.texture_jobs(same, cfg)) < 40
     assert jobs.texture_jobs(rows, cfg) == plan  # stable
     # another membership is another job name; pack_seconds 0 is a job per polygon
     assert set(jobs.texture_jobs(rows[:-1], cfg)) != set(plan)

@@ -155,17 +155,25 @@ def _camera_rays(model: str, width: int, height: int, params: tuple[float, ...],
     of one camera share them, and unprojecting through a distortion model is the costly part)."""
     ys = np.minimum(np.arange(0, height, stride) + 0.5 * stride, height - 0.5)
     xs = np.minimum(np.arange(0, width, stride) + 0.5 * stride, width - 0.5)
-    gx, gy = np.meshgrid(xs, ys)
-    pix = np.stack([gx, gy], -1).reshape(-1, 2)
     if model in ("SIMPLE_PINHOLE", "PINHOLE"):
+        # separable: a row and a column of normalised coordinates broadcast into the grid (a
+        # meshgrid of float64 pixels was 0.9 s of a 6-Mpixel photo's 1.0 s here)
         f = (params[0], params[0]) if model == "SIMPLE_PINHOLE" else params[:2]
         c = params[1:3] if model == "SIMPLE_PINHOLE" else params[2:4]
-        xy = (pix - np.asarray(c)) / np.asarray(f)
-    else:
-        import pycolmap
+        x = ((xs - c[0]) / f[0])[None, :]
+        y = ((ys - c[1]) / f[1])[:, None]
+        inv = 1.0 / np.sqrt(x * x + y * y + 1.0)
+        d = np.empty((len(ys), len(xs), 3), np.float32)
+        d[..., 0] = x * inv
+        d[..., 1] = y * inv
+        d[..., 2] = inv
+        return d
+    import pycolmap
 
-        cam = pycolmap.Camera(model=model, width=width, height=height, params=list(params))
-        xy = np.asarray(cam.cam_from_img(pix), dtype=np.float64).reshape(-1, 2)
+    gx, gy = np.meshgrid(xs, ys)
+    pix = np.stack([gx, gy], -1).reshape(-1, 2)
+    cam = pycolmap.Camera(model=model, width=width, height=height, params=list(params))
+    xy = np.asarray(cam.cam_from_img(pix), dtype=np.float64).reshape(-1, 2)
     d = np.concatenate([xy, np.ones((len(xy), 1))], axis=1)
     d /= np.linalg.norm(d, axis=1, keepdims=True)
     return d.reshape(len(ys), len(xs), 3).astype(np.float32)

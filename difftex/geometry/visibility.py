@@ -192,16 +192,16 @@ def scene_visibility(
     used = [ph for ph in photos if any(ph.name in s for s in wanted.values())]
     for ph in track(used, description="visibility", disable=not progress, transient=True):
         ids, _ = id_buffer(caster, ph)
+        # which polygons the photo sees at all: one pass, not one per polygon
+        hits = np.bincount(ids.ravel() + 1, minlength=len(proxy.polygons) + 1)[1:]
         for i, poly in enumerate(proxy.polygons):
-            if ph.name not in wanted.get(poly.id, ()):
+            if ph.name not in wanted.get(poly.id, ()) or hits[i] == 0:
                 continue
             if (poly.normal @ (ph.center - poly.centroid)) <= 0:
                 continue  # the camera is behind the plane: it sees none of this face's outside
             a = ids == i
-            ys, xs = np.nonzero(a)
-            if len(ys) == 0:
-                continue
-            box = (int(xs.min()), int(ys.min()), int(xs.max()) + 1, int(ys.max()) + 1)
+            rows, cols = np.flatnonzero(a.any(1)), np.flatnonzero(a.any(0))
+            box = (int(cols[0]), int(rows[0]), int(cols[-1]) + 1, int(rows[-1]) + 1)
             crop = a[box[1] : box[3], box[0] : box[2]]
             gsd = cos = None
             if probes is not None and probe_masks is not None:

@@ -2,11 +2,12 @@
 
 A texture job starts a Python that imports torch and reads the scene (about 2 s of CPU on a
 workstation, tens of seconds of queueing on a cluster); a small polygon's own work (a few
-photos, a few thousand texels) is less than that. Polygons whose estimated work is below
-``run.pack_seconds`` therefore share a job, packed largest first up to that much work per job;
-larger polygons keep a job of their own, so a cluster still runs them side by side. Jobs are
-named by their polygons (one polygon: its id; several: a digest of their ids), so a rerun with
-the same polygons and config finds its jobs done.
+photos, a few thousand texels) is less than that. Small polygons therefore share a job, packed
+largest first; large ones keep a job of their own, so a cluster still runs them side by side.
+A shared job holds no more estimated work than the largest polygon's (nor more than
+``run.pack_seconds``, nor less than a quarter of it), so sharing does not lengthen a run on
+enough cores. Jobs are named by their polygons (one polygon: its id; several: a digest of their
+ids), so a rerun with the same polygons and config finds its jobs done.
 
 No torch here: the Snakefile's process calls these for every job.
 """
@@ -87,9 +88,10 @@ def job_name(pids: list[str]) -> str:
 def texture_jobs(rows: list[dict], cfg: dict) -> dict[str, list[str]]:
     """Polygon ids per texture job, in a stable order.
 
-    Polygons estimated (``polygon_work`` at ``run.texels_per_minute``) at ``run.pack_seconds``
-    or more get a job each; the others are packed first-fit, largest first, into jobs of at most
-    that much work. ``pack_seconds: 0`` gives every polygon its own job.
+    Jobs hold at most ``limit`` of estimated work (``polygon_work`` at ``run.texels_per_minute``):
+    ``run.pack_seconds``, or the largest polygon's work if that is less (but not under a quarter
+    of ``pack_seconds``). Polygons at the limit or above get a job each; the others are packed
+    first-fit, largest first. ``pack_seconds: 0`` gives every polygon its own job.
 
     Args:
         rows: the visibility summary's rows of the polygons to texture.
@@ -98,10 +100,15 @@ def texture_jobs(rows: list[dict], cfg: dict) -> dict[str, list[str]]:
     Returns:
         {job name: [polygon ids]}, jobs in order of their first polygon in ``rows``.
     """
-    limit = float(cfg["run"].get("pack_seconds", 0)) * float(cfg["run"]["texels_per_minute"]) / 60.0
+    pack = float(cfg["run"].get("pack_seconds", 0)) * float(cfg["run"]["texels_per_minute"]) / 60.0
     order = {str(r["id"]): i for i, r in enumerate(rows)}
+    works = sorted(((polygon_work(r, cfg), str(r["id"])) for r in rows), key=lambda t: (-t[0], order[t[1]]))
+    # A shared job no larger than the largest polygon's (run side by side, the shared jobs then
+    # do not lengthen the run), but at least a quarter of pack_seconds (many equal small
+    # polygons still share).
+    limit = min(pack, max(works[0][0] if works else 0.0, pack / 4))
     groups: list[tuple[float, list[str]]] = []
-    for work, pid in sorted(((polygon_work(r, cfg), str(r["id"])) for r in rows), key=lambda t: (-t[0], order[t[1]])):
+    for work, pid in works:
         if work < limit:
             for i, (load, members) in enumerate(groups):
                 if load + work <= limit:
