@@ -263,25 +263,24 @@ def map_texels(frame: UVFrame, photo: Photo, margin: float = 0.0) -> TexelMappin
 def sample_photo(image: np.ndarray, pix: np.ndarray) -> np.ndarray:
     """Bilinear samples of an (H, W, C) image at pixel coordinates (..., 2) (COLMAP convention).
 
-    Outside the image or at NaN coordinates the result is 0. torch's grid_sample does the
-    interpolation because it is vectorised and the optimizer uses the same convention.
+    Outside the image or at NaN coordinates the result is 0, and pixels beyond the edge count as
+    0 in the interpolation (torch's grid_sample with zero padding, as the optimizer samples).
+    scipy's map_coordinates does it here, not torch: the assembly and evaluation stages that call
+    this would otherwise import torch for it (about 2 s per job).
     """
-    import torch
-    import torch.nn.functional as F
+    from scipy.ndimage import map_coordinates
 
-    h, w = image.shape[:2]
     shape = pix.shape[:-1]
-    g = np.asarray(pix, dtype=np.float32).reshape(1, -1, 1, 2).copy()
-    bad = ~np.isfinite(g).all(axis=-1)
-    g[bad] = -10.0
-    # align_corners=False: normalised -1 is the left edge of pixel 0, so pixel centres are at x+0.5.
-    g[..., 0] = g[..., 0] / w * 2 - 1
-    g[..., 1] = g[..., 1] / h * 2 - 1
-    img = torch.from_numpy(np.ascontiguousarray(image, dtype=np.float32)).permute(2, 0, 1)[None]
-    out = F.grid_sample(img, torch.from_numpy(g), mode="bilinear", padding_mode="zeros", align_corners=False)
-    res = out[0, :, :, 0].permute(1, 0).numpy()
-    res[bad.reshape(-1)] = 0.0
-    return res.reshape(*shape, image.shape[2])
+    p = np.asarray(pix, dtype=np.float64).reshape(-1, 2)
+    bad = ~np.isfinite(p).all(axis=-1)
+    # pixel centres at x + 0.5: array index = coordinate - 0.5
+    coords = np.where(bad[:, None], -10.0, p - 0.5)[:, ::-1].T
+    img = np.asarray(image, dtype=np.float32)
+    res = np.stack(
+        [map_coordinates(img[..., c], coords, order=1, mode="grid-constant", cval=0.0) for c in range(img.shape[2])], -1
+    )
+    res[bad] = 0.0
+    return res.reshape(*shape, img.shape[2]).astype(np.float32)
 
 
 def level_sides(target_long: int, start: int, coarse_to_fine: bool, step: float = 2.0) -> list[int]:
