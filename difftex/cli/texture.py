@@ -20,7 +20,7 @@ def add_arguments(parser) -> None:
         "(one polygon only; the workflow's finish rule does this)",
     )
     parser.add_argument("--done", help="after the last polygon, write this JSON listing them (the workflow's job file)")
-    parser.add_argument("--decode-cache-mb", type=float, default=1024.0,
+    parser.add_argument("--decode-cache-mb", type=float, default=512.0,
                         help="with several polygons, keep up to this many MB of decoded photos for the next ones")
     parser.add_argument("--no-progress", action="store_true")
 

@@ -58,6 +58,12 @@ class OptimizeConfig:
     use_persp: bool = True
     use_para: bool = True
     data_elimination: bool = True
+    # selection (difftex.method.selection): one photo per patch of the final level, by W x Q,
+    # with a Potts cost on seams, cross-faded over select_feather texels
+    select: bool = False
+    select_patch: int = 4  # patch side, texels
+    select_smoothness: float = 1.0  # Potts cost per texel of seam, in units of a texel's data cost
+    select_feather: float = 1.0  # Gaussian sigma of the cross-fade at seams, texels
     coarse_to_fine: bool = True
     histogram_matching: bool = True
     align: bool = True  # refine each photo's mapping (affine, pixels) against the consensus texture
@@ -89,6 +95,8 @@ class OptimizeConfig:
             raise ValueError("tau must be in [0, 1) and tau_w in (0, 1]")
         if self.ghost < 0:
             raise ValueError(f"ghost must be >= 0, got {self.ghost}")
+        if self.select_patch < 1 or self.select_smoothness < 0 or self.select_feather < 0:
+            raise ValueError("select_patch must be >= 1, select_smoothness and select_feather >= 0")
         if self.conv_window < 1 or self.conv_tol < 0:
             raise ValueError("conv_window must be >= 1 and conv_tol >= 0")
         if self.lr <= 0 or len(tuple(self.betas)) != 2:

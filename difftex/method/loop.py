@@ -20,7 +20,7 @@ from rich.console import Console
 from rich.progress import MofNCompleteColumn, Progress
 
 from difftex.geometry.frames import level_sides
-from difftex.method import alignment, diagnostics, losses, sparse
+from difftex.method import alignment, diagnostics, losses, selection, sparse
 from difftex.method.config import ComputeConfig, OptimizeConfig
 from difftex.method.elimination import (
     base_mask,
@@ -165,6 +165,10 @@ def optimize_polygon(
     lv = prev.level
     with torch.no_grad():
         W = losses.blend_weights(prev.z, prev.active)
+        if cfg.select:
+            W, stats["selection"] = selection.select_weights(
+                W, lv.Q, lv.idx, lv.mask, len(inp.photos), cfg.select_patch, cfg.select_smoothness, cfg.select_feather
+            )
         U = losses.compose(W, lv.colours)
     lmask = lv.mask
     stats["diagnostics"] = {

@@ -265,7 +265,7 @@ class DecodeCache:
     Callable like ``decode_photo``; ``decodes`` and ``hits`` count what it did.
     """
 
-    def __init__(self, budget_mb: float = 1024.0):
+    def __init__(self, budget_mb: float = 512.0):
         from collections import OrderedDict
 
         self.budget = int(budget_mb * 2**20)

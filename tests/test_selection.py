@@ -1,0 +1,81 @@
+"""Selection of one photo per patch from the optimized weights (difftex.method.selection)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from difftex.method.selection import UNSEEN_COST, select_weights, solve_potts, texel_costs
+
+
+def _slots(h=16, w=32):
+    # three photos in three slots at every texel, equal weights
+    idx = torch.stack([torch.full((h, w), n) for n in range(3)])
+    W = torch.full((3, h, w), 1.0 / 3)
+    Q = torch.ones(3, h, w)
+    return idx, W, Q
+
+
+def test_costs_are_zero_for_the_best_score_and_high_where_a_photo_holds_no_weight():
+    idx, W, Q = _slots(4, 4)
+    Q[1] = 2.0
+    W[2, 0, 0] = 0.0
+    c = texel_costs(W, Q, idx, 4)
+    assert torch.allclose(c[1], torch.zeros(4, 4))
+    assert torch.allclose(c[0, 1:, 1:], torch.full((3, 3), 0.5))
+    assert c[2, 0, 0] == UNSEEN_COST and (c[3] == UNSEEN_COST).all()  # photo 3 is in no slot
+    with pytest.raises(ValueError):
+        texel_costs(W, Q[:2], idx, 4)
+
+
+def test_each_half_takes_its_best_photo_with_one_short_cross_fade():
+    h, w = 16, 32
+    idx, W, Q = _slots(h, w)
+    Q[0, :, : w // 2] = 1.5  # photo 0 best on the left
+    Q[1, :, w // 2 :] = 1.5  # photo 1 on the right
+    W[2] = 0.0  # photo 2 occluded everywhere: never selected
+    W = W / W.sum(0, keepdim=True)
+    mask = torch.ones(h, w, dtype=torch.bool)
+    out, st = select_weights(W, Q, idx, mask, 3, patch=4, smoothness=1.0, feather=1.0)
+    assert torch.allclose(out.sum(0), torch.ones(h, w), atol=1e-5)
+    assert (out[2] == 0).all()
+    # one photo away from the seam, a cross-fade at it
+    assert (out[0, :, :12] > 0.99).all() and (out[1, :, 20:] > 0.99).all()
+    mid = out[0, :, 15:17]
+    assert ((mid > 0.1) & (mid < 0.9)).all()
+    assert st["labels"] == 2 and st["kept_share"] == 0.0
+    # hard seams without feathering
+    hard, _ = select_weights(W, Q, idx, mask, 3, patch=4, feather=0.0)
+    assert set(torch.unique(hard).tolist()) <= {0.0, 1.0}
+
+
+def test_smoothness_removes_isolated_patches():
+    unary = np.zeros((6, 6, 2))
+    unary[..., 1] = 1.0
+    unary[3, 3] = (1.0, 0.0)  # one patch prefers label 1 by 1
+    assert solve_potts(unary, 0.0)[3, 3] == 1
+    assert (solve_potts(unary, 1.0) == 0).all()  # 4 seam edges cost more than it gains
+
+
+def test_a_texel_whose_selected_photo_does_not_see_it_keeps_its_weights():
+    h, w = 8, 8
+    idx, W, Q = _slots(h, w)
+    Q[0] = 2.0
+    W[0, 2, 2] = 0.0  # the selected photo has no weight at one texel
+    W = W / W.sum(0, keepdim=True)
+    out, st = select_weights(W, Q, idx, torch.ones(h, w, dtype=torch.bool), 3, patch=4, feather=0.0)
+    assert torch.allclose(out[:, 2, 2], W[:, 2, 2])
+    assert st["kept_share"] == pytest.approx(1 / 64)
+    assert torch.isfinite(out).all()
+
+
+def test_one_photo_or_none_changes_nothing():
+    idx, W, Q = _slots(4, 4)
+    W[1:] = 0.0
+    W[0] = 1.0
+    out, st = select_weights(W, Q, idx, torch.ones(4, 4, dtype=torch.bool), 3)
+    assert torch.equal(out, W) and st["labels"] == 1
+    zero = torch.zeros(3, 4, 4)
+    out, st = select_weights(zero, Q, idx, torch.ones(4, 4, dtype=torch.bool), 3)
+    assert torch.equal(out, zero) and st["labels"] == 0
