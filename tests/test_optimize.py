@@ -9,6 +9,7 @@ import math
 import numpy as np
 import pytest
 import torch
+from scipy.ndimage import binary_dilation, binary_erosion
 
 from difftex.geometry.frames import level_sides, map_texels, sample_photo
 from difftex.method.config import OptimizeConfig
@@ -362,3 +363,24 @@ def test_ablation_switches():
     res = optimize(inp, fast_cfg(sigma_k=0.1, tau_w=0.01, settle_sigma=0.0))
     assert res.stats["dropped"] and sum(lv["eliminated_pixels"] for lv in res.stats["levels"]) > 0
     assert np.isfinite(res.U).all() and res.stats["coverage"] == 1.0
+
+
+def test_selection_takes_one_photo_where_the_photos_disagree_and_keeps_the_blend_elsewhere():
+    # in one rectangle every photo shows something else (as relief seen from three sides); where
+    # the photos agree, the blend averages their noise
+    photos = [make_photo("front", 0.0), make_photo("left", -30.0), make_photo("right", 30.0)]
+    colours = [(0.7, 0.3, 0.2), (0.2, 0.4, 0.7), (0.3, 0.7, 0.3)]
+    imgs = [paint_occluder(ph, render(ph), colour=c, grow=0.0) for ph, c in zip(photos, colours)]
+    inp = make_input(photos, imgs, long_side=64)
+    blend = optimize(inp, fast_cfg())
+    sel = optimize(inp, fast_cfg(select=True, select_feather=0.0))
+    reg = binary_erosion(occluded_region(inp), iterations=2) & inp.texel_visible.all(0)
+    top = np.max([photo_weight(sel.idx, sel.W, n) for n in range(3)], axis=0)
+    assert np.median(top[reg]) > 0.99  # one photo per texel there ...
+    picked = np.argmax([photo_weight(sel.idx, sel.W, n)[reg].mean() for n in range(3)])
+    assert np.abs(sel.U[reg] - colours[picked]).max() < 0.05  # ... whose colour is not mixed
+    assert 0 < sel.stats["selection"]["selected_share"] < 0.5
+    # away from the rectangle the photos agree (but for a few texels at the checker's edges):
+    # the texture is the blend's
+    far = inp.texel_visible.all(0) & ~binary_dilation(occluded_region(inp), iterations=6)
+    assert (np.abs(sel.U - blend.U).max(-1)[far] > 1e-3).mean() < 0.02

@@ -79,3 +79,21 @@ def test_one_photo_or_none_changes_nothing():
     zero = torch.zeros(3, 4, 4)
     out, st = select_weights(zero, Q, idx, torch.ones(4, 4, dtype=torch.bool), 3)
     assert torch.equal(out, zero) and st["labels"] == 0
+
+
+def test_where_the_photos_agree_the_blend_stays_and_the_seam_goes_there():
+    h, w = 16, 32
+    idx, W, Q = _slots(h, w)
+    Q[0, :, :12] = 1.5  # photo 0 best on the left, photo 1 on the right
+    Q[1, :, 12:] = 1.5
+    free = torch.zeros(h, w, dtype=torch.bool)
+    free[:, :8] = True  # the photos disagree only at both ends
+    free[:, 24:] = True
+    mask = torch.ones(h, w, dtype=torch.bool)
+    out, st = select_weights(W, Q, idx, mask, 3, patch=4, smoothness=1.0, feather=0.0, free=free)
+    assert (out[0, :, :8] == 1).all() and (out[1, :, 24:] == 1).all()  # selected where they disagree
+    assert torch.allclose(out[:, :, 8:24], W[:, :, 8:24])  # the blend where they agree
+    assert st["selected_share"] == pytest.approx(0.5)
+    # with a cross-fade, the weights still sum to one
+    soft, _ = select_weights(W, Q, idx, mask, 3, patch=4, feather=1.5, free=free)
+    assert torch.allclose(soft.sum(0), torch.ones(h, w), atol=1e-5)

@@ -166,8 +166,10 @@ def optimize_polygon(
     with torch.no_grad():
         W = losses.blend_weights(prev.z, prev.active)
         if cfg.select:
+            settled, _ = settled_texels(lv, prev.active, prev.active, cfg.settle_sigma)
             W, stats["selection"] = selection.select_weights(
-                W, lv.Q, lv.idx, lv.mask, len(inp.photos), cfg.select_patch, cfg.select_smoothness, cfg.select_feather
+                W, lv.Q, lv.idx, lv.mask, len(inp.photos), cfg.select_patch, cfg.select_smoothness,
+                cfg.select_feather, free=lv.mask & ~settled,
             )
         U = losses.compose(W, lv.colours)
     lmask = lv.mask

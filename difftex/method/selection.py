@@ -11,7 +11,9 @@ Potts cost on label changes between neighbouring patches so seams are few and sh
 
 solved by alpha-expansion graph cuts (PyMaxflow, as the MRF baseline). The selected photo's
 indicator is blurred by a Gaussian of ``select_feather`` texels, so a seam is a short cross-fade;
-a texel whose selected photo does not see it keeps its optimized W.
+a texel whose selected photo does not see it keeps its optimized W. Where the photos agree
+within noise (the settled texels, difftex.method.elimination.settled_texels) the blend stays and
+the data cost is zero, so the seams run there.
 """
 
 from __future__ import annotations
@@ -78,6 +80,7 @@ def select_weights(
     patch: int = 4,
     smoothness: float = 1.0,
     feather: float = 1.0,
+    free: torch.Tensor | None = None,
 ) -> tuple[torch.Tensor, dict]:
     """Weights of one selected photo per patch, feathered across seams.
 
@@ -88,6 +91,9 @@ def select_weights(
         patch: patch side in texels (the graph's nodes).
         smoothness: Potts cost per texel of seam, in units of the per-texel data cost.
         feather: Gaussian sigma of the cross-fade at seams, texels (0: hard seams).
+        free: (h, w) bool texels where the photos disagree (None: all). Elsewhere the photos
+            agree within noise: the optimized blend stays (it averages their noise away), their
+            data cost is zero, so seams go there, where a change of photo does not show.
 
     Returns:
         (K, h, w) weights (normalised where any photo is selected; the input W elsewhere) and
@@ -97,7 +103,8 @@ def select_weights(
         raise ValueError("patch must be >= 1, smoothness and feather >= 0")
     K, h, w = W.shape
     cost = texel_costs(W, Q, idx, n_photos)
-    cost = torch.where(mask[None], cost, torch.zeros_like(cost))
+    chosen = mask if free is None else mask & free
+    cost = torch.where(chosen[None], cost, torch.zeros_like(cost))
     used = [n for n in range(n_photos) if bool((cost[n] < UNSEEN_COST).any())]
     if len(used) <= 1:
         return W, {"patches": 0, "labels": len(used), "kept_share": 1.0}
@@ -106,16 +113,7 @@ def select_weights(
     # per-texel label maps of the used photos, blurred into cross-fades at the seams
     lab = torch.from_numpy(labels).to(W.device)
     lab = lab.repeat_interleave(patch, 0).repeat_interleave(patch, 1)[:h, :w]
-    ind = torch.stack([(lab == i).float() for i in range(len(used))])  # (L, h, w)
-    if feather > 0:
-        r = max(1, int(np.ceil(3 * feather)))
-        x = torch.arange(-r, r + 1, dtype=torch.float32, device=W.device)
-        g = torch.exp(-0.5 * (x / feather) ** 2)
-        g = g / g.sum()
-        t = F.pad(ind[:, None], (r, r, 0, 0), mode="replicate")
-        t = F.conv2d(t, g.view(1, 1, 1, -1))
-        t = F.pad(t, (0, 0, r, r), mode="replicate")
-        ind = F.conv2d(t, g.view(1, 1, -1, 1))[:, 0]
+    ind = blur(torch.stack([(lab == i).float() for i in range(len(used))]), feather)  # (L, h, w)
     pos = torch.full((n_photos,), -1, dtype=torch.long, device=W.device)
     pos[torch.tensor(used, device=W.device)] = torch.arange(len(used), device=W.device)
     slot_label = pos[idx.clamp_min(0)]  # (K, h, w) label index of each slot's photo, -1 if unused
@@ -125,10 +123,27 @@ def select_weights(
     # a texel whose selected photo(s) hold no weight there keeps the optimized blend
     has = total[0] > 0.05
     out = torch.where(has[None], sel / total.clamp_min(1e-12), W)
+    if free is not None:  # selection where the photos disagree, cross-faded into the blend
+        alpha = blur(free.float()[None], feather)[0]
+        out = alpha[None] * out + (1.0 - alpha[None]) * W
     n_mask = int(mask.sum())
     stats = {
         "patches": int(labels.size),
         "labels": len(set(np.unique(labels).tolist())),
         "kept_share": float((~has & mask).sum()) / max(n_mask, 1),
+        "selected_share": float((chosen & has).sum()) / max(n_mask, 1),
     }
     return out, stats
+
+
+def blur(x: torch.Tensor, sigma: float) -> torch.Tensor:
+    """(C, h, w) maps blurred by a separable Gaussian of ``sigma`` texels (edges replicated;
+    sigma 0: unchanged)."""
+    if sigma <= 0:
+        return x
+    r = max(1, int(np.ceil(3 * sigma)))
+    t = torch.arange(-r, r + 1, dtype=torch.float32, device=x.device)
+    g = torch.exp(-0.5 * (t / sigma) ** 2)
+    g = g / g.sum()
+    y = F.conv2d(F.pad(x[:, None], (r, r, 0, 0), mode="replicate"), g.view(1, 1, 1, -1))
+    return F.conv2d(F.pad(y, (0, 0, r, r), mode="replicate"), g.view(1, 1, -1, 1))[:, 0]
