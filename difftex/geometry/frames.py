@@ -272,7 +272,7 @@ def sample_photo(image: np.ndarray, pix: np.ndarray) -> np.ndarray:
 
     shape = pix.shape[:-1]
     p = np.asarray(pix, dtype=np.float64).reshape(-1, 2)
-    bad = ~np.isfinite(p).all(axis=-1)
+    bad = np.asarray(~np.isfinite(p).all(axis=-1))
     # pixel centres at x + 0.5: array index = coordinate - 0.5
     coords = np.where(bad[:, None], -10.0, p - 0.5)[:, ::-1].T
     img = np.asarray(image, dtype=np.float32)
