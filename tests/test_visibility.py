@@ -96,3 +96,30 @@ def test_mitsuba_and_numpy_casting_agree(occlusion_scene, tmp_path):
             assert (a != b).mean() < 1e-3
             same = (a == b) & (a >= 0)
             assert np.allclose(da[same], db[same], rtol=1e-5)
+
+
+def test_rays_outside_the_projected_proxy_are_not_cast(occlusion_scene):
+    """A pinhole photo casts only the block of rays around the proxy's projected vertices; the
+    id buffer is the one of every ray, at full resolution and on a stride grid."""
+    import dataclasses
+
+    from difftex.geometry.raycast import ProxyCaster, id_buffer, mitsuba_available, pixel_rays, proxy_window
+
+    if not mitsuba_available():
+        pytest.skip("Mitsuba's LLVM variant is not available (libLLVM)")
+    sc = occlusion_scene
+    caster = ProxyCaster.build(sc.proxy, "mitsuba")
+    for ph in sc.photos:
+        for stride in (1, 3):
+            win = proxy_window(sc.proxy, ph, stride)
+            assert win is not None
+            ids, dist = id_buffer(caster, ph, stride)
+            ref_ids, ref_dist = caster.cast(ph.center, pixel_rays(ph, stride))
+            assert np.array_equal(ids, ref_ids) and np.array_equal(dist, ref_dist)
+    # a proxy smaller in the frame: the window is a part of the grid
+    ph = sc.photos[0]
+    far = dataclasses.replace(ph, t=ph.t + np.array([0.0, 0.0, 20.0]))
+    y0, y1, x0, x1 = proxy_window(sc.proxy, far, 1)
+    assert 0 < (y1 - y0) * (x1 - x0) < 0.5 * far.width * far.height
+    ids, _ = id_buffer(caster, far)
+    assert (ids >= 0).any() and np.array_equal(ids, caster.cast(far.center, pixel_rays(far))[0])

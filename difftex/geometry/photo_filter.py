@@ -15,6 +15,8 @@ from __future__ import annotations
 
 import logging
 import time
+from collections import deque
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from math import ceil
 
@@ -33,7 +35,6 @@ log = logging.getLogger(__name__)
 
 def sharpness(image: np.ndarray, long_side: int = 1024) -> float:
     """Variance of the Laplacian of the luminance, after area-downscaling to ``long_side``."""
-    from scipy.ndimage import laplace
     from skimage.transform import resize
 
     grey = image[..., :3] @ np.array([0.299, 0.587, 0.114], dtype=np.float32)
@@ -41,7 +42,11 @@ def sharpness(image: np.ndarray, long_side: int = 1024) -> float:
     scale = long_side / max(h, w)
     if scale < 1:
         grey = resize(grey, (max(1, round(h * scale)), max(1, round(w * scale))), anti_aliasing=True)
-    return float(laplace(grey.astype(np.float64)).var())
+    # scipy.ndimage.laplace (kernel [1, -2, 1] per axis, mode "reflect" = numpy's "symmetric")
+    # from slices: the same values, four times faster than its two correlate1d passes
+    p = np.pad(grey.astype(np.float64), 1, mode="symmetric")
+    lap = p[:-2, 1:-1] + p[2:, 1:-1] + p[1:-1, :-2] + p[1:-1, 2:] - 4.0 * p[1:-1, 1:-1]
+    return float(lap.var())
 
 
 @dataclass
@@ -216,16 +221,28 @@ def filter_photos(proxy: Proxy, photos: list[Photo], cfg: FilterConfig, progress
     t0 = time.perf_counter()
     pp = prepare(proxy)
     records = []
-    it = track(photos, description="filtering photos", disable=not progress, transient=True)
-    for ph in it:
+
+    def photo_sharpness(ph: Photo) -> float:
         # Sharpness is measured at sharpness_long_side: a JPEG decodes straight to about that size.
         reduce = 2 ** int(np.floor(np.log2(max(1.0, max(ph.width, ph.height) / cfg.sharpness_long_side))))
-        img = decode_photo(ph.image_path, (ph.width, ph.height), reduce)
-        stride = max(1, ceil(max(ph.width, ph.height) / cfg.analysis_long_side))
-        ids, dist = id_buffer(pp, ph, stride=stride)
-        rec = PhotoRecord(name=ph.name, sharpness=sharpness(img, cfg.sharpness_long_side))
-        rec.polygons = viewing_angles(proxy, ph, ids, dist, stride, cfg.min_pixels)
-        records.append(rec)
+        return sharpness(decode_photo(ph.image_path, (ph.width, ph.height), reduce), cfg.sharpness_long_side)
+
+    # Decoding and sharpness (image codecs and numpy, which release the GIL) run one photo ahead
+    # in a second thread while this one casts the id buffers: about half the time on two cores.
+    # The ray casts stay on one thread (Mitsuba's scene is not shared across threads here).
+    with ThreadPoolExecutor(max_workers=1) as pool:
+        ahead = deque([pool.submit(photo_sharpness, photos[0])] if photos else [])
+        it = track(range(len(photos)), description="filtering photos", disable=not progress, transient=True)
+        for i in it:
+            ph = photos[i]
+            if i + 1 < len(photos):
+                ahead.append(pool.submit(photo_sharpness, photos[i + 1]))
+            stride = max(1, ceil(max(ph.width, ph.height) / cfg.analysis_long_side))
+            ids, dist = id_buffer(pp, ph, stride=stride)
+            rec = PhotoRecord(name=ph.name)
+            rec.polygons = viewing_angles(proxy, ph, ids, dist, stride, cfg.min_pixels)
+            rec.sharpness = ahead.popleft().result()  # a decode error surfaces here, in photo order
+            records.append(rec)
     med = float(np.median([r.sharpness for r in records])) if records else 0.0
     for r in records:
         r.sharpness_rel = r.sharpness / med if med > 0 else 1.0

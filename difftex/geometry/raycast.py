@@ -179,12 +179,39 @@ def _camera_rays(model: str, width: int, height: int, params: tuple[float, ...],
     return d.reshape(len(ys), len(xs), 3).astype(np.float32)
 
 
-def pixel_rays(photo: Photo, stride: int = 1) -> np.ndarray:
+def pixel_rays(photo: Photo, stride: int = 1, window: tuple[int, int, int, int] | None = None) -> np.ndarray:
     """World-frame unit ray directions (h, w, 3) through the pixel centres of ``photo`` (every
-    ``stride``-th pixel: h = ceil(H / stride))."""
+    ``stride``-th pixel: h = ceil(H / stride)); ``window`` (y0, y1, x0, x1): only that block of
+    the grid."""
     params = tuple(float(v) for v in np.asarray(photo.camera.params, np.float64))
     cam = _camera_rays(photo.model, photo.width, photo.height, params, int(stride))
+    if window is not None:
+        y0, y1, x0, x1 = window
+        cam = cam[y0:y1, x0:x1]
     return (cam.reshape(-1, 3) @ photo.R.astype(np.float32)).reshape(cam.shape)
+
+
+def proxy_window(proxy: Proxy, photo: Photo, stride: int = 1) -> tuple[int, int, int, int] | None:
+    """(y0, y1, x0, x1) block of the photo's ``stride`` grid that holds every ray that can hit the
+    proxy, or None (the whole grid) when that is not known.
+
+    For a pinhole camera with every proxy vertex in front of it, a polygon's image lies in the
+    bounding box of its projected vertices (lines stay lines); other rays hit nothing. With lens
+    distortion, edges bend beyond their vertices, and a vertex behind the camera has no image.
+    """
+    if not photo.is_pinhole or not proxy.polygons:
+        return None
+    V = np.concatenate([p.outer for p in proxy.polygons])
+    pix, depth = photo.project(V)
+    if not (depth > 1e-6).all() or not np.isfinite(pix).all():
+        return None
+    hgrid, wgrid = -(-photo.height // stride), -(-photo.width // stride)
+    # grid cell j's ray passes through pixel (j + 0.5) stride: keep one cell of margin either side
+    x0 = int(np.clip(np.floor(pix[:, 0].min() / stride) - 1, 0, wgrid))
+    x1 = int(np.clip(np.ceil(pix[:, 0].max() / stride) + 1, 0, wgrid))
+    y0 = int(np.clip(np.floor(pix[:, 1].min() / stride) - 1, 0, hgrid))
+    y1 = int(np.clip(np.ceil(pix[:, 1].max() / stride) + 1, 0, hgrid))
+    return y0, max(y0, y1), x0, max(x0, x1)
 
 
 def id_buffer(proxy: Proxy | ProxyCaster, photo: Photo, stride: int = 1) -> tuple[np.ndarray, np.ndarray]:
@@ -196,7 +223,17 @@ def id_buffer(proxy: Proxy | ProxyCaster, photo: Photo, stride: int = 1) -> tupl
     caster = proxy if isinstance(proxy, ProxyCaster) else ProxyCaster.build(proxy)
     if caster.backend == "numpy":
         return _id_buffer_numpy(caster._planes, photo, stride)
-    return caster.cast(photo.center, pixel_rays(photo, stride))
+    win = proxy_window(caster.proxy, photo, stride)
+    if win is None:
+        return caster.cast(photo.center, pixel_rays(photo, stride))
+    # only the rays that can hit the proxy (a building often fills a part of the frame)
+    h, w = -(-photo.height // stride), -(-photo.width // stride)
+    ids = np.full((h, w), NO_POLYGON, np.int32)
+    dist = np.full((h, w), np.inf, np.float32)
+    y0, y1, x0, x1 = win
+    if y1 > y0 and x1 > x0:
+        ids[y0:y1, x0:x1], dist[y0:y1, x0:x1] = caster.cast(photo.center, pixel_rays(photo, stride, win))
+    return ids, dist
 
 
 # ---------------------------------------------------------------------------------------------
