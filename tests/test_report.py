@@ -281,3 +281,11 @@ def test_comparison_page_and_markdown_tables(tmp_path):
         if link.endswith("index.html"):
             continue  # per-method reports are written separately
         assert (out.parent / link).resolve().is_file(), link
+
+
+def test_the_palette_starts_from_matplotlibs_tab10():
+    from matplotlib import colormaps
+
+    from difftex.compose.outputs import TAB10
+
+    assert np.allclose(np.array(TAB10), np.array(colormaps["tab10"].colors), atol=1e-9)

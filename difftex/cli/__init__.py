@@ -22,24 +22,30 @@ from difftex import __version__
 from difftex.errors import ERROR_PREFIX, WARNING_PREFIX, DifftexError, one_line, os_error_message
 
 
-def _commands() -> list:
+def _commands(only: str | None = None) -> list:
+    """The command modules; ``only``: just that command's, when it has one (the workflow runs
+    ``difftex finish`` and ``difftex stage-config`` once per polygon and stage: importing every
+    command's arguments, some of which import numpy and matplotlib, was most of their start-up)."""
+    names = [info.name for info in pkgutil.iter_modules(__path__) if not info.name.startswith("_")]
+    if only is not None and only.replace("-", "_") in names:
+        names = [only.replace("-", "_")]
     mods = []
-    for info in pkgutil.iter_modules(__path__):
-        if info.name.startswith("_"):
-            continue
-        mod = importlib.import_module(f"{__name__}.{info.name}")
+    for name in names:
+        mod = importlib.import_module(f"{__name__}.{name}")
         if hasattr(mod, "NAME") and hasattr(mod, "run"):
             mods.append(mod)
     return sorted(mods, key=lambda m: m.NAME)
 
 
-def build_parser() -> argparse.ArgumentParser:
+def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
+    """The parser; with ``argv``, only the named command's sub-parser (all of them for --help)."""
     parser = argparse.ArgumentParser(prog="difftex", description=__doc__.splitlines()[0])
     parser.add_argument(
         "--version", action=_Version, nargs=0, help="print the versions, the torch build and its device"
     )
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
-    for mod in _commands():
+    first = next((a for a in argv if not a.startswith("-")), None) if argv else None
+    for mod in _commands(first):
         p = sub.add_parser(mod.NAME, help=mod.HELP, description=mod.HELP)
         mod.add_arguments(p)
         p.set_defaults(_run=mod.run)
@@ -100,7 +106,8 @@ def _warnings_to_stderr() -> logging.Handler:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = build_parser()
+    argv = sys.argv[1:] if argv is None else argv
+    parser = build_parser(argv)
     args = parser.parse_args(argv)
     if not getattr(args, "_run", None):
         parser.print_help()

@@ -15,6 +15,16 @@ import numpy as np
 
 FILLED_GREY = 0.5  # source map: texels no photo sees, filled from their neighbours
 
+# matplotlib's ``tab10`` (Tableau 10) as 8-bit values: importing matplotlib for these ten colours
+# was half of a polygon's finish job (0.23 s); tests/test_report.py checks them against it.
+TAB10 = tuple(
+    (r / 255, g / 255, b / 255)
+    for r, g, b in (
+        (31, 119, 180), (255, 127, 14), (44, 160, 44), (214, 39, 40), (148, 103, 189),
+        (140, 86, 75), (227, 119, 194), (127, 127, 127), (188, 189, 34), (23, 190, 207),
+    )
+)
+
 
 def palette(n: int) -> list[tuple[float, float, float]]:
     """``n`` distinguishable colours: matplotlib's qualitative ``tab10`` (Tableau 10) without its
@@ -25,9 +35,7 @@ def palette(n: int) -> list[tuple[float, float, float]]:
     Returns:
         n (r, g, b) tuples in [0, 1].
     """
-    from matplotlib import colormaps
-
-    base = [c for c in colormaps["tab10"].colors if not (c[0] == c[1] == c[2])]
+    base = [c for c in TAB10 if not (c[0] == c[1] == c[2])]
     out = []
     for i in range(n):
         h, light, s = colorsys.rgb_to_hls(*base[i % len(base)])
