@@ -2,6 +2,7 @@
 
     python evaluation/tradeoff.py             # fast and balanced presets at 128 and 256 texels, one facade
     python evaluation/tradeoff.py --runs fast@256,fast@512,balanced@512 --polygons all
+    python evaluation/tradeoff.py --runs fast@auto,balanced@auto,paper@auto --polygons wall00
 
 Writes evaluation/results/tradeoff.{md,json,png}: one point per preset@resolution (minutes of
 texturing, summed over the polygons), with the cheap baselines at the same resolutions as
@@ -55,7 +56,8 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--scene", default="evaluation/out/scenes/tiny")
     ap.add_argument(
-        "--runs", default="fast@128,fast@256,balanced@128,balanced@256", help="comma-separated preset@long_side"
+        "--runs", default="fast@128,fast@256,balanced@128,balanced@256",
+        help="comma-separated preset@long_side, or preset@auto for the preset's density from the photos"
     )
     ap.add_argument(
         "--baselines",
@@ -75,11 +77,18 @@ def main(argv=None) -> int:
     scene, work = Path(args.scene), Path(args.work)
     ensure_synth(scene)
     only = C.polygon_ids(args.polygons)
-    runs = [(s.split("@")[0], int(s.split("@")[1])) for s in args.runs.split(",")]
+    # preset@N: N texels on every map's long side; preset@auto: the preset's own density (texel
+    # size from the photos' ground sampling distance, x the preset's density_scale)
+    runs = []
+    for r in args.runs.split(","):
+        preset, res = r.split("@")
+        runs.append((preset, None if res == "auto" else int(res)))
     commons, rows = {}, []
-    for preset, side in runs:
+    for preset, size in runs:
+        # the visibility (texel frames) and the baselines are shared by the runs at one resolution
+        side = size if size is not None else f"auto-{preset}"
         if side not in commons:
-            cfg = C.base_config(side, "fast", {"evaluate": {"views": False}})
+            cfg = C.base_config(size, "fast" if size is not None else preset, {"evaluate": {"views": False}})
             commons[side] = C.run_common(scene, work / f"common{side}", cfg, only)
             for b in [b for b in args.baselines.split(",") if b]:
                 if P.is_peer(b):
@@ -95,12 +104,12 @@ def main(argv=None) -> int:
                 rows.append(
                     {"label": f"{b}@{side}", "method": b, "preset": None, "long_side": side, "run": r, "metrics": ev}
                 )
-        cfg = C.base_config(side, preset, {"evaluate": {"views": False}})
+        cfg = C.base_config(size, preset, {"evaluate": {"views": False}})
         r = C.run_method("difftex", scene, work / f"{preset}@{side}", commons[side], cfg)
         ev = C.evaluate(scene, work / f"{preset}@{side}", args.lpips, config=commons[side]["config"])
         rows.append(
             {
-                "label": f"{preset}@{side}",
+                "label": f"{preset}@{'auto' if size is None else size}",
                 "method": "difftex",
                 "preset": preset,
                 "long_side": side,
@@ -109,15 +118,16 @@ def main(argv=None) -> int:
                 "optimize": cfg["optimize"],
             }
         )
-        print(f"tradeoff: {preset}@{side} done in {r['total_s']:.0f} s", flush=True)
+        print(f"tradeoff: {preset}@{size or 'auto'} done in {r['total_s']:.0f} s", flush=True)
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
     plot([r for r in rows if not r.get("missing")], out.with_suffix(".png"))
     mach = C.machine()
     notes = [
         f"Scene `{scene}`, polygons {args.polygons}.",
-        "Presets from config/presets/<name>.yaml with the texture long side overridden; minutes = texturing time "
-        "(init + optimize + histmatch for difftex) summed over the polygons, on this shared 2-core machine.",
+        "Presets from config/presets/<name>.yaml, with the texture long side overridden (preset@N) or at the "
+        "preset's own density from the photos (preset@auto, the baselines at the same texel frames); minutes = "
+        "texturing time summed over the polygons, on this shared 2-core machine.",
         f"Plot: `{out.with_suffix('.png').name}`.",
     ] + [n for n in [P.timing_note(rows)] if n]
     lines = [
