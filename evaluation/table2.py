@@ -14,6 +14,7 @@ computed on the texture maps from the view directions of the pixels that coloure
 from __future__ import annotations
 
 import argparse
+import json
 import sys
 import time
 from pathlib import Path
@@ -37,6 +38,7 @@ def main(argv=None) -> int:
     ap.add_argument("--preset", default="fast")
     ap.add_argument("--render-long-side", type=int, default=768, help="held-out views are compared at this size")
     ap.add_argument("--methods", default="difftex,average,frontal,mrf,texrecon,meshlab-face,meshlab-blend")
+    ap.add_argument("--optimize", default=None, help="JSON of optimize: overrides (ablations)")
     C.add_table_args(ap, "table2")
     args = ap.parse_args(argv)
 
@@ -48,7 +50,10 @@ def main(argv=None) -> int:
 
     torch.set_num_threads(args.threads)
     t_all = time.perf_counter()
-    cfg = C.base_config(args.long_side, args.preset, {"evaluate": {"render_long_side": args.render_long_side}})
+    over = {"evaluate": {"render_long_side": args.render_long_side}}
+    if args.optimize:
+        over["optimize"] = json.loads(args.optimize)
+    cfg = C.base_config(args.long_side, args.preset, over)
     scenes = [Path(s) for s in args.scenes.split(",") if s]
     results, skipped, per_scene = [], [], {}
     for sc in scenes:
