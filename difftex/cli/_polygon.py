@@ -5,11 +5,11 @@ from __future__ import annotations
 
 def add_common(parser, config=True, many=False) -> None:
     parser.add_argument("--scene", required=True, help="scene folder (images/, sparse/0/, proxy)")
-    if many:
-        parser.add_argument("--visibility", required=True, nargs="+",
-                            help="the polygons' visibility .npz files (difftex visibility), textured one after another")
-    else:
-        parser.add_argument("--visibility", required=True, help="the polygon's visibility .npz (difftex visibility)")
+    parser.add_argument(
+        "--visibility", required=True, nargs="+" if many else None,
+        help="the polygons' visibility .npz files (difftex visibility), textured one after another" if many
+        else "the polygon's visibility .npz (difftex visibility)",
+    )
     if config:
         parser.add_argument(
             "--config", default=None, help="YAML config; its 'optimize:' and 'compute:' sections are read"

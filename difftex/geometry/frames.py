@@ -280,7 +280,7 @@ def sample_photo(image: np.ndarray, pix: np.ndarray) -> np.ndarray:
         [map_coordinates(img[..., c], coords, order=1, mode="grid-constant", cval=0.0) for c in range(img.shape[2])], -1
     )
     res[bad] = 0.0
-    return res.reshape(*shape, img.shape[2]).astype(np.float32)
+    return res.reshape(*shape, img.shape[2])  # float32: map_coordinates keeps the input's dtype
 
 
 def level_sides(target_long: int, start: int, coarse_to_fine: bool, step: float = 2.0) -> list[int]:

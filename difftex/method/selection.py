@@ -129,7 +129,7 @@ def select_weights(
     n_mask = int(mask.sum())
     stats = {
         "patches": int(labels.size),
-        "labels": len(set(np.unique(labels).tolist())),
+        "labels": len(np.unique(labels)),
         "kept_share": float((~has & mask).sum()) / max(n_mask, 1),
         "selected_share": float((chosen & has).sum()) / max(n_mask, 1),
     }
