@@ -203,17 +203,20 @@ class TexelMapping:
 
 def texel_to_pixel(frame: UVFrame, photo: Photo, tx: np.ndarray, ty: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """f_k^i: continuous texel coordinates (...) to pixels (..., 2) and depth (...)."""
-    X = frame.texel_to_world(tx, ty)
     if photo.is_pinhole:
-        # Homography H = K [R | t] A: exact for pinhole cameras and cheaper than projecting 3D points.
+        # Homography H = K [R | t] A: exact for pinhole cameras and cheaper than projecting 3D
+        # points (no world coordinates at all, one multiply-add per entry)
         H = photo.K() @ (photo.R @ frame.A + np.outer(photo.t, [0.0, 0.0, 1.0]))
-        q = np.stack([np.asarray(tx, float), np.asarray(ty, float), np.ones_like(np.asarray(tx, float))], -1) @ H.T
-        depth = q[..., 2]
+        tx, ty = np.asarray(tx, np.float64), np.asarray(ty, np.float64)
+        depth = H[2, 0] * tx + H[2, 1] * ty + H[2, 2]
+        pix = np.empty((*depth.shape, 2))
         with np.errstate(divide="ignore", invalid="ignore"):
-            pix = q[..., :2] / depth[..., None]
+            inv = 1.0 / depth
+            pix[..., 0] = (H[0, 0] * tx + H[0, 1] * ty + H[0, 2]) * inv
+            pix[..., 1] = (H[1, 0] * tx + H[1, 1] * ty + H[1, 2]) * inv
         pix[depth <= 1e-9] = np.nan
         return pix, depth
-    return photo.project(X)
+    return photo.project(frame.texel_to_world(tx, ty))
 
 
 def texel_footprint(frame: UVFrame, photo: Photo, pix: np.ndarray) -> np.ndarray:

@@ -291,8 +291,7 @@ def para_loss(
             term = (C * smooth_abs(Wo - Wq, eps)).sum(0)
         else:
             Wq_same = torch.gather(Wq, 0, nm.match.clamp_min(0)) * (nm.match >= 0).to(W.dtype)
-            term = (C * smooth_abs(Wo - Wq_same, eps)).sum(0) + lambda_s * smooth_abs(
-                Wq * nm.q_alone.to(W.dtype), eps  # type: ignore[union-attr]  # set unless fixed
-            ).sum(0)
+            alone = nm.q_alone.to(W.dtype)  # type: ignore[union-attr]  # set unless fixed
+            term = (C * smooth_abs(Wo - Wq_same, eps)).sum(0) + lambda_s * smooth_abs(Wq * alone, eps).sum(0)
         total = total + (term * nm.pair_ok.to(W.dtype)).sum()
     return total / n_tex
