@@ -94,41 +94,49 @@ def texel_map(
     """
     device = torch.device(device)
     y0, y1, x0, x1 = region if region is not None else (0, frame.height, 0, frame.width)
-    Hm = torch.from_numpy(_homography(frame, photo)).to(device)
-    ty, tx = torch.meshgrid(
-        torch.arange(y0, y1, device=device, dtype=torch.float64) + 0.5,
-        torch.arange(x0, x1, device=device, dtype=torch.float64) + 0.5,
-        indexing="ij",
-    )
-    q = Hm[:, 0, None, None] * tx + Hm[:, 1, None, None] * ty + Hm[:, 2, None, None]
-    depth = q[2]
+    f64 = torch.float64
+    Hm = _homography(frame, photo)
+    # Every term below is separable over the grid (a row vector plus a column vector, or their
+    # product): no meshgrid of texel coordinates is built.
+    tx = torch.arange(x0, x1, device=device, dtype=f64) + 0.5
+    ty = torch.arange(y0, y1, device=device, dtype=f64) + 0.5
+
+    def affine(a: float, b: float, c: float) -> torch.Tensor:  # a tx + b ty + c over the grid (h, w)
+        return (a * tx)[None, :] + (b * ty + c)[:, None]
+
+    depth = affine(*Hm[2])
     front = depth > 1e-9
-    z = torch.where(front, depth, torch.ones_like(depth))
-    px, py = q[0] / z, q[1] / z
-    # Jacobian of the homography: d(pix)/d(tx), d(pix)/d(ty)
-    jxx, jyx = (Hm[0, 0] - px * Hm[2, 0]) / z, (Hm[1, 0] - py * Hm[2, 0]) / z
-    jxy, jyy = (Hm[0, 1] - px * Hm[2, 1]) / z, (Hm[1, 1] - py * Hm[2, 1]) / z
-    footprint = (jxx * jyy - jxy * jyx).abs().sqrt()
+    inv = 1.0 / torch.where(front, depth, torch.ones_like(depth))
+    px, py = affine(*Hm[0]) * inv, affine(*Hm[1]) * inv
+    # sqrt|det J| of a homography: |det J| = |det H| / depth^3
+    footprint = (abs(float(np.linalg.det(Hm))) * inv.abs() ** 3).sqrt()
     pix = torch.stack([px, py], -1)
     if not photo.is_pinhole:
         pix, footprint = _distorted(frame, photo, pix, footprint, device, (y0, y1, x0, x1))
-    # viewing geometry, relative to the frame origin so that float32 keeps precision in large
-    # (e.g. UTM) coordinates
+    # viewing geometry in the frame's basis (e_u, e_v, n), relative to the frame origin so that
+    # float32 keeps its precision in large (e.g. UTM) coordinates: the texel-to-camera vector is
+    # (cu - s tx) e_u + (cv - s ty) e_v + cn n, with c the camera centre in that basis
     s = frame.texel_size
-    c = torch.from_numpy(np.asarray(photo.center - frame.origin, np.float64)).to(device)
-    eu = torch.from_numpy(np.asarray(frame.e_u, np.float64)).to(device)
-    ev = torch.from_numpy(np.asarray(frame.e_v, np.float64)).to(device)
-    v = c[:, None, None] - s * (tx[None] * eu[:, None, None] + ty[None] * ev[:, None, None])
-    v = v / v.norm(dim=0, keepdim=True).clamp_min(1e-30)
-    nrm = torch.from_numpy(np.asarray(frame.normal, np.float64)).to(device)
-    cos = (v * nrm[:, None, None]).sum(0)
+    c = np.asarray(photo.center - frame.origin, np.float64)
+    eu, ev, nrm = (np.asarray(a, np.float64) for a in (frame.e_u, frame.e_v, frame.normal))
+    a_u, a_v, cn = float(c @ eu) - s * tx, float(c @ ev) - s * ty, float(c @ nrm)  # (w,), (h,)
+    dist = ((a_u * a_u)[None, :] + (a_v * a_v + cn * cn)[:, None]).sqrt().clamp_min(1e-30)
+    cos = cn / dist
+    inv_d = (1.0 / dist).float()
+    a_u32, a_v32 = a_u.float(), a_v.float()
+    view = torch.stack(
+        [
+            -(float(eu[k]) * a_u32[None, :] + (float(ev[k]) * a_v32 + float(cn * nrm[k]))[:, None]) * inv_d
+            for k in range(3)
+        ]
+    )
     inside = (pix[..., 0] >= 0) & (pix[..., 0] <= photo.width) & (pix[..., 1] >= 0) & (pix[..., 1] <= photo.height)
     valid = front & inside & (cos > 0) & torch.isfinite(pix).all(-1)
     pix = torch.where(front[..., None], pix, torch.full_like(pix, float("nan")))
     return TexelMap(
         pix=pix.float(),
         footprint=torch.nan_to_num(footprint, nan=1.0).float(),
-        view=(-v).float(),
+        view=view,
         cos=cos.clamp(0.0, 1.0).float(),
         valid=valid,
     )
