@@ -293,7 +293,8 @@ def test_small_polygons_share_texture_jobs_and_large_ones_keep_their_own():
     rows += [{"id": f"jamb{i}", "width": 80 + i, "height": 300, "photos": ["a"] * 5} for i in range(30)]
     pack = float(cfg["run"]["pack_seconds"])
     work = {r["id"]: jobs.polygon_work(r, cfg) / rate for r in rows}
-    limit = min(pack, max(work["facade"], pack / 4))  # no shared job larger than the facade's
+    total = sum(work.values())
+    limit = min(pack, max(work["facade"], total / cfg["run"]["pack_jobs"]))  # no shared job larger than the facade's
     assert all(work[r["id"]] < limit for r in rows[1:])  # the jambs are below it
     assert sum(work[r["id"]] for r in rows[1:]) > limit  # ... and need more than one job
     plan = jobs.texture_jobs(rows, cfg)
@@ -302,10 +303,14 @@ def test_small_polygons_share_texture_jobs_and_large_ones_keep_their_own():
     assert plan["facade"] == ["facade"]  # named by its polygon, alone
     groups = [pids for name, pids in plan.items() if name != "facade"]
     assert len(groups) < len(rows) - 1 and all(name.startswith("group-") for name in plan if name != "facade")
-    assert all(sum(work[p] for p in g) <= limit + 1e-9 for g in groups)
-    # many equal small polygons, none large: they share jobs of a quarter of pack_seconds
+    largest_small = max(work[r["id"]] for r in rows[1:])
+    assert all(sum(work[p] for p in g) <= limit + largest_small for g in groups)  # balanced, near the limit
+    # many equal small polygons, none large: they share about pack_jobs jobs (not one)
     same = [{"id": f"w{i}", "width": 200, "height": 200, "photos": ["a"] * 4} for i in range(40)]
-    assert 1 < len(jobs.texture_jobs(same, cfg)) < 40
+    assert len(jobs.texture_jobs(same, cfg)) == cfg["run"]["pack_jobs"]
+    # a small scene's polygons are not all in one job, however little work they hold
+    few = [{"id": f"s{i}", "width": 60 + i, "height": 50, "photos": ["a"] * 3} for i in range(6)]
+    assert 1 < len(jobs.texture_jobs(few, cfg)) <= cfg["run"]["pack_jobs"]
     assert jobs.texture_jobs(rows, cfg) == plan  # stable
     # another membership is another job name; pack_seconds 0 is a job per polygon
     assert set(jobs.texture_jobs(rows[:-1], cfg)) != set(plan)

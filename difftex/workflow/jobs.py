@@ -5,9 +5,11 @@ workstation, tens of seconds of queueing on a cluster); a small polygon's own wo
 photos, a few thousand texels) is less than that. Small polygons therefore share a job, packed
 largest first; large ones keep a job of their own, so a cluster still runs them side by side.
 A shared job holds no more estimated work than the largest polygon's (nor more than
-``run.pack_seconds``, nor less than a quarter of it), so sharing does not lengthen a run on
-enough cores. Jobs are named by their polygons (one polygon: its id; several: a digest of their
-ids), so a rerun with the same polygons and config finds its jobs done.
+``run.pack_seconds``), so sharing does not lengthen a run on enough cores; but at least the
+total over ``run.pack_jobs``, so that many equal small polygons still share, in about that many
+jobs for the cores to run side by side. Jobs are named by their polygons (one polygon: its id;
+several: a digest of their ids), so a rerun with the same polygons and config finds its jobs
+done. The longest jobs start first (``priority``).
 
 No torch here: the Snakefile's process calls these for every job.
 """
@@ -67,6 +69,16 @@ def runtime_min(rows: list[dict], cfg: dict) -> int:
     return int(max(10, math.ceil(3 * work / float(cfg["run"]["texels_per_minute"]))))
 
 
+def priority(rows: list[dict], cfg: dict) -> int:
+    """The scheduler's priority of a job of these polygons: its estimated work in seconds at
+    ``run.texels_per_minute``. Snakemake starts the ready jobs of highest priority first, so the
+    longest jobs start first and the short ones fill the other cores around them (longest
+    processing time first); in the order of the DAG, the largest polygon could start last and
+    run alone on one core while the others idle."""
+    work = sum(polygon_work(r, cfg) for r in rows)
+    return int(math.ceil(60.0 * work / float(cfg["run"]["texels_per_minute"])))
+
+
 def job_mem_mb(scene: str | Path, rows: list[dict], cfg: dict) -> int:
     """A job holds one polygon's data at a time (the largest of its polygons' estimates) and,
     with several polygons, up to ``run.decode_cache_mb`` of decoded photos."""
@@ -88,10 +100,12 @@ def job_name(pids: list[str]) -> str:
 def texture_jobs(rows: list[dict], cfg: dict) -> dict[str, list[str]]:
     """Polygon ids per texture job, in a stable order.
 
-    Jobs hold at most ``limit`` of estimated work (``polygon_work`` at ``run.texels_per_minute``):
-    ``run.pack_seconds``, or the largest polygon's work if that is less (but not under a quarter
-    of ``pack_seconds``). Polygons at the limit or above get a job each; the others are packed
-    first-fit, largest first. ``pack_seconds: 0`` gives every polygon its own job.
+    ``limit`` of estimated work (``polygon_work`` at ``run.texels_per_minute``) is
+    ``run.pack_seconds``, or the largest polygon's work if that is less (but not under the total
+    work over ``run.pack_jobs``). Polygons at the limit or above get a job each; the others share
+    ceil(their work / limit) jobs, each polygon (largest first) joining the least-loaded job, so
+    a shared job ends within one small polygon of the limit. ``pack_seconds: 0`` gives every
+    polygon its own job.
 
     Args:
         rows: the visibility summary's rows of the polygons to texture.
@@ -104,21 +118,23 @@ def texture_jobs(rows: list[dict], cfg: dict) -> dict[str, list[str]]:
     order = {str(r["id"]): i for i, r in enumerate(rows)}
     works = sorted(((polygon_work(r, cfg), str(r["id"])) for r in rows), key=lambda t: (-t[0], order[t[1]]))
     # A shared job no larger than the largest polygon's (run side by side, the shared jobs then
-    # do not lengthen the run), but at least a quarter of pack_seconds (many equal small
-    # polygons still share).
-    limit = min(pack, max(works[0][0] if works else 0.0, pack / 4))
-    groups: list[tuple[float, list[str]]] = []
-    for work, pid in works:
-        if work < limit:
-            for i, (load, members) in enumerate(groups):
-                if load + work <= limit:
-                    groups[i] = (load + work, members + [pid])
-                    break
-            else:
-                groups.append((work, [pid]))
-        else:
-            groups.append((math.inf, [pid]))  # a job of its own, closed to others
-    jobs = [sorted(members, key=order.__getitem__) for _, members in groups]
+    # do not lengthen the run), but at least the total over pack_jobs (many equal small
+    # polygons still share, in about pack_jobs jobs; not a fraction of pack_seconds, which
+    # would put a small scene's polygons in one job on one core).
+    total = sum(w for w, _ in works)
+    limit = min(pack, max(works[0][0] if works else 0.0, total / max(1, int(cfg["run"].get("pack_jobs", 1)))))
+    alone = [[pid] for work, pid in works if work >= limit]  # a job each
+    small = [(work, pid) for work, pid in works if work < limit]
+    # the small ones in as many jobs as their work needs at the limit, each added to the
+    # least-loaded job (largest first): balanced jobs, each within one polygon of the limit
+    n = math.ceil(sum(w for w, _ in small) / limit - 1e-9) if small else 0
+    shared: list[list] = [[0.0, []] for _ in range(n)]
+    for work, pid in small:
+        least = min(shared, key=lambda g: g[0])
+        least[0] += work
+        least[1].append(pid)
+    groups = alone + [members for _, members in shared if members]
+    jobs = [sorted(members, key=order.__getitem__) for members in groups]
     jobs.sort(key=lambda m: order[m[0]])
     return {job_name(m): m for m in jobs}
 

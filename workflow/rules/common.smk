@@ -98,6 +98,10 @@ def get_job_runtime(wc):
     return jobs.runtime_min(get_job_rows(wc), config)
 
 
+def get_job_priority(wc):
+    return jobs.priority(get_job_rows(wc), config)
+
+
 def get_polygon_job(wc):
     return f"{R}/optimized/jobs/{wf.job_of(get_summary(), config, wc.pid)}.json"
 

@@ -31,6 +31,8 @@ rule texture:
     benchmark:
         f"{R}/benchmarks/texture/{{job}}.tsv"
     threads: RUN["polygon_threads"]
+    # the longest jobs first (estimated seconds), the short ones around them
+    priority: get_job_priority
     resources:
         mem_mb=get_job_mem_mb,
         runtime=get_job_runtime,
