@@ -57,7 +57,13 @@ def apply_transfer_torch(rgb: torch.Tensor, transfer: np.ndarray) -> torch.Tenso
     """Apply a (3, 2, N_KNOTS) HSV transfer to colours (3, ...) in [0, 1]."""
     t = torch.as_tensor(np.asarray(transfer), dtype=rgb.dtype, device=rgb.device)
     hsv = rgb_to_hsv(rgb.clamp(0.0, 1.0))
-    chans = [_interp(hsv[c].reshape(-1), t[c, 0], t[c, 1]).reshape(hsv[c].shape) for c in range(3)]
+    # a channel whose knots map every value to itself (hue, by default) is left as it is
+    chans = [
+        hsv[c]
+        if torch.equal(t[c, 0], t[c, 1])
+        else _interp(hsv[c].reshape(-1), t[c, 0], t[c, 1]).reshape(hsv[c].shape)
+        for c in range(3)
+    ]
     return hsv_to_rgb(torch.stack(chans))
 
 
