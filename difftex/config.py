@@ -134,3 +134,6 @@ class FilterConfig:
 class VisibilityConfig:
     min_texels: int = 16  # a candidate photo must see at least this many texels of the polygon
     max_photos: int | None = None  # keep at most this many photos per polygon (best Q_a first)
+    # a photo is a polygon's candidate only where it is among this many best (frontal x resolved)
+    # of some texel, or alone sees some; None: every photo that sees the polygon
+    texel_candidates: int | None = 24

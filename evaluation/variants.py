@@ -27,7 +27,14 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from evaluation import common as C  # noqa: E402
 
 
-def run(scene: Path, density_scale: float, max_long_side: int, variants: dict, polygons: list[str] | None) -> dict:
+def run(
+    scene: Path,
+    density_scale: float,
+    max_long_side: int,
+    variants: dict,
+    polygons: list[str] | None,
+    texel_candidates: int | None = None,
+) -> dict:
     import torch
 
     from difftex.compose.composite import finish_texture
@@ -47,7 +54,8 @@ def run(scene: Path, density_scale: float, max_long_side: int, variants: dict, p
     sc = load_scene(scene, check_images=False)
     cands = {p.id: [ph.name for ph in sc.photos] for p in sc.proxy.polygons if polygons is None or p.id in polygons}
     tex = TextureConfig(density="auto", density_scale=density_scale, max_long_side=max_long_side)
-    vis = [v for v in scene_visibility(sc.proxy, sc.photos, sc.up, cands, tex, progress=False) if v.photos]
+    vis = scene_visibility(sc.proxy, sc.photos, sc.up, cands, tex, progress=False, texel_candidates=texel_candidates)
+    vis = [v for v in vis if v.photos]
     by_name = {p.name: p for p in sc.photos}
     gt = scene / "ground_truth"
     out = {}
@@ -104,6 +112,9 @@ def main(argv=None) -> int:
     ap.add_argument("--max-long-side", type=int, default=2048)
     ap.add_argument("--variants", required=True, help="JSON: name -> optimize overrides, or null for the plain average")
     ap.add_argument("--polygons", help="comma-separated polygon ids (default: all)")
+    ap.add_argument(
+        "--texel-candidates", type=int, help="visibility.texel_candidates (default: every photo that sees a polygon)"
+    )
     ap.add_argument("--out", required=True)
     args = ap.parse_args(argv)
     res = run(
@@ -112,6 +123,7 @@ def main(argv=None) -> int:
         args.max_long_side,
         json.loads(args.variants),
         C.polygon_ids(args.polygons) if args.polygons else None,
+        args.texel_candidates,
     )
     mach = C.machine()
     lines = [
@@ -121,6 +133,7 @@ def main(argv=None) -> int:
             mach,
             [
                 f"density auto x {args.density_scale} (max {args.max_long_side}), "
+                f"visibility.texel_candidates {args.texel_candidates}, "
                 f"polygons {', '.join(res['polygons'])}, "
                 f"{res['texels']} texels; metrics against the ground-truth maps at each texture's resolution."
             ],

@@ -123,3 +123,33 @@ def test_rays_outside_the_projected_proxy_are_not_cast(occlusion_scene):
     assert 0 < (y1 - y0) * (x1 - x0) < 0.5 * far.width * far.height
     ids, _ = id_buffer(caster, far)
     assert (ids >= 0).any() and np.array_equal(ids, caster.cast(far.center, pixel_rays(far))[0])
+
+
+def test_only_the_best_photos_of_some_texel_stay_candidates(tmp_path):
+    """With texel_candidates = m, a photo stays only where it is among the m most frontal,
+    resolved photos of some texel: with photos that all see the wall, the m most frontal stay;
+    where the close frontal photos miss the wall's ends, the oblique photos that see them stay."""
+    import math
+
+    def scene(name, frontal_dist):
+        centres = []
+        for yaw, dist in [(0, frontal_dist), (4, frontal_dist), (-4, frontal_dist)] + [
+            (a, 6) for a in (60, -60, 64, -64, 68, -68)
+        ]:
+            a = math.radians(yaw)
+            centres.append((dist * math.sin(a), -dist * math.cos(a), 1.0))
+        sc = load_scene(make_scene(tmp_path / name, {"w": wall(-2, 2, 0, 2)}, centers=centres, size=(320, 240)))
+        names = [ph.name for ph in sc.photos]
+        full = scene_visibility(sc.proxy, sc.photos, sc.up, {"w": names}, 64)[0]
+        capped = scene_visibility(sc.proxy, sc.photos, sc.up, {"w": names}, 64, texel_candidates=3)[0]
+        assert len(full.photos) == 9
+        # every texel a photo saw is still seen
+        assert np.array_equal(full.texel_visible.any(0), capped.texel_visible.any(0))
+        return full, capped
+
+    full, capped = scene("far", 6)  # every photo sees the whole wall: the three frontal ones stay
+    assert capped.photos == ["img00.png", "img01.png", "img02.png"]
+    full, capped = scene("near", 2.5)  # the frontal photos miss the ends: oblique ones texture them
+    frontal = [full.photos.index(n) for n in ("img00.png", "img01.png", "img02.png")]
+    assert not full.texel_visible[frontal].any(0)[full.texel_mask].all()
+    assert {"img00.png", "img01.png", "img02.png"} < set(capped.photos)

@@ -72,6 +72,7 @@ def run(args) -> int:
         tex,
         min_texels=vcfg.min_texels,
         max_photos=vcfg.max_photos,
+        texel_candidates=vcfg.texel_candidates,
         progress=not args.quiet,
         top_k=top_k,
         fallback=later,

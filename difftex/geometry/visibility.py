@@ -161,6 +161,7 @@ def scene_visibility(
     progress: bool = True,
     top_k: int = 8,
     fallback: dict[str, dict[str, str]] | None = None,
+    texel_candidates: int | None = None,
 ) -> list[PolygonVisibility]:
     """Visibility of every polygon in its candidate photos (photo names per polygon id).
 
@@ -168,8 +169,10 @@ def scene_visibility(
     photo name -> why the filter left it out, e.g. inclined), joins only where it is the last
     source of some texels: dropping it there would lose their colour for good (paper, Sec. 3.4),
     and the texturing's quality weights and photo drop keep it out of the texels that other
-    photos see. ``PolygonVisibility.rescued`` lists those photos. ``max_photos`` (best Q_a
-    first) is a cap the user set, applied last.
+    photos see. ``PolygonVisibility.rescued`` lists those photos. ``texel_candidates``: a
+    photo stays a candidate only where it is among that many best of some texel
+    (:func:`best_per_texel`), or the last source of some. ``max_photos`` (best Q_a first) is a
+    cap the user set, applied last.
 
     One pass over the photos: each photo's id buffer gives, per polygon it sees, the crop of
     a_k^i and (``density: auto``) the photo's ground sampling distance on a probe grid. Then each
@@ -245,6 +248,9 @@ def scene_visibility(
                 spare.append(
                     (it, crop, seen, f"sees {int(seen.sum())} texels (< visibility.min_texels = {min_texels})")
                 )
+        if texel_candidates and len(kept) > texel_candidates:
+            kept, spare_best = best_per_texel(kept, frame, by_name, texel_candidates)
+            spare = spare + spare_best
         kept, rescued = last_sources(kept, spare, tmask)
         if max_photos is not None and len(kept) > max_photos:  # a cap the user set: it wins
             kept = sorted(kept, key=lambda k: -k[0].mean_cos)[:max_photos]
@@ -264,6 +270,52 @@ def scene_visibility(
         )
         out.append(dataclasses.replace(vis, texel_size=dataclasses.asdict(size), rescued=rescued))
     return out
+
+
+def best_per_texel(kept: list[tuple], frame: UVFrame, photos: dict, m: int, grid: int = 64) -> tuple[list, list]:
+    """The photos among the ``m`` best of some texel, and the others (as ``last_sources``' spare).
+
+    A texel keeps ``optimize.top_k`` slots, ranked by Q = Q_a Q_c Q_r; a photo outside the best
+    few of every texel never wins a slot, yet was decoded, mapped and ranked at every level
+    (on a 200-photo building, 54-75 candidates per polygon). Ranked here by the geometric part
+    of Q, frontality times resolution (cosine of the viewing angle x min(1, pixels per texel)),
+    on a grid of at most ``grid`` x ``grid`` texels of the frame. ``m`` (3 x top_k by default)
+    leaves Q_c its consensus: an occluder in a few of the best photos still meets agreeing ones.
+
+    Args:
+        kept: (sighting, crop, seen (H, W) bool) per photo, in their order.
+        photos: photo name -> Photo.
+    Returns:
+        (the kept tuples that rank within ``m`` somewhere, in order; the others as (sighting,
+        crop, seen, why) for ``last_sources``, which takes back a photo that alone sees texels).
+    """
+    H, W = frame.shape
+    step = max(1, -(-max(H, W) // grid))
+    ty, tx = np.mgrid[0:H:step, 0:W:step].astype(np.float64) + 0.5
+    X = frame.texel_to_world(tx, ty)
+    scores = np.zeros((len(kept), *tx.shape), np.float32)
+    for j, (it, _, seen) in enumerate(kept):
+        ph = photos[it.name]
+        v = ph.center - X
+        cos = (v @ frame.normal) / np.linalg.norm(v, axis=-1)
+        pix, _ = texel_to_pixel(frame, ph, tx, ty)
+        du, _ = texel_to_pixel(frame, ph, tx + 1.0, ty)
+        dv, _ = texel_to_pixel(frame, ph, tx, ty + 1.0)
+        a, b = du - pix, dv - pix
+        with np.errstate(invalid="ignore"):
+            fp = np.sqrt(np.abs(a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0]))
+        s = np.nan_to_num(np.clip(cos, 0, 1) * np.minimum(1.0, fp), nan=0.0)
+        scores[j] = np.where(seen[::step, ::step], s, -1.0)
+    # rank of each photo at each texel (0: best), by score then photo order
+    order = np.argsort(-scores, axis=0, kind="stable")
+    best = np.zeros(len(kept), bool)
+    top = order[: min(m, len(kept))]
+    valid = np.take_along_axis(scores, top, axis=0) > 0
+    best[np.unique(top[valid])] = True
+    return (
+        [k for k, b in zip(kept, best) if b],
+        [(*k, f"not among the {m} best photos (frontal, resolved) of any texel") for k, b in zip(kept, best) if not b],
+    )
 
 
 def last_sources(kept: list[tuple], spare: list[tuple], mask: np.ndarray) -> tuple[list[tuple], dict]:
