@@ -3,7 +3,8 @@
     W=evaluation/out/table1_archive   # after: python evaluation/table1.py --scene data/synth/paper/archive ...
     python evaluation/side_by_side.py --scene data/synth/paper/archive --run difftex=$W/difftex \
         --run texrecon=$W/texrecon --run "MeshLab blend=$W/meshlab-blend" --run MRF=$W/mrf \
-        --run average=$W/average --polygon wall00 --crop 0.08,0.3,0.25,0.7 --max-width 1500 --out docs/images/table1_archive_wall00.png
+        --run average=$W/average --polygon wall00 --crop 0.08,0.3,0.25,0.7 --max-width 1500 \
+        --out docs/images/table1_archive_wall00.png
 
 For a person to look at, not a metric: every method's texture is resampled into the ground
 truth's frame (the code Table 1 scores with, difftex.evaluation.evaluate.resample_texture), the
