@@ -320,3 +320,9 @@ def test_small_polygons_share_texture_jobs_and_large_ones_keep_their_own():
     big = max(jobs.polygon_mem_mb(".", r, cfg["run"], cfg["optimize"]["top_k"]) for r in rows[1:])
     assert big < jobs.job_mem_mb(".", rows[1:], cfg) <= big + cfg["run"]["decode_cache_mb"] + 1
     assert jobs.runtime_min(rows, cfg) >= jobs.runtime_min(rows[:1], cfg) >= 10
+    # the scheduler starts the longest jobs first: priority = estimated seconds
+    by_id = {r["id"]: r for r in rows}
+    prio = {name: jobs.priority([by_id[p] for p in pids], cfg) for name, pids in plan.items()}
+    est = {name: sum(work[p] for p in pids) for name, pids in plan.items()}
+    assert max(prio, key=prio.get) == max(est, key=est.get)
+    assert all(abs(prio[n] - est[n]) <= 1 for n in plan)
