@@ -14,6 +14,7 @@ untextured, and the table says why (:func:`unseen_reason`).
 from __future__ import annotations
 
 import logging
+import os
 import time
 from collections import deque
 from concurrent.futures import ThreadPoolExecutor
@@ -231,16 +232,18 @@ def filter_photos(proxy: Proxy, photos: list[Photo], cfg: FilterConfig, progress
         reduce = 2 ** int(np.floor(np.log2(max(1.0, max(ph.width, ph.height) / cfg.sharpness_long_side))))
         return sharpness(decode_photo(ph.image_path, (ph.width, ph.height), reduce), cfg.sharpness_long_side)
 
-    # Decoding and sharpness (image codecs and numpy, which release the GIL) run one photo ahead
-    # in a second thread while this one casts the id buffers: about half the time on two cores.
-    # The ray casts stay on one thread (Mitsuba's scene is not shared across threads here).
-    with ThreadPoolExecutor(max_workers=1) as pool:
-        ahead = deque([pool.submit(photo_sharpness, photos[0])] if photos else [])
+    # Decoding and sharpness (image codecs and numpy, which release the GIL) run ahead in worker
+    # threads, one per thread of the job (OMP_NUM_THREADS, as the workflow sets it), while this
+    # one makes the id buffers; with pinhole photos rasterised, the decodes are most of the work.
+    # The id buffers stay on this thread (Mitsuba's scene is not shared across threads here).
+    workers = max(1, int(os.environ.get("OMP_NUM_THREADS", "0") or 0) or min(4, os.cpu_count() or 1))
+    with ThreadPoolExecutor(max_workers=workers) as pool:
+        ahead = deque(pool.submit(photo_sharpness, ph) for ph in photos[:workers])
         it = track(range(len(photos)), description="filtering photos", disable=not progress, transient=True)
         for i in it:
             ph = photos[i]
-            if i + 1 < len(photos):
-                ahead.append(pool.submit(photo_sharpness, photos[i + 1]))
+            if i + workers < len(photos):
+                ahead.append(pool.submit(photo_sharpness, photos[i + workers]))
             stride = max(1, ceil(max(ph.width, ph.height) / cfg.analysis_long_side))
             ids, dist = id_buffer(pp, ph, stride=stride)
             rec = PhotoRecord(name=ph.name)
