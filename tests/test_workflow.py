@@ -320,6 +320,11 @@ def test_small_polygons_share_texture_jobs_and_large_ones_keep_their_own():
     big = max(jobs.polygon_mem_mb(".", r, cfg["run"], cfg["optimize"]["top_k"]) for r in rows[1:])
     assert big < jobs.job_mem_mb(".", rows[1:], cfg) <= big + cfg["run"]["decode_cache_mb"] + 1
     assert jobs.runtime_min(rows, cfg) >= jobs.runtime_min(rows[:1], cfg) >= 10
+    # polygons with no work at all still get a job (a shared one)
+    empty = [{"id": f"e{i}", "width": 0, "height": 0, "photos": ["a"]} for i in range(3)]
+    assert sorted(p for m in jobs.texture_jobs(empty + rows[:1], cfg).values() for p in m) == sorted(
+        ["e0", "e1", "e2", "facade"]
+    )
     # the scheduler starts the longest jobs first: priority = estimated seconds
     by_id = {r["id"]: r for r in rows}
     prio = {name: jobs.priority([by_id[p] for p in pids], cfg) for name, pids in plan.items()}

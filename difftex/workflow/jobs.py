@@ -127,7 +127,7 @@ def texture_jobs(rows: list[dict], cfg: dict) -> dict[str, list[str]]:
     small = [(work, pid) for work, pid in works if work < limit]
     # the small ones in as many jobs as their work needs at the limit, each added to the
     # least-loaded job (largest first): balanced jobs, each within one polygon of the limit
-    n = math.ceil(sum(w for w, _ in small) / limit - 1e-9) if small else 0
+    n = max(1, math.ceil(sum(w for w, _ in small) / limit - 1e-9)) if small else 0
     shared: list[list] = [[0.0, []] for _ in range(n)]
     for work, pid in small:
         least = min(shared, key=lambda g: g[0])
