@@ -320,6 +320,13 @@ def test_small_polygons_share_texture_jobs_and_large_ones_keep_their_own():
     big = max(jobs.polygon_mem_mb(".", r, cfg["run"], cfg["optimize"]["top_k"]) for r in rows[1:])
     assert big < jobs.job_mem_mb(".", rows[1:], cfg) <= big + cfg["run"]["decode_cache_mb"] + 1
     assert jobs.runtime_min(rows, cfg) >= jobs.runtime_min(rows[:1], cfg) >= 10
+    # the render loss's jobs get the time of its slower iterations (a cluster's time limit)
+    render = wf.deep_merge(cfg, {"optimize": {"loss_mode": "render"}})
+    assert jobs.polygon_work(rows[0], render) == jobs.RENDER_LOSS_COST * jobs.polygon_work(rows[0], cfg)
+    paper = wf.resolve_config(REPO, {"preset": "paper"})
+    wall = [{"id": "wall", "width": 4096, "height": 3000, "photos": ["a"] * 8}]
+    texel = wf.deep_merge(paper, {"optimize": {"loss_mode": "texel"}})
+    assert jobs.runtime_min(wall, paper) > jobs.runtime_min(wall, texel) > 10
     # polygons with no work at all still get a job (a shared one)
     empty = [{"id": f"e{i}", "width": 0, "height": 0, "photos": ["a"]} for i in range(3)]
     assert sorted(p for m in jobs.texture_jobs(empty + rows[:1], cfg).values() for p in m) == sorted(

@@ -48,9 +48,17 @@ def polygon_mem_mb(scene: str | Path, row: dict, run: dict, top_k: int | None = 
     return int(run["base_mem_mb"] + math.ceil(data / 2**20))
 
 
+# Time of the render loss per texel x slot x iteration in units of the texel loss's, for the
+# estimates: an iteration touches every photo pixel of the texels (2.7x the texel loss's time at
+# 2048 texels on herzjesu's facade, evaluation/bench_optimize.md), and it has no sub-level of the
+# unsettled texels (which the texel loss iterates on: 10-25 % of them at `balanced`).
+RENDER_LOSS_COST = 20.0
+
+
 def polygon_work(row: dict, cfg: dict) -> float:
     """Texel x slot x iteration count of a polygon's optimization at its iteration caps: every
-    coarse-to-fine level (as the optimizer plans them) at min(candidates, top_k) slots."""
+    coarse-to-fine level (as the optimizer plans them) at min(candidates, top_k) slots; with the
+    render loss, RENDER_LOSS_COST times that (``run.texels_per_minute`` is the texel loss's rate)."""
     opt = cfg["optimize"]
     w, h = int(row.get("width", 0)), int(row.get("height", 0))
     long_side = max(w, h, 1)
@@ -59,7 +67,8 @@ def polygon_work(row: dict, cfg: dict) -> float:
                         float(opt.get("level_step", 2.0)))
     caps = opt["max_iters_per_level"]
     caps = [int(c) for c in (caps if isinstance(caps, list) else [caps])]
-    return sum(w * h * (s / long_side) ** 2 * k * caps[min(i, len(caps) - 1)] for i, s in enumerate(sides))
+    work = sum(w * h * (s / long_side) ** 2 * k * caps[min(i, len(caps) - 1)] for i, s in enumerate(sides))
+    return work * (RENDER_LOSS_COST if opt.get("loss_mode") == "render" else 1.0)
 
 
 def runtime_min(rows: list[dict], cfg: dict) -> int:
