@@ -384,3 +384,30 @@ def test_selection_takes_one_photo_where_the_photos_disagree_and_keeps_the_blend
     # the texture is the blend's
     far = inp.texel_visible.all(0) & ~binary_dilation(occluded_region(inp), iterations=6)
     assert (np.abs(sel.U - blend.U).max(-1)[far] > 1e-3).mean() < 0.02
+
+
+def test_colour_change_ignores_weights_traded_between_agreeing_photos():
+    """Weights moving between two slots of the same colour move no colour: the colour criterion
+    (conv_colour) sees a converged texel where the weight criterion does not."""
+    import torch
+
+    from difftex.method.loop import colour_change, weight_change
+
+    K, h, w = 3, 4, 5
+    colours = torch.zeros(K, 3, h, w)
+    colours[0] = colours[1] = 0.5  # slots 0 and 1 agree
+    colours[2] = 0.9
+    W_old = torch.zeros(K, h, w)
+    W_old[0] = 1.0
+    W = torch.zeros(K, h, w)
+    W[1] = 1.0  # every texel traded slot 0 for slot 1
+    mask = torch.ones(h, w, dtype=torch.bool)
+    assert weight_change(W, W_old, mask) == pytest.approx(1.0)
+    assert colour_change(W, W_old, colours, mask) == pytest.approx(0.0)
+    W2 = torch.zeros(K, h, w)
+    W2[2] = 1.0  # to the disagreeing photo: the colour moves by |0.4| in each channel
+    assert colour_change(W2, W_old, colours, mask) == pytest.approx(0.4 * 3**0.5, rel=1e-5)
+    # settled texels outside the mask count as not moving
+    assert colour_change(W2, W_old, colours, mask, q=0.5, fixed_share=0.6) == 0.0
+    with pytest.raises(ValueError):
+        OptimizeConfig(conv_colour=-1.0)

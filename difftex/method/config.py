@@ -54,6 +54,9 @@ class OptimizeConfig:
     min_iters_per_level: int = 20
     conv_tol: float = 0.02  # converged when 99 % of the texels moved less than this share of their weight ...
     conv_window: int = 10  # ... over the last conv_window iterations
+    # ... or (when > 0) when 99 % of the texels' blended colour moved less than this many sigma_c
+    # over the window: weights that trade between agreeing photos change nothing (0: off)
+    conv_colour: float = 0.0
     use_render: bool = True
     use_persp: bool = True
     use_para: bool = True
@@ -97,8 +100,8 @@ class OptimizeConfig:
             raise ValueError(f"ghost must be >= 0, got {self.ghost}")
         if self.select_patch < 1 or self.select_smoothness < 0 or self.select_feather < 0:
             raise ValueError("select_patch must be >= 1, select_smoothness and select_feather >= 0")
-        if self.conv_window < 1 or self.conv_tol < 0:
-            raise ValueError("conv_window must be >= 1 and conv_tol >= 0")
+        if self.conv_window < 1 or self.conv_tol < 0 or self.conv_colour < 0:
+            raise ValueError("conv_window must be >= 1, conv_tol and conv_colour >= 0")
         if self.lr <= 0 or len(tuple(self.betas)) != 2:
             raise ValueError("lr must be > 0 and betas a pair")
         caps_in = self.max_iters_per_level

@@ -71,11 +71,27 @@ def weight_change(
     ``fixed_share``: the share of the polygon's texels that are not in ``mask`` and did not move
     (the settled texels when W is the free texels' sub-level): the quantile is the polygon's.
     """
+    return _quantile(0.5 * (W - W_old).abs().sum(0), mask, q, fixed_share)
+
+
+def colour_change(
+    W: torch.Tensor, W_old: torch.Tensor, colours: torch.Tensor, mask: torch.Tensor, q: float = 0.99,
+    fixed_share: float = 0.0,
+) -> float:
+    """The ``q`` quantile over the polygon's texels of how far the blended colour moved (RGB
+    distance) between two sets of blend weights over the same slots' colours (K, 3, h, w)."""
+    dU = ((W - W_old)[:, None] * colours).sum(0)
+    return _quantile(dU.norm(dim=0), mask, q, fixed_share)
+
+
+def _quantile(d: torch.Tensor, mask: torch.Tensor, q: float, fixed_share: float) -> float:
+    """The ``q`` quantile of ``d`` over ``mask``, counting ``fixed_share`` of the polygon's texels
+    outside ``mask`` as zeros."""
     if fixed_share > 0.0:
         if q <= fixed_share:
             return 0.0
         q = (q - fixed_share) / (1.0 - fixed_share)
-    d = 0.5 * (W - W_old).abs().sum(0)[mask]
+    d = d[mask]
     if d.numel() == 0:
         return 0.0
     if d.numel() > 1 << 20:  # torch.quantile's input limit: a strided sample is as good
@@ -310,6 +326,7 @@ def _run_level(
         W_check = losses.blend_weights(cur.z, cur.active)
     fixed_share = settled_share if sp is not None else 0.0  # texels outside ``cur`` that do not move
     changes: list[float] = []
+    colour_moves: list[float] = []  # conv_colour: the blend's colour change per window, in sigma_c
     for it in range(1, cap + 1 if anything else 1):
         cur.it = it
         t_it = time.perf_counter()
@@ -358,8 +375,12 @@ def _run_level(
             # less than conv_tol of its weight.
             W_now = losses.blend_weights(cur.z, cur.active)
             changes.append(weight_change(W_now, W_check, lvc.mask, fixed_share=fixed_share))
+            if cfg.conv_colour > 0:
+                moved = colour_change(W_now, W_check, lvc.colours, lvc.mask, fixed_share=fixed_share)
+                colour_moves.append(moved / max(lvc.noise, 1e-12))
             W_check = W_now
-            if it >= cfg.min_iters_per_level and changes[-1] < cfg.conv_tol:
+            still = changes[-1] >= cfg.conv_tol and not (colour_moves and colour_moves[-1] < cfg.conv_colour)
+            if it >= cfg.min_iters_per_level and not still:
                 converged = True
                 break
     if it < cap:
@@ -399,6 +420,7 @@ def _run_level(
         "v_tilde": lv.v_tilde.tolist(),
         "compiled": fn is not None and fn is not objective,
         "weight_change": changes,
+        **({"colour_change_sigma": colour_moves} if cfg.conv_colour > 0 else {}),
         **diagnostics.effective_photos(W_end, lv.mask),
         "dominant_changed": diagnostics.changed_share(
             dominant_start, diagnostics.dominant_photo(lv.idx, W_end), lv.mask
