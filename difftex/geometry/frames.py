@@ -201,12 +201,17 @@ class TexelMapping:
     valid: np.ndarray  # (H, W) bool: in front, inside the image, front-facing
 
 
+def texel_homography(frame: UVFrame, photo: Photo) -> np.ndarray:
+    """H = K [R | t] A: texel (tx, ty, 1) to homogeneous undistorted pixels (third entry = depth)."""
+    return photo.K() @ (photo.R @ frame.A + np.outer(photo.t, [0.0, 0.0, 1.0]))
+
+
 def texel_to_pixel(frame: UVFrame, photo: Photo, tx: np.ndarray, ty: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """f_k^i: continuous texel coordinates (...) to pixels (..., 2) and depth (...)."""
     if photo.is_pinhole:
-        # Homography H = K [R | t] A: exact for pinhole cameras and cheaper than projecting 3D
-        # points (no world coordinates at all, one multiply-add per entry)
-        H = photo.K() @ (photo.R @ frame.A + np.outer(photo.t, [0.0, 0.0, 1.0]))
+        # the homography: exact for pinhole cameras and cheaper than projecting 3D points (no
+        # world coordinates at all, one multiply-add per entry)
+        H = texel_homography(frame, photo)
         tx, ty = np.asarray(tx, np.float64), np.asarray(ty, np.float64)
         depth = H[2, 0] * tx + H[2, 1] * ty + H[2, 2]
         pix = np.empty((*depth.shape, 2))
@@ -219,13 +224,17 @@ def texel_to_pixel(frame: UVFrame, photo: Photo, tx: np.ndarray, ty: np.ndarray)
     return photo.project(frame.texel_to_world(tx, ty))
 
 
-def texel_footprint(frame: UVFrame, photo: Photo, pix: np.ndarray) -> np.ndarray:
+def texel_footprint(
+    frame: UVFrame, photo: Photo, pix: np.ndarray, tx: np.ndarray | None = None, ty: np.ndarray | None = None
+) -> np.ndarray:
     """Texel size in pixels, sqrt(|det J|) of f_k^i by forward differences (h, w).
 
     Args:
-        pix: (h, w, 2) f_k^i at the texel centres (``map_texels(...).pix``).
+        pix: (h, w, 2) f_k^i at the texel positions (``map_texels(...).pix``).
+        tx, ty: (h, w) those positions; default: every texel centre of ``frame``.
     """
-    tx, ty = frame.centres()
+    if tx is None or ty is None:
+        tx, ty = frame.centres()
     px, _ = texel_to_pixel(frame, photo, tx + 1.0, ty)
     py, _ = texel_to_pixel(frame, photo, tx, ty + 1.0)
     dx, dy = px - pix, py - pix

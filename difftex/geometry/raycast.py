@@ -327,10 +327,7 @@ def _id_buffer_numpy(
     import shapely
 
     pp = proxy if isinstance(proxy, _PlanarPolygons) else _planar(proxy)
-    ys = np.arange(0, photo.height, stride) + 0.5 * stride if stride > 1 else np.arange(photo.height) + 0.5
-    xs = np.arange(0, photo.width, stride) + 0.5 * stride if stride > 1 else np.arange(photo.width) + 0.5
-    ys = np.minimum(ys, photo.height - 0.5)
-    xs = np.minimum(xs, photo.width - 0.5)
+    ys, xs = pixel_centres(photo.height, stride), pixel_centres(photo.width, stride)
     H, W = len(ys), len(xs)
     ids = np.full((H, W), NO_POLYGON, dtype=np.int32)
     dist = np.full((H, W), np.inf, dtype=np.float32)

@@ -19,7 +19,7 @@ import numpy as np
 
 from difftex.config import TextureConfig
 from difftex.errors import DifftexError
-from difftex.geometry.frames import UVFrame, texel_mask, texel_to_pixel, uv_frame
+from difftex.geometry.frames import UVFrame, texel_footprint, texel_mask, texel_to_pixel, uv_frame
 from difftex.geometry.raycast import NO_POLYGON, ProxyCaster, id_buffer, prepare  # noqa: F401  (id_buffer, prepare: re-exported)
 from difftex.scene.camera import Photo
 from difftex.scene.proxy import Proxy
@@ -298,12 +298,7 @@ def best_per_texel(kept: list[tuple], frame: UVFrame, photos: dict, m: int, grid
         ph = photos[it.name]
         v = ph.center - X
         cos = (v @ frame.normal) / np.linalg.norm(v, axis=-1)
-        pix, _ = texel_to_pixel(frame, ph, tx, ty)
-        du, _ = texel_to_pixel(frame, ph, tx + 1.0, ty)
-        dv, _ = texel_to_pixel(frame, ph, tx, ty + 1.0)
-        a, b = du - pix, dv - pix
-        with np.errstate(invalid="ignore"):
-            fp = np.sqrt(np.abs(a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0]))
+        fp = texel_footprint(frame, ph, texel_to_pixel(frame, ph, tx, ty)[0], tx, ty)
         s = np.nan_to_num(np.clip(cos, 0, 1) * np.minimum(1.0, fp), nan=0.0)
         scores[j] = np.where(seen[::step, ::step], s, -1.0)
     # rank of each photo at each texel (0: best), by score then photo order

@@ -13,7 +13,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from difftex.geometry.frames import UVFrame
+from difftex.geometry.frames import UVFrame, texel_homography
 from difftex.scene.camera import Photo
 
 # Texel spacing of the exact projections that the distortion displacement is interpolated from
@@ -64,11 +64,6 @@ class TexelMap:
     valid: torch.Tensor
 
 
-def _homography(frame: UVFrame, photo: Photo) -> np.ndarray:
-    """H = K [R | t] A: texel (tx, ty, 1) to homogeneous undistorted pixels (third entry = depth)."""
-    return photo.K() @ (photo.R @ frame.A + np.outer(photo.t, [0.0, 0.0, 1.0]))
-
-
 def _exact_pixels(frame: UVFrame, photo: Photo, tx: np.ndarray, ty: np.ndarray) -> np.ndarray:
     """Projection through the camera model with distortion (pycolmap), NaN behind the camera."""
     from difftex.geometry.frames import texel_to_pixel
@@ -95,7 +90,7 @@ def texel_map(
     device = torch.device(device)
     y0, y1, x0, x1 = region if region is not None else (0, frame.height, 0, frame.width)
     f64 = torch.float64
-    Hm = _homography(frame, photo)
+    Hm = texel_homography(frame, photo)
     # Every term below is separable over the grid (a row vector plus a column vector, or their
     # product): no meshgrid of texel coordinates is built.
     tx = torch.arange(x0, x1, device=device, dtype=f64) + 0.5
@@ -153,7 +148,7 @@ def _distorted(
     cy = np.unique(np.minimum(np.arange(0, h + g, g), h - 1)).astype(np.float64) + 0.5 + y0
     TX, TY = np.meshgrid(cx, cy)
     exact = _exact_pixels(frame, photo, TX, TY)
-    Hn = _homography(frame, photo)
+    Hn = texel_homography(frame, photo)
     qn = np.stack([TX, TY, np.ones_like(TX)], -1) @ Hn.T
     with np.errstate(divide="ignore", invalid="ignore"):
         und = qn[..., :2] / qn[..., 2:3]

@@ -71,11 +71,15 @@ def polygon_work(row: dict, cfg: dict) -> float:
     return work * (RENDER_LOSS_COST if opt.get("loss_mode") == "render" else 1.0)
 
 
+def job_seconds(rows: list[dict], cfg: dict) -> float:
+    """Estimated seconds of a job of these polygons: their work at ``run.texels_per_minute``."""
+    return 60.0 * sum(polygon_work(r, cfg) for r in rows) / float(cfg["run"]["texels_per_minute"])
+
+
 def runtime_min(rows: list[dict], cfg: dict) -> int:
     """Wall-clock minutes for a cluster's time limit of a job of these polygons: their work at
     ``run.texels_per_minute``, 3x margin, at least 10."""
-    work = sum(polygon_work(r, cfg) for r in rows)
-    return int(max(10, math.ceil(3 * work / float(cfg["run"]["texels_per_minute"]))))
+    return int(max(10, math.ceil(3 * job_seconds(rows, cfg) / 60.0)))
 
 
 def priority(rows: list[dict], cfg: dict) -> int:
@@ -84,8 +88,7 @@ def priority(rows: list[dict], cfg: dict) -> int:
     longest jobs start first and the short ones fill the other cores around them (longest
     processing time first); in the order of the DAG, the largest polygon could start last and
     run alone on one core while the others idle."""
-    work = sum(polygon_work(r, cfg) for r in rows)
-    return int(math.ceil(60.0 * work / float(cfg["run"]["texels_per_minute"])))
+    return int(math.ceil(job_seconds(rows, cfg)))
 
 
 def job_mem_mb(scene: str | Path, rows: list[dict], cfg: dict) -> int:
