@@ -301,8 +301,10 @@ def test_photo_drop_keeps_the_texels_only_the_dropped_photo_sees():
     inp = make_input(photos, [render(ph) for ph in photos], long_side=48)
     only_side = inp.texel_visible[1] & ~inp.texel_visible[0] & inp.texel_mask
     assert only_side.sum() > 100 and inp.texel_visible[0].sum() > 100
-    # tau: weights under 0.2 count as zero, so the shared texels soon make "side" a photo to drop
-    res = optimize(inp, fast_cfg(tau=0.2, tau_w=0.05, max_iters_per_level=(60, 30)))
+    # tau: weights under 0.2 count as zero, so the shared texels soon make "side" a photo to drop;
+    # compared at full detail, where its blurred checker edges disagree with the frontal photo's
+    # (low-passed they agree, every texel settles and nothing is dropped)
+    res = optimize(inp, fast_cfg(tau=0.2, tau_w=0.05, max_iters_per_level=(60, 30), consistency_sigma=0.0))
     assert "side" in [d["photo"] for d in res.stats["dropped"]]
     assert res.seen[only_side].all()
     err = np.abs(res.U - gt_texture(inp)).mean(-1)

@@ -67,6 +67,11 @@ class OptimizeConfig:
     select_patch: int = 4  # patch side, texels
     select_smoothness: float = 1.0  # Potts cost per texel of seam, in units of a texel's data cost
     select_feather: float = 1.0  # Gaussian sigma of the cross-fade at seams, texels
+    # parallax-aware composition (difftex.method.parallax): where the kept photos disagree by more
+    # than parallax_gate sigma_c, the slots seen from nearly the best slot's direction carry the
+    # texel (within parallax_sigma, about radians, of it; 0: off)
+    parallax_sigma: float = 0.03
+    parallax_gate: float = 2.0
     coarse_to_fine: bool = True
     histogram_matching: bool = True
     align: bool = True  # refine each photo's mapping (affine, pixels) against the consensus texture
@@ -75,6 +80,9 @@ class OptimizeConfig:
     align_prior_px: float = 2.0  # prior standard deviation of a correction, pixels
     align_max_px: float = 8.0  # a correction moving the polygon's edge further than this is rejected
     align_max_long_side: int = 1024  # align at levels up to this long side
+    # Gaussian sigma, texels, of the low-pass under which photos are compared (Q_c, L_Render,
+    # elimination, settling): relief parallax of thin details is not disagreement (0: full detail)
+    consistency_sigma: float = 1.0
     settle_sigma: float = 3.0  # texels whose candidates agree within this many sigma_c keep their Q blend (0: off)
     align_tol_px: float = 0.1  # stop aligning once no weighted photo's correction moved more than this, pixels
     histmatch_reference: HistmatchReference = "median"  # per-texel median of the candidates, the best photo, or pooled
@@ -100,6 +108,8 @@ class OptimizeConfig:
             raise ValueError(f"ghost must be >= 0, got {self.ghost}")
         if self.select_patch < 1 or self.select_smoothness < 0 or self.select_feather < 0:
             raise ValueError("select_patch must be >= 1, select_smoothness and select_feather >= 0")
+        if self.parallax_sigma < 0 or self.parallax_gate < 0 or self.consistency_sigma < 0:
+            raise ValueError("parallax_sigma, parallax_gate and consistency_sigma must be >= 0")
         if self.conv_window < 1 or self.conv_tol < 0 or self.conv_colour < 0:
             raise ValueError("conv_window must be >= 1, conv_tol and conv_colour >= 0")
         if self.lr <= 0 or len(tuple(self.betas)) != 2:

@@ -20,6 +20,7 @@ import torch.nn.functional as F
 from difftex.geometry.frames import UVFrame
 from difftex.method import losses
 from difftex.method.config import OptimizeConfig
+from difftex.method.filters import masked_blur
 from difftex.sampling.photos import MappedPhoto, PhotoSet
 from difftex.sampling.texels import Region, resample_nearest
 
@@ -37,7 +38,7 @@ class Level:
     mask: torch.Tensor  # (h, w) bool texel mask
     idx: torch.Tensor  # (K, h, w) long photo index per slot, -1 empty
     visible: torch.Tensor  # (K, h, w) bool slot valid (photo sees the texel)
-    colours: torch.Tensor  # (K, 3, h, w)
+    colours: torch.Tensor  # (K, 3, h, w) what the data terms compare (low-passed: OptimizeConfig.consistency_sigma)
     Q: torch.Tensor  # (K, h, w) Q_a * Q_c
     cost: torch.Tensor  # (K, h, w) |V^ - v~|^2
     G: torch.Tensor  # (h, w) mean gradient magnitude of the mapped photos
@@ -48,6 +49,20 @@ class Level:
     fixed_slots: bool = False  # slot j holds the same photo at every texel (all candidates fit in K)
     maps: int = 0  # photo mappings made to build the level
     noise: float = 1.0  # typical colour disagreement of the candidates (sigma_c): L_Render's unit
+    # (K, 3, h, w) the slots' full-detail colours, composed into the texture, when ``colours`` are
+    # low-passed; None: ``colours`` are they. ``detail_noise``: their sigma_c.
+    detail: torch.Tensor | None = None
+    detail_noise: float | None = None
+
+    @property
+    def sharp(self) -> torch.Tensor:
+        """(K, 3, h, w) the colours the texture is composed of (full detail)."""
+        return self.colours if self.detail is None else self.detail
+
+    @property
+    def sharp_noise(self) -> float:
+        """sigma_c of :attr:`sharp`."""
+        return self.noise if self.detail_noise is None else self.detail_noise
 
     @property
     def n_tex(self) -> float:
@@ -55,6 +70,7 @@ class Level:
 
     def nbytes(self) -> int:
         ts = [self.idx, self.visible, self.colours, self.Q, self.cost, self.G, self.z0]
+        ts += [self.detail] if self.detail is not None else []
         return int(sum(t.element_size() * t.numel() for t in ts))
 
 
@@ -319,6 +335,16 @@ def build_level(
     A streaming pass computes the candidates' colour statistics (for Q_c), the mean gradient
     (G) and the mean viewing direction (v~); a second pass scores and keeps the top K. The
     mapped photos of the first pass are reused by the second when they fit in MAP_CACHE_BYTES.
+
+    With ``cfg.consistency_sigma`` > 0, Q_c, the statistics and the slots' ``colours`` (which
+    L_Render, elimination and settling compare) are the photos' colours low-passed by a Gaussian
+    of that many texels (normalised over the photo's visible texels), and ``detail`` keeps the
+    full-detail colours for the texture. Relief parallax displaces thin details (mullions, frames)
+    by a texel or two between photos: compared at full detail, the one photo that shows a mullion
+    where the texture needs it, the most frontal, disagrees with the others there and is
+    eliminated or outweighed exactly on the mullion (archive wall00). An occluder, several texels
+    across, still disagrees after the low-pass. Texel loss only: with ``loss_mode: render`` the
+    photos' pixels are compared at full detail.
     """
     inp = photos.inp
     device = photos.device
@@ -335,6 +361,22 @@ def build_level(
     keep_all = mapped is not None or len(order) <= K or area * per_texel <= MAP_CACHE_BYTES
     cache: dict[int, MappedPhoto | None] = dict(mapped) if mapped is not None else {}
     maps = 0
+
+    # The render loss compares the texture with the photos' own pixels (the paper's L_Render,
+    # difftex.method.render): its level keeps comparing at full detail.
+    sig = cfg.consistency_sigma if cfg.loss_mode == "texel" else 0.0
+
+    low: dict[int, torch.Tensor] = {}  # low-passed colours of the photos held in ``cache``
+
+    def compared(n: int, mp: MappedPhoto) -> torch.Tensor:
+        if sig <= 0:
+            return mp.colour
+        if n in low:
+            return low[n]
+        c = masked_blur(mp.colour, mp.visible, sig)
+        if keep_all:
+            low[n] = c
+        return c
 
     def mapped_photo(n: int) -> MappedPhoto | None:
         nonlocal maps
@@ -357,8 +399,9 @@ def build_level(
         y0, y1, x0, x1 = regions[n] if mapped is None else (0, h, 0, w)
         seen.append(n)
         v = mp.visible.float()
-        s1[:, y0:y1, x0:x1] += mp.colour * v
-        s2[y0:y1, x0:x1] += (mp.colour * mp.colour).sum(0) * v
+        c = compared(n, mp)
+        s1[:, y0:y1, x0:x1] += c * v
+        s2[y0:y1, x0:x1] += (c * c).sum(0) * v
         cnt[y0:y1, x0:x1] += v
         gsum[y0:y1, x0:x1] += gradient_magnitude(mp.colour, mp.visible) * v
         vd = (mp.view * v).sum((1, 2))
@@ -383,6 +426,7 @@ def build_level(
     idx = torch.full((K, h, w), -1, dtype=torch.long, device=device)
     vis = torch.zeros((K, h, w), dtype=torch.bool, device=device)
     cols = torch.zeros((K, 3, h, w), device=device)
+    detail = torch.zeros((K, 3, h, w), device=device) if sig > 0 else None
     Q = torch.zeros((K, h, w), device=device)
     cost = torch.zeros((K, h, w), device=device)
     w0 = torch.zeros((K, h, w), device=device)
@@ -392,9 +436,10 @@ def build_level(
         reg = regions[n] if mapped is None else (0, h, 0, w)
         y0, y1, x0, x1 = reg
         sl = (slice(y0, y1), slice(x0, x1))
+        c = compared(n, mp)
         q = quality(
             mp.cos,
-            mp.colour,
+            c,
             mu[:, y0:y1, x0:x1],
             msd[sl],
             mp.visible,
@@ -413,9 +458,11 @@ def build_level(
             weight = torch.where(cov, w_up, torch.where(prev_known[sl], torch.zeros_like(q), q))  # type: ignore[index]  # set with prev
         if fixed:
             idx[j][sl] = n
+            if detail is not None:
+                detail[j][:, y0:y1, x0:x1] = mp.colour
             vis[j][sl], cols[j][:, y0:y1, x0:x1], Q[j][sl], cost[j][sl], w0[j][sl] = (
                 mp.visible,
-                mp.colour,
+                c,
                 q,
                 pc,
                 weight,
@@ -440,7 +487,9 @@ def build_level(
             idx[:, y0:y1, x0:x1], torch.full((y1 - y0, x1 - x0), n, dtype=torch.long, device=device)
         )
         vis[:, y0:y1, x0:x1] = pick(vis[:, y0:y1, x0:x1], mp.visible)
-        cols[:, :, y0:y1, x0:x1] = pick(cols[:, :, y0:y1, x0:x1], mp.colour)
+        cols[:, :, y0:y1, x0:x1] = pick(cols[:, :, y0:y1, x0:x1], c)
+        if detail is not None:
+            detail[:, :, y0:y1, x0:x1] = pick(detail[:, :, y0:y1, x0:x1], mp.colour)
         Q[:, y0:y1, x0:x1] = pick(Q[:, y0:y1, x0:x1], q)
         cost[:, y0:y1, x0:x1] = pick(cost[:, y0:y1, x0:x1], pc)
         w0[:, y0:y1, x0:x1] = pick(w0[:, y0:y1, x0:x1], weight)
@@ -448,6 +497,9 @@ def build_level(
     robust = robust_noise(cols, vis & mask, cfg.sigma_min)
     if robust is not None:
         noise = robust
+    detail_noise = None
+    if detail is not None:
+        detail_noise = robust_noise(detail, vis & mask, cfg.sigma_min) or noise
     return Level(
         frame=frame,
         mask=mask,
@@ -463,4 +515,6 @@ def build_level(
         fixed_slots=fixed,
         maps=maps,
         noise=noise,
+        detail=detail,
+        detail_noise=detail_noise,
     )

@@ -20,7 +20,7 @@ from rich.console import Console
 from rich.progress import MofNCompleteColumn, Progress
 
 from difftex.geometry.frames import level_sides
-from difftex.method import alignment, diagnostics, losses, selection, sparse
+from difftex.method import alignment, diagnostics, losses, parallax, selection, sparse
 from difftex.method.config import ComputeConfig, OptimizeConfig
 from difftex.method.elimination import (
     base_mask,
@@ -181,18 +181,22 @@ def optimize_polygon(
     lv = prev.level
     with torch.no_grad():
         W = losses.blend_weights(prev.z, prev.active)
+        if cfg.parallax_sigma > 0:
+            W, stats["parallax"] = parallax.parallax_weights(
+                W, lv.sharp, lv.cost, lv.sharp_noise, cfg.parallax_sigma, cfg.parallax_gate
+            )
         if cfg.select:
             settled, _ = settled_texels(lv, prev.active, prev.active, cfg.settle_sigma)
             W, stats["selection"] = selection.select_weights(
                 W, lv.Q, lv.idx, lv.mask, len(inp.photos), cfg.select_patch, cfg.select_smoothness,
                 cfg.select_feather, free=lv.mask & ~settled,
             )
-        U = losses.compose(W, lv.colours)
+        U = losses.compose(W, lv.sharp)
     lmask = lv.mask
     stats["diagnostics"] = {
         **diagnostics.effective_photos(W, lmask),
-        "sharpness": diagnostics.sharpness(U, lv.colours, lv.idx, lv.visible, lmask),
-        "misalignment_texels": diagnostics.misalignment(U, lv.colours, lv.idx, lv.visible, W, lmask),
+        "sharpness": diagnostics.sharpness(U, lv.sharp, lv.idx, lv.visible, lmask),
+        "misalignment_texels": diagnostics.misalignment(U, lv.sharp, lv.idx, lv.visible, W, lmask),
     }
     for key in ("sharpness", "misalignment_texels"):  # photo indices to names
         d = stats["diagnostics"][key]
@@ -234,10 +238,10 @@ def _align(photos: PhotoSet, frame, transfers, prev: LevelState | None, cfg: Opt
         plv = prev.level
         W = losses.blend_weights(prev.z, prev.active)
         which = set(torch.unique(plv.idx[(W > cfg.tau) & plv.visible]).tolist()) - {-1}
-        U = losses.compose(W, plv.colours)
+        U = losses.compose(W, plv.sharp)  # registration needs the full detail
         consensus = upsample_field(U, plv.frame, frame)
         defined = upsample_field((plv.visible.sum(0) >= 2).float()[None], plv.frame, frame)[0] > 0.99
-        noise = plv.noise
+        noise = plv.sharp_noise
     st = alignment.AlignSettings(
         cfg.align_model, cfg.align_iterations, cfg.align_prior_px, cfg.align_max_px, max(noise, cfg.sigma_min)
     )
@@ -301,6 +305,9 @@ def _run_level(
     if cfg.use_para:
         st.matches = {a: losses.neighbour_match(lv.idx, free_mask, a, fixed=lv.fixed_slots) for a in (1, 2)}
     anything = (cfg.use_render or cfg.use_persp or cfg.use_para) and settled_share < 1.0
+    # every texel settled: the weights are final, nothing is left to iterate (a level that
+    # converges without an iteration, not one cut at its cap)
+    converged = settled_share >= 1.0
     # The iterations run on ``cur``: the level, or the sub-level of its free texels
     # (difftex.method.sparse) when most texels are settled and the loss is the texel one.
     sp = None

@@ -20,7 +20,8 @@ from __future__ import annotations
 
 import numpy as np
 import torch
-import torch.nn.functional as F
+
+from difftex.method.filters import blur
 
 UNSEEN_COST = 2.0  # a photo that does not see a texel (or holds no weight there) costs more than any that does
 
@@ -134,16 +135,3 @@ def select_weights(
         "selected_share": float((chosen & has).sum()) / max(n_mask, 1),
     }
     return out, stats
-
-
-def blur(x: torch.Tensor, sigma: float) -> torch.Tensor:
-    """(C, h, w) maps blurred by a separable Gaussian of ``sigma`` texels (edges replicated;
-    sigma 0: unchanged)."""
-    if sigma <= 0:
-        return x
-    r = max(1, int(np.ceil(3 * sigma)))
-    t = torch.arange(-r, r + 1, dtype=torch.float32, device=x.device)
-    g = torch.exp(-0.5 * (t / sigma) ** 2)
-    g = g / g.sum()
-    y = F.conv2d(F.pad(x[:, None], (r, r, 0, 0), mode="replicate"), g.view(1, 1, 1, -1))
-    return F.conv2d(F.pad(y, (0, 0, r, r), mode="replicate"), g.view(1, 1, -1, 1))[:, 0]
