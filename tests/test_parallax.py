@@ -78,7 +78,7 @@ def test_tiny_weights_everywhere_still_pick_the_largest_as_reference():
 
 def test_gate_keeps_the_blend_where_the_photos_agree_and_selects_at_the_relief():
     W, colours, cost = _relief(noise=0.01)
-    sigma_c = 0.01 * 3**0.5  # the RMS colour distance of the noise (levels.robust_noise's unit)
+    sigma_c = 0.01 * 3**0.5  # the RMS colour distance of the noise (quality.robust_noise's unit)
     gamma = parallax_gate(W, colours, noise=sigma_c, gate=2.0)
     # flat wall: three photos' spread around their mean is sqrt(2/3) sigma_c on average
     assert float(gamma[:, :8].mean()) < 0.05

@@ -59,7 +59,7 @@ def objective(z, active, colours, Q, cost, D, matches, pixel_sets, support, n_te
 def render_weights(lv: Level, cfg: OptimizeConfig) -> torch.Tensor:
     """Q as L_Render weighs the photos: Q / sigma_c with render_units "noise" (so that L_Render
     and the ghost term count squared colour differences in units of the level's photometric
-    noise, levels.level_noise), Q itself with "raw" (the paper)."""
+    noise, quality.level_noise), Q itself with "raw" (the paper)."""
     return lv.Q / lv.noise if cfg.render_units == "noise" else lv.Q
 
 

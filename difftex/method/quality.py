@@ -1,0 +1,96 @@
+"""How much a level trusts each photo (Q = Q_a Q_c Q_r, Sec. 3.2) and how noisy its photos are (sigma_c)."""
+
+from __future__ import annotations
+
+import math
+
+import torch
+
+
+def quality(
+    cos: torch.Tensor,
+    colour: torch.Tensor,
+    mu: torch.Tensor,
+    msd: torch.Tensor,
+    visible: torch.Tensor,
+    sigma_min: float,
+    footprint: torch.Tensor | None = None,
+    resolution_weight: float = 0.0,
+) -> torch.Tensor:
+    """The initial weight Q = Q_a Q_c (Q_r) of one photo at every texel (Sec. 3.2).
+
+    Q_a is the frontality (cosine between the texel-to-camera direction and the normal); Q_c a
+    Gaussian of the colour's squared distance to the candidates' mean, with their mean squared
+    distance (plus a noise floor) as its variance. Q_r = min(1, footprint)^resolution_weight
+    (not in the paper) lowers photos with less than one pixel per texel, which cannot hold the
+    texel's detail and blur a blend; at one pixel per texel or more every photo holds it.
+
+    Args:
+        cos: (h, w) Q_a.
+        colour: (3, h, w) the photo's mapped colours.
+        mu: (3, h, w) mean colour of the candidates; msd: (h, w) their mean squared distance to it.
+        visible: (h, w) bool.
+        sigma_min: noise floor of the colour standard deviation.
+        footprint: (h, w) the texel's size in the photo's pixels; resolution_weight: exponent of Q_r.
+
+    Returns:
+        (h, w) Q, zero where the photo does not see the texel.
+    """
+    d2 = ((colour - mu) ** 2).sum(0)
+    q = cos * torch.exp(-0.5 * d2 / (msd + sigma_min**2))
+    if footprint is not None and resolution_weight > 0:
+        q = q * footprint.clamp(max=1.0) ** resolution_weight
+    return torch.where(visible, q, torch.zeros_like(q))
+
+
+def level_noise(msd: torch.Tensor, count: torch.Tensor, floor: float) -> float:
+    """sigma_c from the streaming statistics: the median over texels seen by two photos or more
+    of the RMS distance of their colours to their mean, at least ``floor``.
+
+    The fallback of :func:`robust_noise` where no texel has three candidates. An outlier (an
+    occluder in one photo) inflates a texel's RMS distance, so where occluders touch most texels
+    in some photo this median measures them, not the noise.
+    """
+    sel = count >= 2
+    if not bool(sel.any()):
+        return float(floor)
+    return max(float(floor), float(msd[sel].median().sqrt()))
+
+
+CHI3_MEDIAN = 1.5382  # median of a chi distribution with 3 degrees of freedom
+NOISE_SAMPLES = 1 << 16  # texels a level's noise is estimated on (a median: a sample suffices)
+
+
+def robust_noise(colours: torch.Tensor, visible: torch.Tensor, floor: float) -> float | None:
+    """sigma_c: the level's photometric noise, robust to occluders and misregistration.
+
+    Per texel with three candidates or more: the median over its candidates of their colour's
+    distance to the per-channel median colour; sigma_c is the median of that over the texels,
+    scaled to the RMS distance of Gaussian noise (sqrt(3) / CHI3_MEDIAN), at least ``floor``.
+    A photo that disagrees at a texel (an occluder, relief parallax, a misregistered edge) moves
+    neither median while the other candidates agree, so sigma_c stays the noise even when
+    occluders reach most texels in some photo (the mean-based :func:`level_noise` then grows
+    with them, and L_Render's unit and the settling threshold with it). torch.nanquantile, not
+    nanmedian: nanmedian returns the lower of the two middle values of an even count, which is
+    0 for the distances of two photos.
+
+    Args:
+        colours: (K, 3, h, w) the candidates' colours.
+        visible: (K, h, w) bool, which candidates see each texel.
+        floor: noise floor (OptimizeConfig.sigma_min).
+    Returns:
+        sigma_c, or None when no texel has three candidates.
+    """
+    sel = visible.sum(0) >= 3
+    n = int(sel.sum())
+    if n == 0:
+        return None
+    flat = sel.flatten().nonzero()[:, 0]
+    flat = flat[:: max(1, n // NOISE_SAMPLES)]  # a regular subsample bounds memory and time
+    c = colours.flatten(2)[:, :, flat].float()  # (K, 3, n)
+    v = visible.flatten(1)[:, flat]
+    c = torch.where(v[:, None], c, torch.full_like(c, float("nan")))
+    med = torch.nanquantile(c, 0.5, dim=0)  # (3, n)
+    d = ((c - med[None]) ** 2).sum(1).sqrt()  # (K, n), NaN where not visible
+    s = torch.nanquantile(d, 0.5, dim=0)
+    return max(float(floor), float(s.median()) * math.sqrt(3.0) / CHI3_MEDIAN)
