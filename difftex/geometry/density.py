@@ -25,10 +25,9 @@ from difftex.scene.camera import Photo
 
 FRONTAL_DEG = 60.0
 # Optimizer memory per texel and slot (weights, Adam state, mapped colours, masks, autograd
-# temporaries), texel loss, measured: evaluation/bench_optimize.md (herzjesu facade at 2048),
-# plus 12 for the full-detail colours a level keeps beside the compared, low-passed ones
-# (optimize.consistency_sigma).
-BYTES_PER_TEXEL_SLOT = 236
+# temporaries), texel loss, measured: evaluation/bench_optimize.md (herzjesu facade at 2048).
+# optimize.consistency_sigma > 0 adds 12 (the full-detail colours beside the compared ones).
+BYTES_PER_TEXEL_SLOT = 224
 PROBE_LONG_SIDE = 64
 
 

@@ -70,7 +70,7 @@ class OptimizeConfig:
     # parallax-aware composition (difftex.method.parallax): where the kept photos disagree by more
     # than parallax_gate sigma_c, the slots seen from nearly the best slot's direction carry the
     # texel (within parallax_sigma, about radians, of it; 0: off)
-    parallax_sigma: float = 0.03
+    parallax_sigma: float = 0.0
     parallax_gate: float = 2.0
     coarse_to_fine: bool = True
     histogram_matching: bool = True
@@ -82,7 +82,7 @@ class OptimizeConfig:
     align_max_long_side: int = 1024  # align at levels up to this long side
     # Gaussian sigma, texels, of the low-pass under which photos are compared (Q_c, L_Render,
     # elimination, settling): relief parallax of thin details is not disagreement (0: full detail)
-    consistency_sigma: float = 1.0
+    consistency_sigma: float = 0.0
     settle_sigma: float = 3.0  # texels whose candidates agree within this many sigma_c keep their Q blend (0: off)
     align_tol_px: float = 0.1  # stop aligning once no weighted photo's correction moved more than this, pixels
     histmatch_reference: HistmatchReference = "median"  # per-texel median of the candidates, the best photo, or pooled

@@ -183,7 +183,7 @@ def optimize_polygon(
         W = losses.blend_weights(prev.z, prev.active)
         if cfg.parallax_sigma > 0:
             W, stats["parallax"] = parallax.parallax_weights(
-                W, lv.sharp, lv.cost, lv.sharp_noise, cfg.parallax_sigma, cfg.parallax_gate
+                W, lv.sharp, lv.cost, lv.sharp_noise, cfg.parallax_sigma, cfg.parallax_gate, lv.idx
             )
         if cfg.select:
             settled, _ = settled_texels(lv, prev.active, prev.active, cfg.settle_sigma)
