@@ -47,7 +47,7 @@ class ProxyCaster:
 
     proxy: Proxy
     centre: np.ndarray  # (3,) origin of the float32 frame
-    backend: str  # "mitsuba" or "numpy": how rays are cast
+    backend: str  # "mitsuba" or "numpy": how rays are cast ("auto": chosen at the first cast)
     # pinhole photos rasterised instead of cast (backend "auto"): the same answer, faster
     pieces: Pieces | None = None
     _scene: Any = None  # mitsuba.Scene (mitsuba ships no type information)
@@ -61,13 +61,24 @@ class ProxyCaster:
         (every ray cast by that backend)."""
         allv = np.concatenate([p.outer for p in proxy.polygons]) if proxy.polygons else np.zeros((1, 3))
         centre = allv.mean(0)
-        use = "mitsuba" if backend == "mitsuba" or (backend == "auto" and mitsuba_available()) else "numpy"
-        caster = cls(proxy=proxy, centre=centre, backend=use, pieces=Pieces.of(proxy) if backend == "auto" else None)
-        if use == "mitsuba":
-            caster._build_mitsuba()
-        else:
-            caster._planes = _planar(proxy)
+        pieces = Pieces.of(proxy) if backend == "auto" else None
+        caster = cls(proxy=proxy, centre=centre, backend=backend, pieces=pieces)
+        if backend != "auto":
+            caster._ready()
         return caster
+
+    def _ready(self) -> None:
+        """Prepare the ray backend. "auto" waits for the first ray that rasterising cannot answer
+        (a distorted photo, a polygon across the camera plane): with pinhole photos, loading
+        Mitsuba (0.26 s per process) and its scene would be for nothing."""
+        if self._scene is not None or self._planes is not None:
+            return
+        if self.backend == "auto":
+            self.backend = "mitsuba" if mitsuba_available() else "numpy"
+        if self.backend == "mitsuba":
+            self._build_mitsuba()
+        else:
+            self._planes = _planar(self.proxy)
 
     def _build_mitsuba(self) -> None:
         import drjit as dr
@@ -100,6 +111,7 @@ class ProxyCaster:
         Returns:
             (polygon index (...) int32, -1 for none; distance along the ray (...) float32, inf for none).
         """
+        self._ready()
         shape = dirs.shape[:-1]
         d = np.ascontiguousarray(dirs.reshape(-1, 3), dtype=np.float32)
         o = np.asarray(origin, np.float64) - self.centre
@@ -237,6 +249,7 @@ def id_buffer(proxy: Proxy | ProxyCaster, photo: Photo, stride: int = 1) -> tupl
         raster = zbuffer(caster.pieces, photo, stride)
         if raster is not None:
             return raster
+    caster._ready()
     if caster.backend == "numpy":
         return _id_buffer_numpy(caster._planes, photo, stride)
     win = proxy_window(caster.proxy, photo, stride)
