@@ -149,3 +149,32 @@ def test_decode_cache_returns_the_decode_and_keeps_within_its_budget(tmp_path):
     assert small.decodes == 4  # evicted, decoded again
     # nothing kept at budget zero, the decode still returned
     assert DecodeCache(budget_mb=0)(paths[1], (96, 64), 1).shape == (64, 96, 3)
+
+
+@pytest.mark.parametrize("consistency", [0.0, 1.0])
+def test_a_level_is_the_same_whether_its_slots_are_written_at_the_end_or_per_photo(monkeypatch, consistency):
+    """build_level writes the slots' data once the ranking is final when the mapped photos fit
+    in MAP_CACHE_BYTES, and gathers them per photo otherwise: the same level either way."""
+    import torch
+
+    from difftex.method import levels as L
+    from difftex.sampling.photos import PhotoSet
+    from difftex.sampling.texels import level_frame
+
+    photos = [make_photo(f"p{i}", yaw) for i, yaw in enumerate((-40.0, -20.0, 0.0, 20.0, 40.0))]
+    inp = make_input(photos, [render(ph) for ph in photos], long_side=64)
+    cfg = fast_cfg(top_k=2, consistency_sigma=consistency)
+    frame = level_frame(inp.frame, 48)
+
+    def level():
+        ps = PhotoSet.load(inp, "cpu")
+        coarse = L.build_level(ps, level_frame(inp.frame, 24), cfg)
+        return L.build_level(ps, frame, cfg, prev=(coarse, torch.softmax(coarse.z0, 0) * coarse.visible))
+
+    held = level()
+    monkeypatch.setattr(L, "MAP_CACHE_BYTES", 0)
+    streamed = level()
+    assert streamed.maps == 2 * held.maps > 0  # the second mapped its photos twice
+    assert not held.fixed_slots
+    for name in ("idx", "visible", "colours", "sharp", "Q", "cost", "z0"):
+        assert torch.equal(getattr(held, name), getattr(streamed, name)), name

@@ -267,7 +267,7 @@ def build_level(
     prev_known = upsample_known(prev[0], frame) if prev is not None else None
     regions = photo_regions(photos, frame, mask_np, prev, prev_known, cfg.tau)
     order = list(regions)
-    per_texel = 4 * 9  # colour, view, cos, footprint, visible
+    per_texel = 4 * 12  # colour, view, cos, footprint, visible; Q, persp cost, weight until the slots are written
     area = sum((y1 - y0) * (x1 - x0) for y0, y1, x0, x1 in regions.values())
     keep_all = mapped is not None or len(order) <= K or area * per_texel <= MAP_CACHE_BYTES
     cache: dict[int, MappedPhoto | None] = dict(mapped) if mapped is not None else {}
@@ -341,6 +341,7 @@ def build_level(
     Q = torch.zeros((K, h, w), device=device)
     cost = torch.zeros((K, h, w), device=device)
     w0 = torch.zeros((K, h, w), device=device)
+    later: dict[int, tuple] = {}  # photo -> (region, compared colour, Q, persp cost, weight)
     for j, n in enumerate(seen):
         mp = mapped_photo(n)
         assert mp is not None
@@ -386,6 +387,14 @@ def build_level(
         all_score = torch.cat([best_score[:, y0:y1, x0:x1], score[None]])
         top = torch.topk(all_score, K, dim=0)
         sel = top.indices
+        best_score[:, y0:y1, x0:x1] = top.values
+        who = torch.full((y1 - y0, x1 - x0), n, dtype=torch.long, device=device)
+        idx[:, y0:y1, x0:x1] = torch.gather(torch.cat([idx[:, y0:y1, x0:x1], who[None]]), 0, sel)
+        if keep_all:
+            # the slots' data are written once the ranking is final (below): one pass of
+            # masked writes instead of gathering every slot tensor for every photo
+            later[n] = (reg, c, q, pc, weight)
+            continue
 
         def pick(old, new, sel=sel):
             allv = torch.cat([old, new[None]])
@@ -393,10 +402,6 @@ def build_level(
                 return torch.gather(allv, 0, sel[:, None].expand(-1, allv.shape[1], -1, -1))
             return torch.gather(allv, 0, sel)
 
-        best_score[:, y0:y1, x0:x1] = top.values
-        idx[:, y0:y1, x0:x1] = pick(
-            idx[:, y0:y1, x0:x1], torch.full((y1 - y0, x1 - x0), n, dtype=torch.long, device=device)
-        )
         vis[:, y0:y1, x0:x1] = pick(vis[:, y0:y1, x0:x1], mp.visible)
         cols[:, :, y0:y1, x0:x1] = pick(cols[:, :, y0:y1, x0:x1], c)
         if detail is not None:
@@ -404,6 +409,26 @@ def build_level(
         Q[:, y0:y1, x0:x1] = pick(Q[:, y0:y1, x0:x1], q)
         cost[:, y0:y1, x0:x1] = pick(cost[:, y0:y1, x0:x1], pc)
         w0[:, y0:y1, x0:x1] = pick(w0[:, y0:y1, x0:x1], weight)
+    for n, (reg, c, q, pc, weight) in later.items():
+        y0, y1, x0, x1 = reg
+        at = idx[:, y0:y1, x0:x1] == n  # (K, h, w): the slot photo n holds at each texel (at most one)
+        if not bool(at.any()):
+            continue
+        mp = mapped_photo(n)
+        assert mp is not None
+
+        def put(t, new, at=at):
+            """``t`` (K, [C,] h, w) with photo n's ``new`` in the slots it holds."""
+            m = at if t.dim() == 3 else at[:, None]
+            return torch.where(m, new.unsqueeze(0), t)
+
+        vis[:, y0:y1, x0:x1] = put(vis[:, y0:y1, x0:x1], mp.visible)
+        cols[:, :, y0:y1, x0:x1] = put(cols[:, :, y0:y1, x0:x1], c)
+        if detail is not None:
+            detail[:, :, y0:y1, x0:x1] = put(detail[:, :, y0:y1, x0:x1], mp.colour)
+        Q[:, y0:y1, x0:x1] = put(Q[:, y0:y1, x0:x1], q)
+        cost[:, y0:y1, x0:x1] = put(cost[:, y0:y1, x0:x1], pc)
+        w0[:, y0:y1, x0:x1] = put(w0[:, y0:y1, x0:x1], weight)
     idx = torch.where(vis, idx, torch.full_like(idx, -1))
     robust = robust_noise(cols, vis & mask, cfg.sigma_min)
     if robust is not None:
