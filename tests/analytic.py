@@ -53,21 +53,34 @@ def make_photo(
     return Photo(name=name, image_path=None, camera=cam, R=R, t=-R @ C, width=w, height=h, model="PINHOLE")
 
 
-def render(photo: Photo, kind: str = "checker", background=(0.9, 0.1, 0.9)) -> np.ndarray:
-    """The wall seen by ``photo`` (2x2 supersampling); pixels missing the wall get ``background``."""
-    ss = 2
-    ys, xs = np.mgrid[0 : photo.height * ss, 0 : photo.width * ss].astype(np.float64)
-    pix = np.stack([(xs + 0.5) / ss, (ys + 0.5) / ss], -1)
-    d = photo.unproject(pix)
+SS = 2  # supersampling of the rendered photos, per axis
+
+
+def wall_points(photo: Photo) -> tuple[np.ndarray, np.ndarray]:
+    """Where the rays of ``photo``'s SS x SS subpixels meet the wall's plane (y = 0): the points
+    (H*SS, W*SS, 3) and whether they fall on the wall (H*SS, W*SS) bool."""
+    ys, xs = np.mgrid[0 : photo.height * SS, 0 : photo.width * SS].astype(np.float64)
+    d = photo.unproject(np.stack([(xs + 0.5) / SS, (ys + 0.5) / SS], -1))
     C = photo.center
     with np.errstate(divide="ignore", invalid="ignore"):
         s = -C[1] / d[..., 1]
     X = C + s[..., None] * d
     hit = (s > 0) & (X[..., 0] >= 0) & (X[..., 0] <= WALL_W) & (X[..., 2] >= 0) & (X[..., 2] <= WALL_H)
+    return X, hit
+
+
+def downsample(img: np.ndarray, photo: Photo) -> np.ndarray:
+    """Subpixel colours (H*SS, W*SS, 3) averaged into the photo's pixels."""
+    return img.reshape(photo.height, SS, photo.width, SS, 3).mean((1, 3))
+
+
+def render(photo: Photo, kind: str = "checker", background=(0.9, 0.1, 0.9)) -> np.ndarray:
+    """The wall seen by ``photo`` (2x2 supersampling); pixels missing the wall get ``background``."""
+    X, hit = wall_points(photo)
     img = np.empty((*hit.shape, 3), np.float32)
     img[:] = background
     img[hit] = pattern(X[..., 0][hit], X[..., 2][hit], kind)
-    return img.reshape(photo.height, ss, photo.width, ss, 3).mean((1, 3))
+    return downsample(img, photo)
 
 
 def make_input(photos, images, long_side=64) -> PolygonInput:

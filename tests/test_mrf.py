@@ -15,11 +15,10 @@ from difftex.sampling.photos import PolygonInput
 from difftex.scene.camera import Photo
 from difftex.scene.proxy import Polygon
 
+from analytic import CENTRE, UP, WALL_H, WALL_W, downsample, wall_points
+
 torch.set_num_threads(1)
 
-WALL_W, WALL_H = 4.0, 3.0
-UP = np.array([0.0, 0.0, 1.0])
-CENTRE = np.array([WALL_W / 2, 0.0, WALL_H / 2])
 
 
 def test_patch_sums_cover_partial_blocks():
@@ -73,7 +72,7 @@ def test_level_gains_equalise_a_known_exposure_ratio():
     assert level_gains({}, [0, 1], 0.1)[1].tolist() == [1.0, 1.0, 1.0]
 
 
-# --- an analytic wall (plane y = 0, cameras at y < 0) --------------------------------------------
+# --- the analytic wall of tests/analytic.py (plane y = 0, cameras at y < 0), with its own pattern ---
 
 
 def wall() -> Polygon:
@@ -99,17 +98,10 @@ def make_photo(name, yaw_deg, dist=6.0, f=150.0, size=(160, 120)) -> Photo:
 
 
 def render(photo: Photo, gain: float = 1.0) -> np.ndarray:
-    ss = 2
-    ys, xs = np.mgrid[0 : photo.height * ss, 0 : photo.width * ss].astype(np.float64)
-    d = photo.unproject(np.stack([(xs + 0.5) / ss, (ys + 0.5) / ss], -1))
-    C = photo.center
-    with np.errstate(divide="ignore", invalid="ignore"):
-        s = -C[1] / d[..., 1]
-    X = C + s[..., None] * d
-    img = np.full((*s.shape, 3), 0.5, np.float32)
-    hit = (s > 0) & (X[..., 0] >= 0) & (X[..., 0] <= WALL_W) & (X[..., 2] >= 0) & (X[..., 2] <= WALL_H)
+    X, hit = wall_points(photo)
+    img = np.full((*hit.shape, 3), 0.5, np.float32)
     img[hit] = pattern(X[..., 0][hit], X[..., 2][hit])
-    return np.clip(img.reshape(photo.height, ss, photo.width, ss, 3).mean((1, 3)) * gain, 0, 1)
+    return np.clip(downsample(img, photo) * gain, 0, 1)
 
 
 def make_input(photos, images, long_side=64, hide=None) -> PolygonInput:

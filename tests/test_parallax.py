@@ -9,7 +9,7 @@ import torch
 from difftex.method.filters import masked_blur
 from difftex.method.parallax import blend_spread, parallax_gate, parallax_weights, view_coherent_weights
 
-from analytic import WALL_H, WALL_W, fast_cfg, make_input, make_photo, optimize
+from analytic import downsample, fast_cfg, make_input, make_photo, optimize, wall_points
 
 
 def _relief(h=12, w=40, noise=0.0, seed=0):
@@ -117,21 +117,15 @@ BAR_X, BAR_W, BAR_DEPTH = 2.0, 0.05, 0.25  # metres: a mullion 1.6 texels wide, 
 def _render_relief(ph, noise: float, seed: int) -> np.ndarray:
     """The wall (flat colour) with a dark vertical bar on a plane BAR_DEPTH behind it: each photo
     sees the bar where its ray through the wall plane meets the recessed plane (2x2 supersampled)."""
-    ss = 2
-    ys, xs = np.mgrid[0 : ph.height * ss, 0 : ph.width * ss].astype(np.float64)
-    d = ph.unproject(np.stack([(xs + 0.5) / ss, (ys + 0.5) / ss], -1))
+    X, hit = wall_points(ph)
     C = ph.center
-    with np.errstate(divide="ignore", invalid="ignore"):
-        s = -C[1] / d[..., 1]
-    X = C + s[..., None] * d
-    hit = (s > 0) & (X[..., 0] >= 0) & (X[..., 0] <= WALL_W) & (X[..., 2] >= 0) & (X[..., 2] <= WALL_H)
     x_recessed = X[..., 0] + (BAR_DEPTH / abs(C[1])) * (X[..., 0] - C[0])
     bar = hit & (np.abs(x_recessed - BAR_X) < BAR_W / 2) & (np.abs(X[..., 2] - 1.5) < 1.0)
     img = np.empty((*hit.shape, 3), np.float32)
     img[:] = (0.9, 0.1, 0.9)
     img[hit] = FLAT
     img[bar] = BAR
-    img = img.reshape(ph.height, ss, ph.width, ss, 3).mean((1, 3))
+    img = downsample(img, ph)
     return img + np.random.default_rng(seed).normal(0.0, noise, img.shape).astype(np.float32)
 
 
