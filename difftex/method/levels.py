@@ -341,7 +341,20 @@ def build_level(
     Q = torch.zeros((K, h, w), device=device)
     cost = torch.zeros((K, h, w), device=device)
     w0 = torch.zeros((K, h, w), device=device)
-    later: dict[int, tuple] = {}  # photo -> (region, compared colour, Q, persp cost, weight)
+    # the per-slot tensors a photo's values go into, and the order of those values
+    slot_data = [vis, cols, Q, cost, w0] + ([detail] if detail is not None else [])
+
+    def per_slot(m: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
+        """A (K, h, w) map shaped to index or mask ``t`` (K, [C,] h, w)."""
+        return m if t.dim() == 3 else m[:, None].expand(-1, t.shape[1], -1, -1)
+
+    def write(update, reg: Region, values: list[torch.Tensor]) -> None:
+        """Every slot tensor's ``reg`` replaced by ``update(its region, the photo's value)``."""
+        y0, y1, x0, x1 = reg
+        for t, new in zip(slot_data, values):
+            t[..., y0:y1, x0:x1] = update(t[..., y0:y1, x0:x1], new)
+
+    later: dict[int, tuple] = {}  # photo -> (region, its values), written once the ranking is final
     for j, n in enumerate(seen):
         mp = mapped_photo(n)
         assert mp is not None
@@ -368,17 +381,11 @@ def build_level(
             # the photos the coarser levels left out). Only texels the coarser level did not
             # see at all start from Q.
             weight = torch.where(cov, w_up, torch.where(prev_known[sl], torch.zeros_like(q), q))  # type: ignore[index]  # set with prev
+        values = [mp.visible, c, q, pc, weight] + ([mp.colour] if detail is not None else [])
         if fixed:
             idx[j][sl] = n
-            if detail is not None:
-                detail[j][:, y0:y1, x0:x1] = mp.colour
-            vis[j][sl], cols[j][:, y0:y1, x0:x1], Q[j][sl], cost[j][sl], w0[j][sl] = (
-                mp.visible,
-                c,
-                q,
-                pc,
-                weight,
-            )
+            for t, new in zip(slot_data, values):
+                t[j, ..., y0:y1, x0:x1] = new
             continue
         # Rank: upsampled weight (or Q where the coarse level had no data); the small Q term
         # breaks ties between photos that were both deactivated at the coarse level.
@@ -387,48 +394,30 @@ def build_level(
         all_score = torch.cat([best_score[:, y0:y1, x0:x1], score[None]])
         top = torch.topk(all_score, K, dim=0)
         sel = top.indices
+
+        def pick(old, new, sel=sel):
+            """``old`` (K, [C,] h, w) ranked with the photo's ``new`` as the (K + 1)-th candidate."""
+            return torch.gather(torch.cat([old, new[None]]), 0, per_slot(sel, old))
+
         best_score[:, y0:y1, x0:x1] = top.values
-        who = torch.full((y1 - y0, x1 - x0), n, dtype=torch.long, device=device)
-        idx[:, y0:y1, x0:x1] = torch.gather(torch.cat([idx[:, y0:y1, x0:x1], who[None]]), 0, sel)
+        idx[:, y0:y1, x0:x1] = pick(idx[:, y0:y1, x0:x1], torch.full_like(score, n, dtype=torch.long))
         if keep_all:
             # the slots' data are written once the ranking is final (below): one pass of
             # masked writes instead of gathering every slot tensor for every photo
-            later[n] = (reg, c, q, pc, weight)
+            later[n] = (reg, values)
             continue
-
-        def pick(old, new, sel=sel):
-            allv = torch.cat([old, new[None]])
-            if allv.dim() == 4:
-                return torch.gather(allv, 0, sel[:, None].expand(-1, allv.shape[1], -1, -1))
-            return torch.gather(allv, 0, sel)
-
-        vis[:, y0:y1, x0:x1] = pick(vis[:, y0:y1, x0:x1], mp.visible)
-        cols[:, :, y0:y1, x0:x1] = pick(cols[:, :, y0:y1, x0:x1], c)
-        if detail is not None:
-            detail[:, :, y0:y1, x0:x1] = pick(detail[:, :, y0:y1, x0:x1], mp.colour)
-        Q[:, y0:y1, x0:x1] = pick(Q[:, y0:y1, x0:x1], q)
-        cost[:, y0:y1, x0:x1] = pick(cost[:, y0:y1, x0:x1], pc)
-        w0[:, y0:y1, x0:x1] = pick(w0[:, y0:y1, x0:x1], weight)
-    for n, (reg, c, q, pc, weight) in later.items():
+        write(pick, reg, values)
+    for n, (reg, values) in later.items():
         y0, y1, x0, x1 = reg
         at = idx[:, y0:y1, x0:x1] == n  # (K, h, w): the slot photo n holds at each texel (at most one)
         if not bool(at.any()):
             continue
-        mp = mapped_photo(n)
-        assert mp is not None
 
-        def put(t, new, at=at):
-            """``t`` (K, [C,] h, w) with photo n's ``new`` in the slots it holds."""
-            m = at if t.dim() == 3 else at[:, None]
-            return torch.where(m, new.unsqueeze(0), t)
+        def put(old, new, at=at):
+            """``old`` (K, [C,] h, w) with the photo's ``new`` in the slots it holds."""
+            return torch.where(per_slot(at, old), new.unsqueeze(0), old)
 
-        vis[:, y0:y1, x0:x1] = put(vis[:, y0:y1, x0:x1], mp.visible)
-        cols[:, :, y0:y1, x0:x1] = put(cols[:, :, y0:y1, x0:x1], c)
-        if detail is not None:
-            detail[:, :, y0:y1, x0:x1] = put(detail[:, :, y0:y1, x0:x1], mp.colour)
-        Q[:, y0:y1, x0:x1] = put(Q[:, y0:y1, x0:x1], q)
-        cost[:, y0:y1, x0:x1] = put(cost[:, y0:y1, x0:x1], pc)
-        w0[:, y0:y1, x0:x1] = put(w0[:, y0:y1, x0:x1], weight)
+        write(put, reg, values)
     idx = torch.where(vis, idx, torch.full_like(idx, -1))
     robust = robust_noise(cols, vis & mask, cfg.sigma_min)
     if robust is not None:
