@@ -480,3 +480,18 @@ def test_outputs_follow_the_umask(tmp_path, umask, mode):
         os.umask(old)
     for f in ("a.json", "b.npz", "c.png"):
         assert (tmp_path / f).stat().st_mode & 0o777 == mode, f
+
+
+def test_a_float_photo_with_nan_is_an_error_naming_it(tmp_path):
+    """Only a float format can hold NaN (an 8-bit one is read without the check, which cost a
+    quarter of a PNG's read time): the EXR with one NaN pixel is refused, naming the file; the
+    same image as PNG reads back finite."""
+    from difftex.errors import DifftexError
+
+    img = np.full((8, 8, 3), 0.5, np.float32)
+    write_image(tmp_path / "ok.png", img)
+    assert np.isfinite(read_image(tmp_path / "ok.png")).all()
+    img[3, 4, 1] = np.nan
+    write_image(tmp_path / "bad.exr", img)
+    with pytest.raises(DifftexError, match=r"bad\.exr: image holds NaN"):
+        read_image(tmp_path / "bad.exr")
