@@ -286,15 +286,31 @@ def test_version_names_torch_and_the_device():
     assert lines[2].startswith("device: cuda" if torch.cuda.is_available() else "device: cpu")
 
 
+def test_pack_jobs_auto_is_a_local_runs_cores_and_fixed_on_a_cluster():
+    """`auto` packs small polygons into as many jobs as a local run has cores; on a cluster the
+    main process and each job's own Snakemake see other core counts, so both use the fallback
+    (a job's polygons must not depend on the process that asks); a number is kept."""
+    assert jobs.pack_jobs("auto", local=True, cores=2) == 2
+    assert jobs.pack_jobs("auto", local=True, cores=64) == 64
+    assert jobs.pack_jobs("auto", local=False, cores=2) == jobs.PACK_JOBS_FALLBACK
+    assert jobs.pack_jobs("auto", local=True, cores=None) == jobs.PACK_JOBS_FALLBACK
+    assert jobs.pack_jobs(3, local=True, cores=16) == 3
+    same = [{"id": f"w{i}", "width": 200, "height": 200, "photos": ["a"] * 4} for i in range(40)]
+    for n in (1, 2, 5):
+        cfg = wf.resolve_config(REPO, {"preset": "fast", "run": {"pack_jobs": n}})
+        assert len(jobs.texture_jobs(same, cfg)) == n
+
+
 def test_small_polygons_share_texture_jobs_and_large_ones_keep_their_own():
     cfg = wf.resolve_config(REPO, {"preset": "fast"})
     rate = float(cfg["run"]["texels_per_minute"]) / 60.0
     rows = [{"id": "facade", "width": 1024, "height": 600, "photos": ["a"] * 8}]
     rows += [{"id": f"jamb{i}", "width": 80 + i, "height": 300, "photos": ["a"] * 5} for i in range(30)]
     pack = float(cfg["run"]["pack_seconds"])
+    n_jobs = jobs.pack_jobs(cfg["run"]["pack_jobs"], local=False, cores=None)
     work = {r["id"]: jobs.polygon_work(r, cfg) / rate for r in rows}
     total = sum(work.values())
-    limit = min(pack, max(work["facade"], total / cfg["run"]["pack_jobs"]))  # no shared job larger than the facade's
+    limit = min(pack, max(work["facade"], total / n_jobs))  # no shared job larger than the facade's
     assert all(work[r["id"]] < limit for r in rows[1:])  # the jambs are below it
     assert sum(work[r["id"]] for r in rows[1:]) > limit  # ... and need more than one job
     plan = jobs.texture_jobs(rows, cfg)
@@ -307,10 +323,10 @@ def test_small_polygons_share_texture_jobs_and_large_ones_keep_their_own():
     assert all(sum(work[p] for p in g) <= limit + largest_small for g in groups)  # balanced, near the limit
     # many equal small polygons, none large: they share about pack_jobs jobs (not one)
     same = [{"id": f"w{i}", "width": 200, "height": 200, "photos": ["a"] * 4} for i in range(40)]
-    assert len(jobs.texture_jobs(same, cfg)) == cfg["run"]["pack_jobs"]
+    assert len(jobs.texture_jobs(same, cfg)) == n_jobs
     # a small scene's polygons are not all in one job, however little work they hold
     few = [{"id": f"s{i}", "width": 60 + i, "height": 50, "photos": ["a"] * 3} for i in range(6)]
-    assert 1 < len(jobs.texture_jobs(few, cfg)) <= cfg["run"]["pack_jobs"]
+    assert 1 < len(jobs.texture_jobs(few, cfg)) <= n_jobs
     assert jobs.texture_jobs(rows, cfg) == plan  # stable
     # another membership is another job name; pack_seconds 0 is a job per polygon
     assert set(jobs.texture_jobs(rows[:-1], cfg)) != set(plan)

@@ -109,6 +109,29 @@ def job_name(pids: list[str]) -> str:
     return "group-" + hashlib.sha1("\n".join(sorted(pids)).encode()).hexdigest()[:10]
 
 
+# pack_jobs when the run's cores are not known to the process that plans the jobs (a cluster run:
+# the main process and each job's own Snakemake must plan the same jobs)
+PACK_JOBS_FALLBACK = 4
+
+
+def pack_jobs(setting: int | str, local: bool, cores: int | None) -> int:
+    """``run.pack_jobs`` as a number: ``auto`` is the cores of a local run, since the small
+    polygons' shared jobs then run side by side on them; on a cluster (or when the cores are not
+    known) PACK_JOBS_FALLBACK, the same in the main process and in every job's own Snakemake,
+    whose core counts differ (a job's polygons must not depend on which process asks).
+
+    Args:
+        setting: the config value, an integer >= 1 or ``auto``.
+        local: whether the jobs run on this machine (no executor plugin, not inside a cluster job).
+        cores: the run's ``--cores``, or None.
+    """
+    if setting != "auto":
+        return int(setting)
+    if local and cores:
+        return max(1, int(cores))
+    return PACK_JOBS_FALLBACK
+
+
 def texture_jobs(rows: list[dict], cfg: dict) -> dict[str, list[str]]:
     """Polygon ids per texture job, in a stable order.
 
@@ -134,7 +157,8 @@ def texture_jobs(rows: list[dict], cfg: dict) -> dict[str, list[str]]:
     # polygons still share, in about pack_jobs jobs; not a fraction of pack_seconds, which
     # would put a small scene's polygons in one job on one core).
     total = sum(w for w, _ in works)
-    limit = min(pack, max(works[0][0] if works else 0.0, total / max(1, int(cfg["run"].get("pack_jobs", 1)))))
+    n_jobs = pack_jobs(cfg["run"].get("pack_jobs", 1), local=False, cores=None)
+    limit = min(pack, max(works[0][0] if works else 0.0, total / n_jobs))
     alone = [[pid] for work, pid in works if work >= limit]  # a job each
     small = [(work, pid) for work, pid in works if work < limit]
     # the small ones in as many jobs as their work needs at the limit, each added to the

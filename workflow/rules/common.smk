@@ -50,6 +50,12 @@ except DifftexError as exc:
     runguard.stop(str(exc))
 
 RUN = config["run"]
+# `auto`: as many shared texture jobs as a local run has cores (jobs.pack_jobs)
+try:
+    _cores = workflow.cores
+except Exception:  # noqa: BLE001 -- not set (a dry run, a cluster job): the fallback
+    _cores = None
+RUN["pack_jobs"] = jobs.pack_jobs(RUN["pack_jobs"], workflow.local_exec and not workflow.remote_exec, _cores)
 # One real run per working directory; a run killed earlier leaves stale locks that this one
 # clears (difftex/workflow/runguard.py). Called as an input function, when the kind of run is known.
 RUN_GUARD = runguard.RunGuard(R)
