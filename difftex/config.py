@@ -8,6 +8,7 @@ that stage and what follows.
 from __future__ import annotations
 
 import dataclasses
+import os
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, TypeVar
@@ -50,6 +51,16 @@ def _type_problem(value: Any, default: Any) -> str | None:
     if isinstance(default, str) and not isinstance(value, str):
         return f"must be a string, got {value!r}"
     return None
+
+
+def job_threads() -> int:
+    """Threads a whole-scene job may use: OMP_NUM_THREADS, as the workflow sets it from the
+    rule's ``threads``; without it, up to 4 of the machine's cores."""
+    try:
+        n = int(os.environ.get("OMP_NUM_THREADS", "0") or 0)
+    except ValueError:
+        n = 0
+    return max(1, n or min(4, os.cpu_count() or 1))
 
 
 def read_config(path: str | Path | None) -> dict[str, Any]:

@@ -153,3 +153,24 @@ def test_only_the_best_photos_of_some_texel_stay_candidates(tmp_path):
     frontal = [full.photos.index(n) for n in ("img00.png", "img01.png", "img02.png")]
     assert not full.texel_visible[frontal].any(0)[full.texel_mask].all()
     assert {"img00.png", "img01.png", "img02.png"} < set(capped.photos)
+
+
+@pytest.mark.parametrize("model", ["PINHOLE", "SIMPLE_RADIAL"])
+def test_photos_and_polygons_cast_side_by_side_give_the_same_visibility(tmp_path, model):
+    """threads > 1 casts photos and reads polygons' texel visibility in worker threads; the result
+    (photos in order, masks, crops, texel sizes) is that of one thread, also where distorted
+    photos are ray-cast one at a time under the caster's lock."""
+    polys = {"back": wall(-2, 2, 0, 2, y=0.0), "front": wall(-0.5, 0.5, 0, 1, y=-1.0)}
+    centers = [(0.0, -6.0, 1.0), (2.0, -6.0, 1.5), (-2.0, -5.0, 0.5), (1.0, -7.0, 0.8), (-1.5, -6.5, 1.2)]
+    sc = load_scene(make_scene(tmp_path / "s", polys, centers=centers, model=model))
+    names = [p.name for p in sc.photos]
+    cands = {"back": names, "front": names}
+    one = scene_visibility(sc.proxy, sc.photos, sc.up, cands, 96, progress=False, threads=1)
+    two = scene_visibility(sc.proxy, sc.photos, sc.up, cands, 96, progress=False, threads=3)
+    assert [v.polygon_id for v in two] == ["back", "front"]
+    for a, b in zip(one, two):
+        assert a.photos == b.photos and len(a.photos) >= 3
+        assert np.array_equal(a.texel_mask, b.texel_mask) and np.array_equal(a.texel_visible, b.texel_visible)
+        assert np.array_equal(a.a_bbox, b.a_bbox)
+        assert all(np.array_equal(x, y) for x, y in zip(a.a_masks, b.a_masks))
+        assert a.texel_size == b.texel_size

@@ -38,7 +38,7 @@ def run(args) -> int:
     import time
     from pathlib import Path
 
-    from difftex.config import TextureConfig, VisibilityConfig, read_config, section
+    from difftex.config import TextureConfig, VisibilityConfig, job_threads, read_config, section
     from difftex.errors import DifftexError
     from difftex.geometry.visibility import save_visibility, scene_visibility
     from difftex.scene.files import read_json, write_json
@@ -76,6 +76,7 @@ def run(args) -> int:
         progress=not args.quiet,
         top_k=top_k,
         fallback=later,
+        threads=job_threads(),
     )
     out = Path(args.out_dir)
     out.mkdir(parents=True, exist_ok=True)

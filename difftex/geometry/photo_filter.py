@@ -14,7 +14,6 @@ untextured, and the table says why (:func:`unseen_reason`).
 from __future__ import annotations
 
 import logging
-import os
 import time
 from collections import deque
 from concurrent.futures import ThreadPoolExecutor
@@ -23,7 +22,7 @@ from math import ceil
 
 import numpy as np
 
-from difftex.config import FilterConfig
+from difftex.config import FilterConfig, job_threads
 from difftex.errors import DifftexError
 from difftex.geometry.raycast import ProxyCaster, camera_rays
 from difftex.geometry.visibility import id_buffer, prepare
@@ -236,7 +235,7 @@ def filter_photos(proxy: Proxy, photos: list[Photo], cfg: FilterConfig, progress
     # threads, one per thread of the job (OMP_NUM_THREADS, as the workflow sets it), while this
     # one makes the id buffers; with pinhole photos rasterised, the decodes are most of the work.
     # The id buffers stay on this thread (Mitsuba's scene is not shared across threads here).
-    workers = max(1, int(os.environ.get("OMP_NUM_THREADS", "0") or 0) or min(4, os.cpu_count() or 1))
+    workers = job_threads()
     with ThreadPoolExecutor(max_workers=workers) as pool:
         ahead = deque(pool.submit(photo_sharpness, ph) for ph in photos[:workers])
         it = track(range(len(photos)), description="filtering photos", disable=not progress, transient=True)

@@ -14,7 +14,8 @@ from __future__ import annotations
 
 import functools
 import logging
-from dataclasses import dataclass
+import threading
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -53,6 +54,9 @@ class ProxyCaster:
     _scene: Any = None  # mitsuba.Scene (mitsuba ships no type information)
     _tri_polygon: Any = None  # (T,) polygon index of each triangle
     _planes: Any = None  # numpy backend: visibility._PlanarPolygons
+    # one thread at a time prepares the backend and casts with Mitsuba (its scene is not shared
+    # across threads here); rasterising and the numpy backend need no lock
+    _lock: Any = field(default_factory=threading.RLock, repr=False)
 
     @classmethod
     def build(cls, proxy: Proxy, backend: str = "auto") -> ProxyCaster:
@@ -71,14 +75,15 @@ class ProxyCaster:
         """Prepare the ray backend. "auto" waits for the first ray that rasterising cannot answer
         (a distorted photo, a polygon across the camera plane): with pinhole photos, loading
         Mitsuba (0.26 s per process) and its scene would be for nothing."""
-        if self._scene is not None or self._planes is not None:
-            return
-        if self.backend == "auto":
-            self.backend = "mitsuba" if mitsuba_available() else "numpy"
-        if self.backend == "mitsuba":
-            self._build_mitsuba()
-        else:
-            self._planes = _planar(self.proxy)
+        with self._lock:
+            if self._scene is not None or self._planes is not None:
+                return
+            if self.backend == "auto":
+                self.backend = "mitsuba" if mitsuba_available() else "numpy"
+            if self.backend == "mitsuba":
+                self._build_mitsuba()
+            else:
+                self._planes = _planar(self.proxy)
 
     def _build_mitsuba(self) -> None:
         import drjit as dr
@@ -116,7 +121,8 @@ class ProxyCaster:
         d = np.ascontiguousarray(dirs.reshape(-1, 3), dtype=np.float32)
         o = np.asarray(origin, np.float64) - self.centre
         if self.backend == "mitsuba":
-            ids, dist = self._cast_mitsuba(o, d)
+            with self._lock:
+                ids, dist = self._cast_mitsuba(o, d)
         else:
             ids, dist = self._cast_numpy(o, d)
         return ids.reshape(shape), dist.reshape(shape)

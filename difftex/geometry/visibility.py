@@ -13,6 +13,7 @@ From the id buffer, for polygon i and photo k:
 from __future__ import annotations
 
 import dataclasses
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 import numpy as np
@@ -162,6 +163,7 @@ def scene_visibility(
     top_k: int = 8,
     fallback: dict[str, dict[str, str]] | None = None,
     texel_candidates: int | None = None,
+    threads: int = 1,
 ) -> list[PolygonVisibility]:
     """Visibility of every polygon in its candidate photos (photo names per polygon id).
 
@@ -176,8 +178,10 @@ def scene_visibility(
 
     One pass over the photos: each photo's id buffer gives, per polygon it sees, the crop of
     a_k^i and (``density: auto``) the photo's ground sampling distance on a probe grid. Then each
-    polygon's texel size is chosen (difftex.geometry.density), and its texel visibility per photo is read
-    from the crops. Only one full-resolution id buffer is in memory at a time.
+    polygon's texel size is chosen (difftex.geometry.density), and its texel visibility per photo
+    is read from the crops. ``threads`` photos are cast side by side (numpy releases the GIL in
+    the array work; a photo that needs Mitsuba takes the caster's lock); one full-resolution id
+    buffer per thread is in memory at a time.
 
     ``texture``: the texture section, or an int long side (tests and tools).
     """
@@ -193,10 +197,12 @@ def scene_visibility(
     wanted = {pid: set(names) | set(fallback.get(pid, ())) for pid, names in candidates.items()}
     parts: list[list[_Sighting]] = [[] for _ in proxy.polygons]
     used = [ph for ph in photos if any(ph.name in s for s in wanted.values())]
-    for ph in track(used, description="visibility", disable=not progress, transient=True):
+
+    def sightings(ph: Photo) -> list[tuple[int, _Sighting]]:
         ids, _ = id_buffer(caster, ph)
         # which polygons the photo sees at all: one pass, not one per polygon
         hits = np.bincount(ids.ravel() + 1, minlength=len(proxy.polygons) + 1)[1:]
+        found = []
         for i, poly in enumerate(proxy.polygons):
             if ph.name not in wanted.get(poly.id, ()) or hits[i] == 0:
                 continue
@@ -212,11 +218,20 @@ def scene_visibility(
                 gsd, cos = probe_gsd(probes[i], ph, seen_p)
             v = ph.center - poly.centroid
             mean_cos = float(v @ poly.normal / np.linalg.norm(v))
-            parts[i].append(_Sighting(ph.name, box, np.packbits(crop.ravel()), mean_cos, gsd, cos))
-        del ids
+            found.append((i, _Sighting(ph.name, box, np.packbits(crop.ravel()), mean_cos, gsd, cos)))
+        return found
+
+    # rasterised photos run side by side; a photo that needs Mitsuba waits for the caster's lock
+    workers = max(1, int(threads))
+    with ThreadPoolExecutor(max_workers=workers) as pool:
+        # map keeps the photos' order, so each polygon's sightings are in photo order as before
+        found = pool.map(sightings, used) if workers > 1 else map(sightings, used)
+        for per_photo in track(found, total=len(used), description="visibility", disable=not progress, transient=True):
+            for i, sighting in per_photo:
+                parts[i].append(sighting)
     by_name = {p.name: p for p in photos}
-    out = []
-    for i, poly in enumerate(proxy.polygons):
+
+    def polygon_visibility(i: int, poly) -> PolygonVisibility:
         items = parts[i]
         rect = uv_frame(poly, up, long_side=PROBE_LONG_SIDE)
         extent = (rect.width * rect.texel_size, rect.height * rect.texel_size)
@@ -268,8 +283,11 @@ def scene_visibility(
             a_bbox=np.asarray([k[0].bbox for k in kept], dtype=np.int64).reshape(K, 4),
             a_masks=[k[1] for k in kept],
         )
-        out.append(dataclasses.replace(vis, texel_size=dataclasses.asdict(size), rescued=rescued))
-    return out
+        return dataclasses.replace(vis, texel_size=dataclasses.asdict(size), rescued=rescued)
+
+    # the polygons side by side as well (their texel visibility per photo is numpy array work)
+    with ThreadPoolExecutor(max_workers=workers) as pool:
+        return list(pool.map(polygon_visibility, range(len(proxy.polygons)), proxy.polygons))
 
 
 def best_per_texel(kept: list[tuple], frame: UVFrame, photos: dict, m: int, grid: int = 64) -> tuple[list, list]:
