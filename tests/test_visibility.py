@@ -157,12 +157,15 @@ def test_only_the_best_photos_of_some_texel_stay_candidates(tmp_path):
 
 @pytest.mark.parametrize("model", ["PINHOLE", "SIMPLE_RADIAL"])
 def test_photos_and_polygons_cast_side_by_side_give_the_same_visibility(tmp_path, model):
-    """threads > 1 casts photos and reads polygons' texel visibility in worker threads; the result
-    (photos in order, masks, crops, texel sizes) is that of one thread, also where distorted
-    photos are ray-cast one at a time under the caster's lock."""
+    """threads > 1 reads polygons' texel visibility, and casts pinhole photos, in worker threads;
+    the result (photos in order, masks, crops, texel sizes) is that of one thread. The last
+    camera stands beside the back wall looking along it, so that the wall crosses its plane:
+    even a pinhole photo is then ray-cast, under the caster's lock, from a worker thread;
+    distorted photos are cast on one thread."""
     polys = {"back": wall(-2, 2, 0, 2, y=0.0), "front": wall(-0.5, 0.5, 0, 1, y=-1.0)}
-    centers = [(0.0, -6.0, 1.0), (2.0, -6.0, 1.5), (-2.0, -5.0, 0.5), (1.0, -7.0, 0.8), (-1.5, -6.5, 1.2)]
-    sc = load_scene(make_scene(tmp_path / "s", polys, centers=centers, model=model))
+    centers = [(0.0, -6.0, 1.0), (2.0, -6.0, 1.5), (-2.0, -5.0, 0.5), (1.0, -7.0, 0.8), (0.5, -0.6, 1.0)]
+    targets = [(0.0, 0.0, 1.0)] * 4 + [(-2.0, 0.0, 1.0)]
+    sc = load_scene(make_scene(tmp_path / "s", polys, centers=centers, target=targets, model=model))
     names = [p.name for p in sc.photos]
     cands = {"back": names, "front": names}
     one = scene_visibility(sc.proxy, sc.photos, sc.up, cands, 96, progress=False, threads=1)
