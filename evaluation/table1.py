@@ -14,6 +14,7 @@ report per method and a comparison page under the work folder.
 from __future__ import annotations
 
 import argparse
+import json
 import sys
 import time
 from pathlib import Path
@@ -41,6 +42,7 @@ def main(argv=None) -> int:
     )
     ap.add_argument("--preset", default="fast", help="difftex preset (config/presets/<name>.yaml)")
     ap.add_argument("--methods", default="difftex,average,frontal,mrf,texrecon,meshlab-face,meshlab-blend")
+    ap.add_argument("--optimize", default=None, help="JSON of optimize: overrides (ablations)")
     C.add_table_args(ap, "table1")
     args = ap.parse_args(argv)
 
@@ -50,7 +52,7 @@ def main(argv=None) -> int:
     t_all = time.perf_counter()
     scene, work = Path(args.scene), Path(args.work)
     t_synth = ensure_synth(scene)
-    cfg = C.base_config(args.long_side, args.preset)
+    cfg = C.base_config(args.long_side, args.preset, {"optimize": json.loads(args.optimize)} if args.optimize else None)
     common = C.run_common(scene, work, cfg)
     rows = []
     skipped = []

@@ -301,14 +301,33 @@ def test_pack_jobs_auto_is_a_local_runs_cores_and_fixed_on_a_cluster():
         assert len(jobs.texture_jobs(same, cfg)) == n
 
 
+def test_a_polygons_estimated_seconds_count_its_photos_as_well_as_its_iterations():
+    """polygon_seconds = optimization (texel x slot x iteration caps) + mapping (texels x
+    candidates) + set-up: at `fast` the mapping dominates, so of two polygons with the same
+    texels and slots the one with 60 candidates takes longer than the one with 8; at `balanced`
+    (more iterations) the optimization counts for more."""
+    fast = wf.resolve_config(REPO, {"preset": "fast"})
+    few = {"id": "a", "width": 600, "height": 250, "photos": ["p"] * 8}
+    many = dict(few, photos=["p"] * 60)
+    assert jobs.polygon_work(few, fast) == jobs.polygon_work(many, fast)  # top_k slots either way
+    assert jobs.polygon_seconds(many, fast) > 3 * jobs.polygon_seconds(few, fast)
+    run = fast["run"]
+    mapping = 600 * 250 * 60 / run["texel_photos_per_second"]
+    optim = 60 * jobs.polygon_work(many, fast) / run["texels_per_minute"]
+    assert jobs.polygon_seconds(many, fast) == pytest.approx(optim + mapping + run["polygon_setup_s"])
+    assert mapping > optim
+    balanced = wf.resolve_config(REPO, {"preset": "balanced"})
+    share = lambda cfg: 60 * jobs.polygon_work(many, cfg) / cfg["run"]["texels_per_minute"] / jobs.polygon_seconds(many, cfg)  # noqa: E731
+    assert share(balanced) > share(fast)
+
+
 def test_small_polygons_share_texture_jobs_and_large_ones_keep_their_own():
     cfg = wf.resolve_config(REPO, {"preset": "fast"})
-    rate = float(cfg["run"]["texels_per_minute"]) / 60.0
     rows = [{"id": "facade", "width": 1024, "height": 600, "photos": ["a"] * 8}]
     rows += [{"id": f"jamb{i}", "width": 80 + i, "height": 300, "photos": ["a"] * 5} for i in range(30)]
     pack = float(cfg["run"]["pack_seconds"])
     n_jobs = jobs.pack_jobs(cfg["run"]["pack_jobs"], local=False, cores=None)
-    work = {r["id"]: jobs.polygon_work(r, cfg) / rate for r in rows}
+    work = {r["id"]: jobs.polygon_seconds(r, cfg) for r in rows}
     total = sum(work.values())
     limit = min(pack, max(work["facade"], total / n_jobs))  # no shared job larger than the facade's
     assert all(work[r["id"]] < limit for r in rows[1:])  # the jambs are below it
