@@ -317,7 +317,10 @@ def test_a_polygons_estimated_seconds_count_its_photos_as_well_as_its_iterations
     assert jobs.polygon_seconds(many, fast) == pytest.approx(optim + mapping + run["polygon_setup_s"])
     assert mapping > optim
     balanced = wf.resolve_config(REPO, {"preset": "balanced"})
-    share = lambda cfg: 60 * jobs.polygon_work(many, cfg) / cfg["run"]["texels_per_minute"] / jobs.polygon_seconds(many, cfg)  # noqa: E731
+
+    def share(cfg):  # the optimization's share of the estimate
+        return 60 * jobs.polygon_work(many, cfg) / cfg["run"]["texels_per_minute"] / jobs.polygon_seconds(many, cfg)
+
     assert share(balanced) > share(fast)
 
 

@@ -98,10 +98,11 @@ def runtime_min(rows: list[dict], cfg: dict) -> int:
 
 
 def priority(rows: list[dict], cfg: dict) -> int:
-    """The scheduler's priority of a job of these polygons: its estimated seconds. Snakemake starts the ready jobs of highest priority first, so the
-    longest jobs start first and the short ones fill the other cores around them (longest
-    processing time first); in the order of the DAG, the largest polygon could start last and
-    run alone on one core while the others idle."""
+    """The scheduler's priority of a job of these polygons: its estimated seconds. Snakemake
+    starts the ready jobs of highest priority first, so the longest jobs start first and the
+    short ones fill the other cores around them (longest processing time first); in the order
+    of the DAG, the largest polygon could start last and run alone on one core while the others
+    idle."""
     return int(math.ceil(job_seconds(rows, cfg)))
 
 
@@ -150,10 +151,10 @@ def texture_jobs(rows: list[dict], cfg: dict) -> dict[str, list[str]]:
     """Polygon ids per texture job, in a stable order.
 
     ``limit`` of estimated seconds (``polygon_seconds``) is ``run.pack_seconds``, or the largest
-    polygon's if that is less (but not under the total over ``run.pack_jobs``). Polygons at the limit or above get a job each; the others share
-    ceil(their work / limit) jobs, each polygon (largest first) joining the least-loaded job, so
-    a shared job ends within one small polygon of the limit. ``pack_seconds: 0`` gives every
-    polygon its own job.
+    polygon's if that is less (but not under the total over ``run.pack_jobs``). Polygons at the
+    limit or above get a job each; the others share ceil(their seconds / limit) jobs, each
+    polygon (largest first) joining the least-loaded job, so a shared job ends within one small
+    polygon of the limit. ``pack_seconds: 0`` gives every polygon its own job.
 
     Args:
         rows: the visibility summary's rows of the polygons to texture.
