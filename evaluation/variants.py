@@ -5,7 +5,8 @@
         --variants '{"defaults": {}, "raw": {"render_units": "raw"}, "average": null}'
 
 For choosing the optimizer's defaults with evidence: every variant (a dict of ``optimize:``
-overrides, or null for the plain per-texel average) textures every polygon from the same
+overrides; null for the plain per-texel average; ``{"baseline": "average" | "frontal",
+"supersample": S}`` for a baseline with that photo sampling) textures every polygon from the same
 visibility (``texture.density: auto`` at ``--density-scale``), and is scored against the
 ground-truth ortho map resampled to the texture's frame: Error 90/95 % and SSIM over the
 polygon's texels (difftex.metrics), sharpness = mean colour gradient magnitude over the ground
@@ -64,8 +65,11 @@ def run(
         for v in vis:
             inp = polygon_input_from_visibility(v, by_name)
             t0 = time.perf_counter()
-            if overrides is None:
-                U, wsum, _, _ = baseline_texture(inp, "average", "cpu")
+            if overrides is None or "baseline" in overrides:
+                base = overrides or {}
+                U, wsum, _, _ = baseline_texture(
+                    inp, base.get("baseline", "average"), "cpu", int(base.get("supersample", 1))
+                )
                 U, _ = finish_texture(U, wsum, inp.texel_mask)
             else:
                 tp = texture_polygon(inp, OptimizeConfig(**overrides), ComputeConfig(device="cpu"))

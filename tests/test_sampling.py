@@ -20,6 +20,7 @@ from tests.analytic import (
     make_input,
     make_photo,
     optimize,
+    pattern,
     render,
 )
 
@@ -68,6 +69,44 @@ def test_pyramid_sampling_is_exact_at_pixel_centres_and_averages_at_coarse_footp
     np.testing.assert_allclose(got2, box, atol=2e-3)
 
 
+def test_supersampling_integrates_the_texel_where_one_sample_blurs_two_texels_wide():
+    """Texels of 4 x 4 pixels whose boxes straddle the level-2 pyramid blocks (shifted by 2 px):
+    one trilinear sample falls between two level-2 pixels and averages 8 px across; 2 x 2
+    sub-samples each hit a level-1 pixel of the box, so their mean is the texel's exact box
+    average. On a linear ramp both are exact (the sub-samples are symmetric about the centre)."""
+    rng = np.random.default_rng(1)
+    img = rng.random((64, 96, 3)).astype(np.float32)
+    s = PhotoSampler(img, (0, 0, 96, 64), torch.device("cpu"))
+    ys, xs = np.mgrid[0:15, 0:23] * 4.0 + 4.0  # texel boxes [4i + 2, 4i + 6)
+    pix = torch.from_numpy(np.stack([xs, ys], -1).astype(np.float32))
+    fp = torch.full(pix.shape[:2], 4.0)
+    exact = img[2:62, 2:94].reshape(15, 4, 23, 4, 3).mean((1, 3))
+    one = s.sample(pix, fp).permute(1, 2, 0).numpy()
+    four = s.sample(pix, fp, supersample=2).permute(1, 2, 0).numpy()
+    np.testing.assert_allclose(four, exact, atol=2e-3)
+    assert np.abs(one - exact).mean() > 10 * np.abs(four - exact).mean()
+    # the single sample is the blurrier: its texels vary less about their mean
+    assert one.std() < 0.8 * four.std()
+    ramp = np.broadcast_to((0.002 * np.arange(96, dtype=np.float32))[None, :, None], (64, 96, 3)).copy()
+    r = PhotoSampler(ramp, (0, 0, 96, 64), torch.device("cpu"))
+    np.testing.assert_allclose(r.sample(pix, fp, 2).numpy(), r.sample(pix, fp).numpy(), atol=2e-3)
+
+
+def test_texel_axes_are_the_steps_of_a_linear_map_up_to_its_edges():
+    from difftex.sampling.photos import texel_axes
+
+    A = torch.tensor([[3.0, 0.5], [-0.25, 2.0]])  # photo pixels per texel step (columns: x, y)
+    ys, xs = torch.meshgrid(torch.arange(7.0), torch.arange(9.0), indexing="ij")
+    pix = torch.stack([xs, ys], -1) @ A.T + torch.tensor([10.0, 20.0])
+    ax, ay = texel_axes(pix)
+    torch.testing.assert_close(ax, A[:, 0].expand(7, 9, 2))
+    torch.testing.assert_close(ay, A[:, 1].expand(7, 9, 2))
+    pix[3, 4] = float("nan")  # behind the camera: its neighbours' sub-samples fall on their centres
+    ax, ay = texel_axes(pix)
+    assert torch.isfinite(ax).all() and torch.isfinite(ay).all()
+    assert (ax[3, 3] == 0).all() and (ay[2, 4] == 0).all()
+
+
 def test_crop_box_must_align_with_the_decode_scale():
     with pytest.raises(ValueError):
         PhotoSampler(np.zeros((8, 8, 3), np.float32), (1, 0, 8, 8), torch.device("cpu"), base=1)
@@ -84,6 +123,41 @@ def test_mapped_photo_reproduces_the_wall():
     inner[:3], inner[-3:], inner[:, :3], inner[:, -3:] = False, False, False, False
     # checker edges blur by a texel; the median error away from them is small
     assert np.median(np.abs(got - gt)[inner]) < 0.02
+
+
+def box_texture(inp, n: int = 8) -> np.ndarray:
+    """The wall's pattern averaged over each texel's square (n x n points): what a texel holds."""
+    tx, ty = inp.frame.centres()
+    acc = np.zeros((*tx.shape, 3), np.float32)
+    for j in range(n):
+        for i in range(n):
+            X = inp.frame.texel_to_world(tx + (i + 0.5) / n - 0.5, ty + (j + 0.5) / n - 0.5)
+            acc += pattern(X[..., 0], X[..., 2])
+    return acc / n**2
+
+
+@pytest.mark.parametrize("yaw", [0.0, 35.0])
+def test_the_texture_frame_is_supersampled_and_closer_to_the_wall(yaw):
+    """PhotoSet.supersample: the polygon's own frame (the texture) is sampled 2 x 2 per texel
+    and comes closer to what each texel of the wall holds (its pattern averaged over the
+    texel) than one trilinear sample, which blurs over about two texels, frontal or oblique,
+    at 3 photo pixels per texel (`fast`); a coarser level, which only steers the weights,
+    takes one sample either way."""
+    ph = make_photo("f", yaw)
+    inp = make_input([ph], [render(ph)], long_side=32)
+    ref = box_texture(inp)
+    err, coarse = {}, {}
+    frame = level_frame(inp.frame, 16)
+    mask = resample_nearest(inp.texel_mask, inp.frame, frame)
+    for s in (1, 2):
+        ps = PhotoSet.load(inp, "cpu", supersample=s)
+        mp = ps.map(0, inp.frame, inp.texel_mask)
+        inner = mp.visible.numpy().copy()
+        inner[:2], inner[-2:], inner[:, :2], inner[:, -2:] = False, False, False, False
+        err[s] = float(np.abs(mp.colour.permute(1, 2, 0).numpy() - ref)[inner].mean())
+        coarse[s] = ps.map(0, frame, mask).colour
+    assert err[2] < 0.8 * err[1], err
+    torch.testing.assert_close(coarse[1], coarse[2])
 
 
 def test_resample_nearest_round_trip():

@@ -25,8 +25,8 @@ def run(args) -> int:
     from difftex.evaluation.baselines import baseline_texture, write_baseline_polygon
 
     t0 = time.perf_counter()
-    _, compute, inp = load(args)
-    U, wsum, dominant, info = baseline_texture(inp, args.method, compute.device)
+    cfg, compute, inp = load(args)
+    U, wsum, dominant, info = baseline_texture(inp, args.method, compute.device, cfg.supersample)
     report = write_baseline_polygon(inp, U, wsum, dominant, info, args.out_dir, t0)
     print(f"baseline {args.method} {inp.polygon_id}: coverage {report['coverage']:.3f}")
     return 0

@@ -26,8 +26,10 @@ def run(args) -> int:
     from difftex.config import section
     from difftex.evaluation.mrf import MRFConfig, run_polygon
 
-    _, compute, inp = load(args)
-    mcfg = section(args.config, "mrf", MRFConfig)
+    cfg, compute, inp = load(args)
+    # the photo sampling of difftex's own run (optimize.supersample): a comparison then
+    # compares the selection, not the sampling
+    mcfg = dataclasses.replace(section(args.config, "mrf", MRFConfig), supersample=cfg.supersample)
     if args.patch is not None:
         mcfg = dataclasses.replace(mcfg, patch=args.patch)
     if args.smoothness is not None:

@@ -53,7 +53,7 @@ def texture_polygon(
     (``decode``: ``decode_photo``, or a DecodeCache that several polygons of a job share)."""
     t0 = time.perf_counter()
     device = pick_device(compute.device)
-    photos = PhotoSet.load(inp, device, exact_decode=cfg.exact_decode, decode=decode)
+    photos = PhotoSet.load(inp, device, exact_decode=cfg.exact_decode, decode=decode, supersample=cfg.supersample)
     t_read = time.perf_counter() - t0
     sides = level_sides(max(inp.frame.shape), cfg.long_side_start, cfg.coarse_to_fine, cfg.level_step)
     match_frame = level_frame(inp.frame, min(cfg.long_side_start, max(inp.frame.shape)))

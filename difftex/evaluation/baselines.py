@@ -17,6 +17,7 @@ import torch
 from difftex.compose.composite import compose_from_photos, finish_texture
 from difftex.compose.outputs import write_texture_outputs
 from difftex.errors import DifftexError
+from difftex.sampling import SUPERSAMPLE
 from difftex.sampling.photos import PhotoSet, PolygonInput, pick_device
 from difftex.sampling.texels import level_frame, resample_nearest
 
@@ -37,12 +38,16 @@ def frontality_ranking(photos: PhotoSet) -> list[int]:
     return sorted(scores, key=lambda n: (-scores[n], n))
 
 
-def baseline_texture(inp: PolygonInput, method: str, device="cpu") -> tuple[np.ndarray, np.ndarray, np.ndarray, dict]:
-    """(U (H, W, 3), weight sum (H, W), dominant photo (H, W), info) for a baseline method."""
+def baseline_texture(
+    inp: PolygonInput, method: str, device="cpu", supersample: int = SUPERSAMPLE
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, dict]:
+    """(U (H, W, 3), weight sum (H, W), dominant photo (H, W), info) for a baseline method;
+    ``supersample``: the photo sampling of ``optimize.supersample``, so that a comparison with
+    difftex compares the blend, not the sampling."""
     if method not in METHODS:
         raise DifftexError(f"unknown baseline method '{method}' (known: {', '.join(METHODS)})")
     device = pick_device(device)
-    photos = PhotoSet.load(inp, device)
+    photos = PhotoSet.load(inp, device, supersample=supersample)
     H, W = inp.frame.shape
     if method == "average":
         best = torch.full((H, W), -1, dtype=torch.long)

@@ -34,6 +34,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
+from difftex.sampling import SUPERSAMPLE
 from difftex.sampling.photos import MappedPhoto, PhotoSet, PolygonInput, pick_device
 
 MAP_CACHE_BYTES = 1 << 30  # mapped photos kept between the passes (else mapped again)
@@ -50,6 +51,7 @@ class MRFConfig:
     feather: float = 2.0  # Gaussian sigma (texels) of the label blending across seams; 0: hard seams
     consistency: float = 1.0  # weight of the photo-consistency term (0: off)
     consistency_sigma: float = 0.2  # colour distance (exposure-normalised RGB) at which a view counts as an outlier
+    supersample: int = SUPERSAMPLE  # photo samples per texel side (the CLI takes optimize.supersample)
 
     def __post_init__(self):
         if self.patch < 1 or self.max_cycles < 1 or self.smoothness < 0 or self.feather < 0:
@@ -161,7 +163,7 @@ def mrf_texture(
     """(U (H, W, 3), weight sum (H, W), dominant photo (H, W), info), like baselines.baseline_texture."""
     t0 = time.perf_counter()
     device = pick_device(device)
-    photos = PhotoSet.load(inp, device)
+    photos = PhotoSet.load(inp, device, supersample=cfg.supersample)
     frame, mask = inp.frame, inp.texel_mask
     H, W = frame.shape
     labels = sorted(photos.samplers)

@@ -11,6 +11,8 @@ import dataclasses
 from dataclasses import dataclass
 from typing import Literal
 
+from difftex.sampling import SUPERSAMPLE
+
 LossMode = Literal["texel", "render"]
 EliminationTest = Literal["loo", "paper"]
 HistmatchReference = Literal["median", "best", "pooled"]
@@ -88,6 +90,7 @@ class OptimizeConfig:
     histmatch_reference: HistmatchReference = "median"  # per-texel median of the candidates, the best photo, or pooled
     histmatch_channels: str = "sv"  # HSV channels matched; hue is circular and left alone by default
     exact_decode: bool = False  # decode every photo at full size (default: JPEG DCT scaling where levels allow)
+    supersample: int = SUPERSAMPLE  # S x S photo samples per texel, each at 1/S of its footprint
     seed: int = 0
 
     def __post_init__(self):
@@ -100,8 +103,8 @@ class OptimizeConfig:
             raise ValueError(f"histmatch_channels must be letters of 'hsv', got {self.histmatch_channels!r}")
         if not 1.0 < float(self.level_step) <= 16.0:
             raise ValueError(f"level_step must be in (1, 16], got {self.level_step}")
-        if self.top_k < 1 or self.long_side_start < 1:
-            raise ValueError("top_k and long_side_start must be >= 1")
+        if self.top_k < 1 or self.long_side_start < 1 or self.supersample < 1:
+            raise ValueError("top_k, long_side_start and supersample must be >= 1")
         if not 0 <= self.tau < 1 or not 0 < self.tau_w <= 1:
             raise ValueError("tau must be in [0, 1) and tau_w in (0, 1]")
         if self.ghost < 0:

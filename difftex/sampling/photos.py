@@ -26,6 +26,7 @@ import torch.nn.functional as F
 
 from difftex.errors import DifftexError
 from difftex.geometry.frames import UVFrame
+from difftex.sampling import SUPERSAMPLE
 from difftex.sampling.colour import apply_transfer_torch
 from difftex.sampling.texels import Region, level_frame, resample_nearest, texel_map
 from difftex.scene.camera import Photo
@@ -136,12 +137,30 @@ class PhotoSampler:
     def nbytes(self) -> int:
         return int(sum(t.numel() * t.element_size() for t in self.levels))
 
-    def sample(self, pix: torch.Tensor, footprint: torch.Tensor) -> torch.Tensor:
-        """Colours (3, h, w) at full-resolution pixels ``pix`` (h, w, 2), trilinear over levels.
+    def sample(self, pix: torch.Tensor, footprint: torch.Tensor, supersample: int = 1) -> torch.Tensor:
+        """Colours (3, h, w) of the texels centred at full-resolution pixels ``pix`` (h, w, 2).
 
-        ``footprint`` (h, w) is the texel's size in full-resolution pixels; the pyramid level is
-        log2 of it, so a texel averages about one level pixel (no aliasing, no extra blur).
+        ``footprint`` (h, w) is the texel's size in full-resolution pixels. With ``supersample``
+        S = 1, one trilinear sample at pyramid level log2(footprint): the box of the level's pixel
+        convolved with the bilinear tent of the same width, a blur of standard deviation 0.5
+        footprint where the texel's own box is 0.29. With S > 1, the mean of S x S samples spread
+        over the texel (along the grid's axes in the photo, :func:`texel_axes`), each at level
+        log2(footprint / S): the blur falls towards the texel's box (0.35 footprint at S = 2),
+        so a texture holds the detail of its texel size, as a peer that textures at the photos'
+        resolution and area-averages does, for S^2 times the sampling.
         """
+        if supersample <= 1:
+            return self._sample(pix, footprint)
+        ax, ay = texel_axes(pix)
+        offsets = [(j + 0.5) / supersample - 0.5 for j in range(supersample)]
+        out = torch.zeros(3, *pix.shape[:2], device=self.device)
+        for oy in offsets:
+            for ox in offsets:
+                out += self._sample(pix + ox * ax + oy * ay, footprint / supersample)
+        return out / supersample**2
+
+    def _sample(self, pix: torch.Tensor, footprint: torch.Tensor) -> torch.Tensor:
+        """One trilinear sample per pixel position, at pyramid level log2(footprint)."""
         h, w = pix.shape[:2]
         lam = torch.log2(footprint.clamp_min(1.0)).clamp(self.base, self.top)
         out = torch.zeros(3, h, w, device=self.device)
@@ -160,6 +179,21 @@ class PhotoSampler:
             smp = F.grid_sample(img[None], grid, mode="bilinear", padding_mode="border", align_corners=False)[0]
             out += wL[None] * smp
         return out
+
+
+def texel_axes(pix: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """The photo-space steps (h, w, 2) of one texel along the grid's x and y: central differences
+    of ``pix`` (h, w, 2), one-sided at the edges; zero where a neighbour is not finite (behind the
+    camera), so that such texels' sub-samples fall on their centre.
+
+    Differences of the mapped positions rather than the homography's Jacobian: the positions
+    already hold the lens distortion and an alignment correction, and f_k^i is smooth at the
+    scale of a texel.
+    """
+    if pix.shape[0] < 2 or pix.shape[1] < 2:
+        return torch.zeros_like(pix), torch.zeros_like(pix)
+    gy, gx = torch.gradient(pix, dim=(0, 1))
+    return torch.nan_to_num(gx, nan=0.0, posinf=0.0, neginf=0.0), torch.nan_to_num(gy, nan=0.0, posinf=0.0, neginf=0.0)
 
 
 # --------------------------------------------------------------------------------------------
@@ -224,6 +258,7 @@ class PhotoSet:
     # Per photo, a small affine correction of f_k^i in pixels (difftex.method.alignment):
     # p -> p + d + M (p - c) / s, parameters (dx, dy, m11, m12, m21, m22), centre c, scale s.
     corrections: dict[int, Correction] = field(default_factory=dict)
+    supersample: int = SUPERSAMPLE  # S x S samples per texel of the polygon's own frame (PhotoSampler.sample)
 
     @classmethod
     def load(
@@ -234,6 +269,7 @@ class PhotoSet:
         exact_decode: bool = False,
         progress: Callable[[], None] | None = None,
         decode: Callable[..., np.ndarray] = decode_photo,
+        supersample: int = SUPERSAMPLE,
     ) -> PhotoSet:
         """Decode, crop and pyramid every candidate photo that sees a texel of ``inp``.
 
@@ -242,13 +278,15 @@ class PhotoSet:
         (in pixels) over the texels it sees, so no sampled pyramid level is lost. ``exact_decode``
         decodes every photo at full size (a JPEG's DCT-scaled decode differs from box-averaging
         the full decode by about one 8-bit step). ``decode``: ``decode_photo`` or a cache around
-        it (difftex.scene.files.DecodeCache) shared by the polygons of one job.
+        it (difftex.scene.files.DecodeCache) shared by the polygons of one job. ``supersample``:
+        S x S samples per texel of ``inp.frame`` (the texture's own resolution), each at 1/S of
+        the texel's footprint (so decoded at up to S times finer).
         """
         device = pick_device(device)
         finest = finest or inp.frame
         probe = level_frame(inp.frame, min(PROBE_LONG_SIDE, max(inp.frame.shape)))
         vis_probe = _any_pool(inp.texel_visible & inp.texel_mask[None], inp.frame, probe)
-        ps = cls(inp=inp, device=device, samplers={})
+        ps = cls(inp=inp, device=device, samplers={}, supersample=max(1, int(supersample)))
         for n, ph in enumerate(inp.photos):
             if not vis_probe[n].any():
                 continue
@@ -268,7 +306,8 @@ class PhotoSet:
                 continue
             reduce = 1
             if not exact_decode and inp.load_image is None:
-                reduce = 2 ** int(np.clip(np.floor(np.log2(max(float(fp_fine.min()), 1.0))), 0, 3))
+                finest_px = float(fp_fine.min()) / ps.supersample  # a sub-sample's footprint
+                reduce = 2 ** int(np.clip(np.floor(np.log2(max(finest_px, 1.0))), 0, 3))
             s = reduce
             box = (box[0] // s * s, box[1] // s * s, box[2], box[3])
             if inp.load_image is not None:
@@ -311,7 +350,10 @@ class PhotoSet:
         vis = tm.valid & torch.from_numpy(np.ascontiguousarray(visible & mask)).to(self.device)
         if not bool(vis.any()):
             return None
-        col = self.samplers[n].sample(tm.pix, tm.footprint) * vis[None]
+        # The texture's own texels are supersampled; coarser levels, which only steer the weights,
+        # take one sample (S^2 the sampling where it is cheapest to skip)
+        final = frame.shape == inp.frame.shape and frame.texel_size == inp.frame.texel_size
+        col = self.samplers[n].sample(tm.pix, tm.footprint, self.supersample if final else 1) * vis[None]
         mp = MappedPhoto(colour=col, visible=vis, view=tm.view, cos=tm.cos, footprint=tm.footprint)
         return with_transfer(mp, transfer)
 
