@@ -47,6 +47,7 @@ def run(
     from difftex.geometry.frames import UVFrame
     from difftex.geometry.visibility import scene_visibility
     from difftex.method.config import ComputeConfig, OptimizeConfig
+    from difftex.sampling import SUPERSAMPLE
     from difftex.sampling.photos import polygon_input_from_visibility
     from difftex.scene.files import read_image, read_json
     from difftex.scene.loading import load_scene
@@ -68,7 +69,7 @@ def run(
             if overrides is None or "baseline" in overrides:
                 base = overrides or {}
                 U, wsum, _, _ = baseline_texture(
-                    inp, base.get("baseline", "average"), "cpu", int(base.get("supersample", 1))
+                    inp, base.get("baseline", "average"), "cpu", int(base.get("supersample", SUPERSAMPLE))
                 )
                 U, _ = finish_texture(U, wsum, inp.texel_mask)
             else:

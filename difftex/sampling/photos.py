@@ -351,7 +351,7 @@ class PhotoSet:
         if not bool(vis.any()):
             return None
         # The texture's own texels are supersampled; coarser levels, which only steer the weights,
-        # take one sample (S^2 the sampling where it is cheapest to skip)
+        # take one sample and skip the S^2 cost
         final = frame.shape == inp.frame.shape and frame.texel_size == inp.frame.texel_size
         col = self.samplers[n].sample(tm.pix, tm.footprint, self.supersample if final else 1) * vis[None]
         mp = MappedPhoto(colour=col, visible=vis, view=tm.view, cos=tm.cos, footprint=tm.footprint)
