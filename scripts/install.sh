@@ -9,8 +9,20 @@ set -euo pipefail
 cd "$(dirname "$0")/.."
 PY=${PYTHON:-python3}
 [ -x .venv/bin/python ] || "$PY" -m venv .venv
-PIP=(.venv/bin/python -m pip install -q -c constraints.txt)
-.venv/bin/python -m pip install -q --upgrade pip
+# Large wheels (torch's CUDA libraries, pymeshlab) come over a link that drops: pip resumes a broken
+# download (--resume-retries, pip >= 25.1, hence the upgrade first), and a whole install that still
+# fails is tried again, up to three times, keeping what it already installed.
+retry() {
+  local attempt
+  for attempt in 1 2 3; do
+    "$@" && return 0
+    [ "$attempt" = 3 ] || { echo "note: install step failed (attempt $attempt of 3), retrying: $*" >&2; sleep 5; }
+  done
+  return 1
+}
+retry .venv/bin/python -m pip install -q --upgrade pip
+export PIP_RESUME_RETRIES=20 PIP_RETRIES=10
+PIP=(retry .venv/bin/python -m pip install -q -c constraints.txt)
 if [ -n "${TORCH_INDEX:-}" ]; then
   "${PIP[@]}" --index-url "$TORCH_INDEX" torch torchvision
 fi
