@@ -11,7 +11,10 @@ PY=${PYTHON:-python3}
 [ -x .venv/bin/python ] || "$PY" -m venv .venv
 # Large wheels (torch's CUDA libraries, pymeshlab) come over a link that drops: pip resumes a broken
 # download (--resume-retries, pip >= 25.1, hence the upgrade first), and a whole install that still
-# fails is tried again, up to three times, keeping what it already installed.
+# fails is tried again, up to three times, keeping what it already installed. pip reports a full disk
+# as "Connection interrupted" too (seen here), so its cache is off: the CUDA wheels would otherwise be
+# stored twice, about 4 GB more than the 6.8 GB the environment takes.
+export PIP_NO_CACHE_DIR=1
 retry() {
   local attempt
   for attempt in 1 2 3; do
