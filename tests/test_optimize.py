@@ -54,6 +54,10 @@ def test_config_rejects_unknown_and_bad_values():
         OptimizeConfig.from_dict({"alpah": 1})
     with pytest.raises(DifftexError, match="loss_mode"):
         OptimizeConfig.from_dict({"loss_mode": "nvdiffrast"})
+    with pytest.raises(DifftexError, match="resolution_reference"):
+        OptimizeConfig.from_dict({"resolution_reference": "texel"})
+    with pytest.raises(DifftexError, match="resolution_weight"):
+        OptimizeConfig.from_dict({"resolution_weight": -1})
     cfg = OptimizeConfig.from_dict({"max_iters_per_level": [5, 3], "betas": [0.8, 0.9]})
     assert cfg.cap(0) == 5 and cfg.cap(7) == 3 and cfg.betas == (0.8, 0.9)
 

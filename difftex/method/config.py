@@ -20,6 +20,7 @@ Device = Literal["auto", "cpu", "cuda"]
 CompileMode = Literal["auto", "on", "off"]
 RenderUnits = Literal["noise", "raw"]
 AlignModel = Literal["translation", "affine"]
+ResolutionReference = Literal["best", "pixel"]
 
 
 def _check_choice(name: str, value, choices: tuple) -> None:
@@ -48,7 +49,12 @@ class OptimizeConfig:
     tau: float = 0.01  # activation threshold on normalised weights
     tau_w: float = 0.95  # drop a photo when this share of its texels has zero weight
     sigma_k: float = 3.0  # pixel elimination: standard deviations
-    resolution_weight: float = 1.0  # exponent of Q_r = min(1, pixels per texel) in Q (0: the paper's Q = Q_a Q_c)
+    # exponent of Q_r in Q = Q_a Q_c Q_r, Q_r = a photo's pixels per texel over the most of the texel's
+    # candidates (or over 1 where none has one): 0 gives the paper's Q = Q_a Q_c
+    resolution_weight: float = 1.0
+    # "best": Q_r relative to the texel's best candidate; "pixel": min(1, pixels per texel), the
+    # earlier Q_r, which ranks every photo with a pixel per texel or more alike
+    resolution_reference: ResolutionReference = "best"
     sigma_min: float = 0.02  # noise floor of colour standard deviations (Q_c and elimination)
     elimination_test: EliminationTest = "loo"  # "loo": leave-one-out mean/std; "paper": including the pixel
     eliminate_every: int = 10  # iterations between pixel-elimination passes
@@ -98,6 +104,9 @@ class OptimizeConfig:
         _check_choice("elimination_test", self.elimination_test, ("loo", "paper"))
         _check_choice("render_units", self.render_units, ("noise", "raw"))
         _check_choice("align_model", self.align_model, ("translation", "affine"))
+        _check_choice("resolution_reference", self.resolution_reference, ("best", "pixel"))
+        if self.resolution_weight < 0:
+            raise ValueError(f"resolution_weight must be >= 0, got {self.resolution_weight}")
         _check_choice("histmatch_reference", self.histmatch_reference, ("best", "median", "pooled"))
         if not set(self.histmatch_channels) <= set("hsv") or not self.histmatch_channels:
             raise ValueError(f"histmatch_channels must be letters of 'hsv', got {self.histmatch_channels!r}")

@@ -20,7 +20,7 @@ from difftex.geometry.frames import UVFrame
 from difftex.method import losses
 from difftex.method.config import OptimizeConfig
 from difftex.method.filters import masked_blur
-from difftex.method.quality import level_noise, quality, robust_noise
+from difftex.method.quality import level_noise, quality, relative_footprint, robust_noise
 from difftex.sampling.photos import MappedPhoto, PhotoSet
 from difftex.sampling.texels import Region, resample_nearest
 
@@ -300,6 +300,7 @@ def build_level(
     s2 = torch.zeros(h, w, device=device)
     cnt = torch.zeros(h, w, device=device)
     gsum = torch.zeros(h, w, device=device)
+    fpbest = torch.zeros(h, w, device=device)  # the most pixels per texel of any candidate (Q_r's reference)
     vsum = []
     seen = []
     for n in order:
@@ -315,6 +316,7 @@ def build_level(
         s2[y0:y1, x0:x1] += (c * c).sum(0) * v
         cnt[y0:y1, x0:x1] += v
         gsum[y0:y1, x0:x1] += gradient_magnitude(mp.colour, mp.visible) * v
+        fpbest[y0:y1, x0:x1] = torch.maximum(fpbest[y0:y1, x0:x1], torch.where(mp.visible, mp.footprint, 0.0))
         vd = (mp.view * v).sum((1, 2))
         vsum.append(vd / vd.norm().clamp_min(1e-12))
         if keep_all:
@@ -369,7 +371,7 @@ def build_level(
             msd[sl],
             mp.visible,
             cfg.sigma_min,
-            mp.footprint,
+            relative_footprint(mp.footprint, fpbest[sl] if cfg.resolution_reference == "best" else None),
             cfg.resolution_weight,
         )
         pc = losses.persp_cost(mp.view[None], v_tilde)[0]

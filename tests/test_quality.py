@@ -1,0 +1,52 @@
+"""Q = Q_a Q_c Q_r (difftex.method.quality): the resolution factor Q_r, alone and in the optimizer."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from difftex.method.quality import quality, relative_footprint
+
+from analytic import fast_cfg, make_input, make_photo, optimize, render
+
+
+def test_relative_footprint_is_one_for_the_best_photo_and_absolute_below_one_pixel():
+    best = torch.tensor([4.0, 4.0, 0.5, 0.5, 0.0, 1e6])
+    fp = torch.tensor([4.0, 2.0, 0.5, 0.25, 0.0, 1e6])
+    out = relative_footprint(fp, best)
+    # 2 px against the best's 4: half; where no photo has a pixel per texel: the footprint itself
+    assert torch.allclose(out, torch.tensor([1.0, 0.5, 0.5, 0.25, 0.0, 1.0]))
+    assert torch.isfinite(out).all()
+    assert torch.allclose(relative_footprint(fp, None), fp.clamp(max=1.0))  # resolution_reference: pixel
+
+
+@pytest.mark.parametrize("weight", [0.0, 1.0, 2.0])
+def test_quality_scales_with_the_relative_footprint(weight):
+    h, w = 2, 3
+    colour = torch.full((3, h, w), 0.5)
+    args = (torch.ones(h, w), colour, colour.clone(), torch.zeros(h, w), torch.ones(h, w, dtype=torch.bool), 0.02)
+    fp = torch.tensor([[1.0, 0.5, 0.25], [0.0, 1.0, 0.1]])
+    q = quality(*args, fp, weight)
+    assert torch.allclose(q, fp**weight)  # Q_a = 1, Q_c = 1: Q is Q_r; weight 0 is the paper's Q (0**0 = 1)
+    hidden = quality(*args[:4], torch.zeros(h, w, dtype=torch.bool), 0.02, fp, weight)
+    assert (hidden == 0).all()
+
+
+def test_the_photo_with_more_pixels_per_texel_gets_more_of_the_blend():
+    # two frontal photos of a flat wall, one twice as far: they agree everywhere, so every texel
+    # keeps its Q blend; the near photo holds twice the pixels per texel, so Q_r is 1 against 0.5
+    near, far = make_photo("near", 0.0, dist=6.0), make_photo("far", 0.0, dist=12.0)
+    photos = [near, far]
+    inp = make_input(photos, [render(ph, kind="flat") for ph in photos], long_side=64)
+    m = inp.texel_mask & inp.texel_visible.all(0)
+
+    def near_share(**kw) -> float:
+        res = optimize(inp, fast_cfg(align=False, **kw))
+        w_near = np.where(res.idx == 0, res.W, 0.0).sum(0)
+        return float(np.median(w_near[m]))
+
+    assert near_share() == pytest.approx(2.0 / 3.0, abs=0.03)
+    assert near_share(resolution_weight=0.0) == pytest.approx(0.5, abs=0.03)  # the paper's Q: alike
+    # the earlier Q_r, min(1, pixels per texel): 1 against the far photo's 0.78 pixels per texel
+    assert near_share(resolution_reference="pixel") == pytest.approx(1.0 / 1.78, abs=0.03)
