@@ -8,7 +8,7 @@ import torch
 
 from difftex.method.quality import quality, relative_footprint
 
-from analytic import fast_cfg, make_input, make_photo, optimize, render
+from analytic import fast_cfg, make_input, make_photo, occluded_region, optimize, paint_occluder, render
 
 
 def test_relative_footprint_is_one_for_the_best_photo_and_absolute_below_one_pixel():
@@ -50,3 +50,23 @@ def test_the_photo_with_more_pixels_per_texel_gets_more_of_the_blend():
     assert near_share(resolution_weight=0.0) == pytest.approx(0.5, abs=0.03)  # the paper's Q: alike
     # the earlier Q_r, min(1, pixels per texel): 1 against the far photo's 0.78 pixels per texel
     assert near_share(resolution_reference="pixel") == pytest.approx(1.0 / 1.78, abs=0.03)
+
+
+def test_a_close_photo_with_an_occluder_does_not_outvote_the_farther_photos():
+    # the near photo holds three times the pixels per texel of the two far ones and has an
+    # occluder in front of the wall: its relative Q_r makes it the blend's first choice, but as a
+    # witness of what the texel shows it counts like the others (resolution_in_consensus: false),
+    # so the two far photos that see past the occluder outvote it
+    near = make_photo("near", 0.0, dist=6.0)
+    far = [make_photo("left", -20.0, dist=18.0), make_photo("right", 20.0, dist=18.0)]
+    photos = [near, *far]
+    inp = make_input(photos, [paint_occluder(near, render(near)), *(render(ph) for ph in far)], long_side=32)
+    reg = occluded_region(inp) & inp.texel_visible.all(0)
+
+    def near_share(**kw) -> float:
+        res = optimize(inp, fast_cfg(align=False, **kw))
+        return float(np.where(res.idx == 0, res.W, 0.0).sum(0)[reg].mean())
+
+    split = near_share()
+    assert split < 0.1
+    assert near_share(resolution_in_consensus=True) > split + 0.2

@@ -55,6 +55,10 @@ class OptimizeConfig:
     # "best": Q_r relative to the texel's best candidate; "pixel": min(1, pixels per texel), the
     # earlier Q_r, which ranks every photo with a pixel per texel or more alike
     resolution_reference: ResolutionReference = "best"
+    # the relative Q_r also weighs the photos as witnesses of what a texel shows (L_Render and its
+    # ghost term, the settling test): off, they count by Q_a Q_c min(1, px), so a close photo with
+    # an occluder does not outvote the farther photos that see past it
+    resolution_in_consensus: bool = False
     sigma_min: float = 0.02  # noise floor of colour standard deviations (Q_c and elimination)
     elimination_test: EliminationTest = "loo"  # "loo": leave-one-out mean/std; "paper": including the pixel
     eliminate_every: int = 10  # iterations between pixel-elimination passes

@@ -39,7 +39,7 @@ class Level:
     idx: torch.Tensor  # (K, h, w) long photo index per slot, -1 empty
     visible: torch.Tensor  # (K, h, w) bool slot valid (photo sees the texel)
     colours: torch.Tensor  # (K, 3, h, w) what the data terms compare (low-passed: OptimizeConfig.consistency_sigma)
-    Q: torch.Tensor  # (K, h, w) Q_a * Q_c
+    Q: torch.Tensor  # (K, h, w) Q_a Q_c Q_r: how much each photo counts as a witness of the texel (L_Render, settling)
     cost: torch.Tensor  # (K, h, w) |V^ - v~|^2
     G: torch.Tensor  # (h, w) mean gradient magnitude of the mapped photos
     z0: torch.Tensor  # (K, h, w) initial logits of the weights
@@ -53,6 +53,7 @@ class Level:
     # low-passed; None: ``colours`` are they. ``detail_noise``: their sigma_c.
     detail: torch.Tensor | None = None
     detail_noise: float | None = None
+    Qb: torch.Tensor | None = None  # (K, h, w) Q of the blend (initial and settled weights); None: Q
 
     @property
     def sharp(self) -> torch.Tensor:
@@ -70,7 +71,7 @@ class Level:
 
     def nbytes(self) -> int:
         ts = [self.idx, self.visible, self.colours, self.Q, self.cost, self.G, self.z0]
-        ts += [self.detail] if self.detail is not None else []
+        ts += [t for t in (self.detail, self.Qb) if t is not None]
         return int(sum(t.element_size() * t.numel() for t in ts))
 
 
@@ -343,8 +344,13 @@ def build_level(
     Q = torch.zeros((K, h, w), device=device)
     cost = torch.zeros((K, h, w), device=device)
     w0 = torch.zeros((K, h, w), device=device)
+    # Q weighs the photos as witnesses (L_Render, ghost, settling); Qb, with the relative Q_r, the
+    # blend (initial and settled weights). With one Q for both, the close photos that saw the tree
+    # in front of archive's wall00 outvoted the farther ones that saw past it, and it came back.
+    split = not cfg.resolution_in_consensus and cfg.resolution_reference == "best"
+    Qb = torch.zeros((K, h, w), device=device) if split else None
     # the per-slot tensors a photo's values go into, and the order of those values
-    slot_data = [vis, cols, Q, cost, w0] + ([detail] if detail is not None else [])
+    slot_data = [vis, cols, Q, cost, w0] + ([detail] if detail is not None else []) + ([Qb] if Qb is not None else [])
 
     def per_slot(m: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
         """A (K, h, w) map shaped to index or mask ``t`` (K, [C,] h, w)."""
@@ -364,26 +370,20 @@ def build_level(
         y0, y1, x0, x1 = reg
         sl = (slice(y0, y1), slice(x0, x1))
         c = compared(n, mp)
-        q = quality(
-            mp.cos,
-            c,
-            mu[:, y0:y1, x0:x1],
-            msd[sl],
-            mp.visible,
-            cfg.sigma_min,
-            relative_footprint(mp.footprint, fpbest[sl] if cfg.resolution_reference == "best" else None),
-            cfg.resolution_weight,
-        )
+        qargs = (mp.cos, c, mu[:, y0:y1, x0:x1], msd[sl], mp.visible, cfg.sigma_min)
+        rel = relative_footprint(mp.footprint, fpbest[sl] if cfg.resolution_reference == "best" else None)
+        qb = quality(*qargs, rel, cfg.resolution_weight)
+        q = quality(*qargs, relative_footprint(mp.footprint, None), cfg.resolution_weight) if split else qb
         pc = losses.persp_cost(mp.view[None], v_tilde)[0]
-        weight = q  # the paper's initialisation: W proportional to Q
+        weight = qb  # the paper's initialisation: W proportional to Q
         if prev is not None:
             w_up, cov = upsample_photo_weight(prev[0], prev[1], n, frame, reg)
             # Where the coarser level had candidates but not this photo among its slots, the
             # photo was outranked there: it starts at zero, not at Q (which would bring back
             # the photos the coarser levels left out). Only texels the coarser level did not
             # see at all start from Q.
-            weight = torch.where(cov, w_up, torch.where(prev_known[sl], torch.zeros_like(q), q))  # type: ignore[index]  # set with prev
-        values = [mp.visible, c, q, pc, weight] + ([mp.colour] if detail is not None else [])
+            weight = torch.where(cov, w_up, torch.where(prev_known[sl], torch.zeros_like(qb), qb))  # type: ignore[index]  # set with prev
+        values = [mp.visible, c, q, pc, weight] + ([mp.colour] if detail is not None else []) + ([qb] if split else [])
         if fixed:
             idx[j][sl] = n
             for t, new in zip(slot_data, values):
@@ -437,6 +437,7 @@ def build_level(
         cost=cost,
         G=G,
         z0=init_logits(w0 * vis),
+        Qb=Qb,
         v_tilde=v_tilde.cpu().numpy(),
         n_candidates=len(seen),
         fixed_slots=fixed,
