@@ -39,7 +39,9 @@ class Level:
     idx: torch.Tensor  # (K, h, w) long photo index per slot, -1 empty
     visible: torch.Tensor  # (K, h, w) bool slot valid (photo sees the texel)
     colours: torch.Tensor  # (K, 3, h, w) what the data terms compare (low-passed: OptimizeConfig.consistency_sigma)
-    Q: torch.Tensor  # (K, h, w) Q_a Q_c Q_r: how much each photo counts as a witness of the texel (L_Render, settling)
+    # (K, h, w) Q_a Q_c Q_r: how much each photo counts as a witness of the texel (L_Render, settling);
+    # its Q_r is min(1, px) when Qb, the blend's, holds the relative one
+    Q: torch.Tensor
     cost: torch.Tensor  # (K, h, w) |V^ - v~|^2
     G: torch.Tensor  # (h, w) mean gradient magnitude of the mapped photos
     z0: torch.Tensor  # (K, h, w) initial logits of the weights
@@ -375,7 +377,7 @@ def build_level(
         qb = quality(*qargs, rel, cfg.resolution_weight)
         q = quality(*qargs, relative_footprint(mp.footprint, None), cfg.resolution_weight) if split else qb
         pc = losses.persp_cost(mp.view[None], v_tilde)[0]
-        weight = qb  # the paper's initialisation: W proportional to Q
+        weight = qb  # the paper's initialisation: W proportional to Q (the blend's)
         if prev is not None:
             w_up, cov = upsample_photo_weight(prev[0], prev[1], n, frame, reg)
             # Where the coarser level had candidates but not this photo among its slots, the
