@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import torch
 
-from difftex.method.quality import quality, relative_footprint
+from difftex.method.quality import quality, relative_footprint, resolution_factor
 
 from analytic import fast_cfg, make_input, make_photo, occluded_region, optimize, paint_occluder, render
 
@@ -27,9 +27,10 @@ def test_quality_scales_with_the_relative_footprint(weight):
     colour = torch.full((3, h, w), 0.5)
     args = (torch.ones(h, w), colour, colour.clone(), torch.zeros(h, w), torch.ones(h, w, dtype=torch.bool), 0.02)
     fp = torch.tensor([[1.0, 0.5, 0.25], [0.0, 1.0, 0.1]])
-    q = quality(*args, fp, weight)
+    q = quality(*args) * resolution_factor(fp, weight, args[4])
     assert torch.allclose(q, fp**weight)  # Q_a = 1, Q_c = 1: Q is Q_r; weight 0 is the paper's Q (0**0 = 1)
-    hidden = quality(*args[:4], torch.zeros(h, w, dtype=torch.bool), 0.02, fp, weight)
+    unseen = torch.zeros(h, w, dtype=torch.bool)
+    hidden = quality(*args[:4], unseen, 0.02) * resolution_factor(fp, weight, unseen)
     assert (hidden == 0).all()
 
 

@@ -20,7 +20,7 @@ from difftex.geometry.frames import UVFrame
 from difftex.method import losses
 from difftex.method.config import OptimizeConfig
 from difftex.method.filters import masked_blur
-from difftex.method.quality import level_noise, quality, relative_footprint, robust_noise
+from difftex.method.quality import level_noise, quality, relative_footprint, resolution_factor, robust_noise
 from difftex.sampling.photos import MappedPhoto, PhotoSet
 from difftex.sampling.texels import Region, resample_nearest
 
@@ -56,6 +56,11 @@ class Level:
     detail: torch.Tensor | None = None
     detail_noise: float | None = None
     Qb: torch.Tensor | None = None  # (K, h, w) Q of the blend (initial and settled weights); None: Q
+
+    @property
+    def blend_Q(self) -> torch.Tensor:
+        """(K, h, w) the Q the blend starts from and settled texels keep (:attr:`Qb` or :attr:`Q`)."""
+        return self.Q if self.Qb is None else self.Qb
 
     @property
     def sharp(self) -> torch.Tensor:
@@ -372,10 +377,11 @@ def build_level(
         y0, y1, x0, x1 = reg
         sl = (slice(y0, y1), slice(x0, x1))
         c = compared(n, mp)
-        qargs = (mp.cos, c, mu[:, y0:y1, x0:x1], msd[sl], mp.visible, cfg.sigma_min)
-        rel = relative_footprint(mp.footprint, fpbest[sl] if cfg.resolution_reference == "best" else None)
-        qb = quality(*qargs, rel, cfg.resolution_weight)
-        q = quality(*qargs, relative_footprint(mp.footprint, None), cfg.resolution_weight) if split else qb
+        qac = quality(mp.cos, c, mu[:, y0:y1, x0:x1], msd[sl], mp.visible, cfg.sigma_min)  # once for both Q
+        best = fpbest[sl] if cfg.resolution_reference == "best" else None
+        rw = cfg.resolution_weight
+        qb = qac * resolution_factor(relative_footprint(mp.footprint, best), rw, mp.visible)
+        q = qac * resolution_factor(relative_footprint(mp.footprint, None), rw, mp.visible) if split else qb
         pc = losses.persp_cost(mp.view[None], v_tilde)[0]
         weight = qb  # the paper's initialisation: W proportional to Q (the blend's)
         if prev is not None:

@@ -294,7 +294,7 @@ def _run_level(
             settled, agree = settled_texels(lv, st.active, base, cfg.settle_sigma)
             # the Q blend of the candidates that agree: Q x base would bring back the photos the
             # coarser level or the first elimination left out for disagreeing (an occluder)
-            st.z = torch.where(settled[None], init_logits((lv.Q if lv.Qb is None else lv.Qb) * agree), st.z)
+            st.z = torch.where(settled[None], init_logits(lv.blend_Q * agree), st.z)
             st.active = update_activation(st.z, base, cfg.tau)
             free = (~settled).to(st.z.dtype)[None]
             settled_share = float(settled.sum()) / lv.n_tex

@@ -14,19 +14,13 @@ def quality(
     msd: torch.Tensor,
     visible: torch.Tensor,
     sigma_min: float,
-    footprint: torch.Tensor | None = None,
-    resolution_weight: float = 0.0,
 ) -> torch.Tensor:
-    """The initial weight Q = Q_a Q_c (Q_r) of one photo at every texel (Sec. 3.2).
+    """Q_a Q_c of one photo at every texel (Sec. 3.2), the paper's initial weight Q.
 
     Q_a is the frontality (cosine between the texel-to-camera direction and the normal); Q_c a
     Gaussian of the colour's squared distance to the candidates' mean, with their mean squared
-    distance (plus a noise floor) as its variance. Q_r = footprint^resolution_weight (not in the
-    paper), with ``footprint`` the photo's pixels per texel relative to the texel's best
-    candidate (:func:`relative_footprint`): a photo with fewer pixels per texel than another is
-    blurrier there (its own blur, in texels, is larger) and noisier (it averages fewer pixels),
-    so it gets proportionally less weight; the best photo keeps Q_r = 1, so the terms that Q
-    weighs keep their scale.
+    distance (plus a noise floor) as its variance. difftex multiplies it by Q_r
+    (:func:`resolution_factor`).
 
     Args:
         cos: (h, w) Q_a.
@@ -34,16 +28,35 @@ def quality(
         mu: (3, h, w) mean colour of the candidates; msd: (h, w) their mean squared distance to it.
         visible: (h, w) bool.
         sigma_min: noise floor of the colour standard deviation.
-        footprint: (h, w) relative_footprint; resolution_weight: exponent of Q_r.
 
     Returns:
-        (h, w) Q, zero where the photo does not see the texel.
+        (h, w) Q_a Q_c, zero where the photo does not see the texel.
     """
     d2 = ((colour - mu) ** 2).sum(0)
     q = cos * torch.exp(-0.5 * d2 / (msd + sigma_min**2))
-    if footprint is not None and resolution_weight > 0:
-        q = q * footprint**resolution_weight
     return torch.where(visible, q, torch.zeros_like(q))
+
+
+def resolution_factor(footprint: torch.Tensor, weight: float, visible: torch.Tensor) -> torch.Tensor:
+    """Q_r = footprint^weight (not in the paper), ``footprint`` the photo's pixels per texel
+    relative to the texel's best candidate (:func:`relative_footprint`).
+
+    A photo with fewer pixels per texel than another is blurrier there (its own blur, in texels,
+    is larger) and noisier (it averages fewer pixels), so it gets proportionally less weight; the
+    best photo keeps Q_r = 1, so the terms that Q weighs keep their scale. ``weight`` 0 gives the
+    paper's Q = Q_a Q_c. One function apart from :func:`quality` because a level takes two Q_r of
+    the same Q_a Q_c (the blend's and the witnesses', difftex.method.levels).
+
+    Args:
+        footprint: (h, w) relative_footprint; weight: exponent of Q_r (``resolution_weight``).
+        visible: (h, w) bool; elsewhere the footprint may not be finite.
+
+    Returns:
+        (h, w) Q_r, zero where the photo does not see the texel (one everywhere at weight 0).
+    """
+    if weight <= 0:
+        return torch.ones_like(footprint)
+    return torch.where(visible, footprint**weight, torch.zeros_like(footprint))
 
 
 def relative_footprint(footprint: torch.Tensor, best: torch.Tensor | None) -> torch.Tensor:
