@@ -35,6 +35,7 @@ def run(
     variants: dict,
     polygons: list[str] | None,
     texel_candidates: int | None = None,
+    textures: Path | None = None,
 ) -> dict:
     import torch
 
@@ -49,7 +50,7 @@ def run(
     from difftex.method.config import ComputeConfig, OptimizeConfig
     from difftex.sampling import SUPERSAMPLE
     from difftex.sampling.photos import polygon_input_from_visibility
-    from difftex.scene.files import read_image, read_json
+    from difftex.scene.files import read_image, read_json, write_image
     from difftex.scene.loading import load_scene
 
     torch.set_num_threads(1)
@@ -80,6 +81,11 @@ def run(
             seconds += time.perf_counter() - t0
             frame = UVFrame.from_dict(read_json(gt / "frames" / f"{v.polygon_id}.json"))
             ref = resample_texture(read_image(gt / "maps" / f"{v.polygon_id}.png"), frame, v.frame)
+            if textures is not None:  # for a person to look at, next to the ground truth in the same frame
+                for d in (textures / _slug(name), textures / "ground_truth"):
+                    d.mkdir(parents=True, exist_ok=True)
+                write_image(textures / _slug(name) / f"{v.polygon_id}.png", U)
+                write_image(textures / "ground_truth" / f"{v.polygon_id}.png", ref)
             mk = inp.texel_mask
             errs.append(metrics.texel_error(U, ref)[mk])
             ssims.append(metrics.ssim(U, ref, mk))
@@ -110,6 +116,11 @@ def run(
     }
 
 
+def _slug(name: str) -> str:
+    """A variant's name as a folder name."""
+    return "".join(c if c.isalnum() or c in "-_." else "_" for c in name).strip("_") or "variant"
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--scene", required=True, type=Path)
@@ -120,6 +131,8 @@ def main(argv=None) -> int:
     ap.add_argument(
         "--texel-candidates", type=int, help="visibility.texel_candidates (default: every photo that sees a polygon)"
     )
+    ap.add_argument("--textures", type=Path, help="also write every variant's textures (and the ground truth, "
+                    "resampled to the same frames) as <textures>/<variant>/<polygon>.png")
     ap.add_argument("--out", required=True)
     args = ap.parse_args(argv)
     res = run(
@@ -129,6 +142,7 @@ def main(argv=None) -> int:
         json.loads(args.variants),
         C.polygon_ids(args.polygons) if args.polygons else None,
         args.texel_candidates,
+        args.textures,
     )
     mach = C.machine()
     lines = [

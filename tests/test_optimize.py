@@ -197,7 +197,7 @@ def test_pose_error_photo_loses_weight_unless_aligned():
     assert share[3] < 0.5 * share_ok[3]
     assert share[3] < 0.5 * share[:3].mean()
     # aligned, the photo is corrected instead (by about its 2 px) and keeps its weight
-    res = optimize(inp, fast_cfg())
+    res = optimize(inp, fast_cfg(align=True))
     shift = res.stats["corrections"]["d"]["params"][:2]
     assert 1.0 < abs(shift[0]) < 3.0
     share_al = np.array([photo_weight(res.idx, res.W, n)[m].mean() for n in range(4)])

@@ -86,7 +86,9 @@ class OptimizeConfig:
     parallax_gate: float = 2.0
     coarse_to_fine: bool = True
     histogram_matching: bool = True
-    align: bool = True  # refine each photo's mapping (affine, pixels) against the consensus texture
+    # refine each photo's mapping (affine, pixels) against the consensus texture; off by default:
+    # with registered photos it fitted spurious shifts (docs/optimizer.md, alignment refinement)
+    align: bool = False
     align_model: AlignModel = "translation"  # correction per photo: translation (2 parameters) or affine (6)
     align_iterations: int = 3  # Gauss-Newton steps per level
     align_prior_px: float = 2.0  # prior standard deviation of a correction, pixels
