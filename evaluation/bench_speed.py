@@ -61,6 +61,23 @@ def read_benchmarks(results: Path) -> dict[str, dict]:
     return out
 
 
+def stage_lines(rows: list[dict]) -> list[str]:
+    """Markdown: each run's wall seconds per stage, summed over the stage's jobs."""
+    lines = [
+        "Wall seconds per stage (sum over the stage's jobs; /n: n jobs, which run side by side). Snakemake's "
+        "`cpu_time` per job is in the JSON (`cpu_s`), but it samples the job's processes and misses most of a "
+        "long texture job's CPU, so it is not summed here.",
+        "",
+    ]
+    for row in rows:
+        for run in row["runs"]:
+            parts = ", ".join(
+                f"{k} {d['wall_s']:.1f}" + (f"/{d['jobs']}" if d["jobs"] > 1 else "") for k, d in run["stages"].items()
+            )
+            lines.append(f"- {Path(row['scene']).name} {run['preset']}: {parts}")
+    return lines
+
+
 def polygon_work(results: Path) -> dict:
     """Texels, slots and iterations of the run's texture stage (visibility summary, stats.json)."""
     from difftex.scene.files import read_json
@@ -257,15 +274,7 @@ def write(stem: Path, rows: list[dict], mach: dict, args) -> None:
             if tw
             else f"| {sc.name} | {n_ph} | plain average | {av['wall_s']:.1f} | {av['cpu_s']:.1f} | | | | | n/a |"
         )
-    lines.append("")
-    lines.append("CPU seconds per stage (sum over the stage's jobs):")
-    lines.append("")
-    for row in rows:
-        for run in row["runs"]:
-            parts = ", ".join(
-                f"{k} {d['cpu_s']:.1f}" + (f"/{d['jobs']}" if d["jobs"] > 1 else "") for k, d in run["stages"].items()
-            )
-            lines.append(f"- {Path(row['scene']).name} {run['preset']}: {parts}")
+    lines += ["", *stage_lines(rows)]
     C.write_outputs(stem, "\n".join(lines) + "\n", {"machine": mach, "args": vars(args), "rows": rows})
 
 
