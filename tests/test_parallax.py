@@ -129,11 +129,12 @@ def _render_relief(ph, noise: float, seed: int) -> np.ndarray:
     return img + np.random.default_rng(seed).normal(0.0, noise, img.shape).astype(np.float32)
 
 
-def test_relief_options_keep_a_recessed_mullion_as_sharp_as_the_frontal_photo_with_less_noise():
-    """Five photos (yaw 0, +-12, +-25 degrees) see the bar displaced by up to 3.5 texels. Compared
-    at full detail the frontal photo disagrees with the others exactly on the bar and the blend
-    smears it (the defaults); with the relief options the texture keeps the frontal photo's bar
-    and averages the wall's noise."""
+def test_recessed_mullion_stays_as_sharp_as_the_frontal_photo_with_less_noise_unless_aligned():
+    """Five photos (yaw 0, +-12, +-25 degrees) see the bar displaced by up to 3.5 texels. The
+    defaults and the relief options keep the frontal photo's bar (the relative Q_r and the
+    elimination leave the oblique photos' displaced bar out) and average the wall's noise.
+    Alignment refinement takes the bar's parallax for misregistration, shifts the photos onto a
+    compromise and smears it: one reason it is off by default (docs/optimizer.md)."""
     photos = [make_photo(f"p{y}", y, size=(320, 240), f=300.0) for y in (0, -12, 12, -25, 25)]
     imgs = [_render_relief(ph, 0.02, k) for k, ph in enumerate(photos)]
     inp = make_input(photos, imgs, long_side=128)
@@ -142,21 +143,21 @@ def test_relief_options_keep_a_recessed_mullion_as_sharp_as_the_frontal_photo_wi
     rows = np.abs(X[..., 2] - 1.5) < 0.8
     dx = np.abs(X[..., 0] - BAR_X)
     on_bar, wall_only = rows & (dx < BAR_W / 2), rows & (dx > 0.2)
+    ghosts = rows & (dx > 0.04) & (dx < 0.13)  # where the oblique photos see the bar
 
-    def contrast(U):
-        return float(((FLAT - U[on_bar]).mean(0) / (FLAT - BAR)).mean())
+    def contrast(U, where=on_bar):
+        return float(((FLAT - U[where]).mean(0) / (FLAT - BAR)).mean())
 
     def noise(U):
         return float(np.sqrt(((U[wall_only] - FLAT) ** 2).mean()))
 
     frontal = optimize(make_input(photos[:1], imgs[:1], long_side=128), fast_cfg()).U
-    full_detail = optimize(inp, fast_cfg()).U
-    relief = optimize(inp, fast_cfg(consistency_sigma=1.0, parallax_sigma=0.03)).U
-    assert contrast(full_detail) < 0.9 * contrast(frontal)  # smeared by the blend
-    assert contrast(relief) > 0.95 * contrast(frontal)
-    ghosts = rows & (dx > 0.04) & (dx < 0.13)  # where the oblique photos see the bar
-    assert float(((FLAT - relief[ghosts]).mean(0) / (FLAT - BAR)).mean()) < 0.1
-    assert noise(relief) < 0.7 * noise(frontal)  # the wall is still a blend
+    for U in (optimize(inp, fast_cfg()).U, optimize(inp, fast_cfg(consistency_sigma=1.0, parallax_sigma=0.03)).U):
+        assert contrast(U) > 0.95 * contrast(frontal)
+        assert contrast(U, ghosts) < 0.1
+        assert noise(U) < 0.8 * noise(frontal)  # the wall is still a blend
+    aligned = optimize(inp, fast_cfg(align=True)).U
+    assert contrast(aligned) < 0.9 * contrast(frontal)
 
 
 def test_masked_blur_keeps_constant_colours_at_visibility_edges():
