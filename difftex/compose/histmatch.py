@@ -44,6 +44,41 @@ def quantile_knots(src: np.ndarray, ref: np.ndarray) -> np.ndarray:
     return np.stack([xs, ys]).astype(np.float32)
 
 
+GAIN_MIN_VALUE = 0.02  # texels darker or greyer than this carry no ratio (noise over nothing)
+GAIN_RANGE = (0.25, 4.0)  # two stops either way: beyond it the pairing is wrong, not the exposure
+
+
+def gain_knots(src: np.ndarray, ref: np.ndarray, paired: bool) -> np.ndarray:
+    """(2, N_KNOTS) knots of y = min(1, g x): one gain g that takes ``src`` to ``ref``.
+
+    g is the median of the per-texel ratios ref / src where the two are paired (the same
+    texels, in the same order), else the ratio of their medians. An exposure change is a gain on
+    the photo's values before the tone curve, and on V after a gamma-like curve too
+    ((g L)^(1/2.2) = g^(1/2.2) L^(1/2.2)); a white-balance change moves S by about a gain.
+
+    Why not the quantile map (``quantile_knots``) by default: matching a single photo onto the
+    per-texel median, which has averaged its noise away, makes a staircase. Where the median's
+    values bunch into modes (the tiles of a facade, each a flat colour), the photo's noisier
+    values spread between them; the map is flat at the modes and steep between them, so each
+    texel's noise throws it to one mode or the other, and the texture shows salt-and-pepper on
+    the tiles whose values fall on a steep step (archive wall00 at `balanced`).
+    """
+    if paired:
+        ok = (src > GAIN_MIN_VALUE) & (ref > GAIN_MIN_VALUE)
+        g = float(np.median(ref[ok] / src[ok])) if ok.any() else 1.0
+    else:
+        ms = float(np.median(src)) if src.size else 0.0
+        g = float(np.median(ref)) / ms if ms > GAIN_MIN_VALUE else 1.0
+    g = float(np.clip(g, *GAIN_RANGE))
+    x = identity_transfer()[0, 0]
+    return np.stack([x, np.minimum(1.0, g * x)]).astype(np.float32)
+
+
+def _knots(src: np.ndarray, ref: np.ndarray, model: str, paired: bool) -> np.ndarray:
+    """The transfer knots of one channel under ``model`` (quantile | gain)."""
+    return quantile_knots(src, ref) if model == "quantile" else gain_knots(src, ref, paired)
+
+
 def _shares_enough(overlap: int, seen: int, min_overlap: int) -> bool:
     """Whether a photo's texels shared with its reference (>= min_overlap and >= 5 % of what it
     sees) are enough to match on; otherwise whole views are compared."""
@@ -57,8 +92,12 @@ def transfers_from_mapped(
     reference: str = "best",
     channels: str = "sv",
     min_overlap: int = 64,
+    model: str = "quantile",
 ) -> tuple[dict[int, np.ndarray], int | None]:
     """Transfers per photo from their mapped colours (3, h, w) and visibility (h, w) at one level.
+
+    ``model``: quantile (a monotone quantile map per channel, the paper's histogram matching) or
+    gain (one gain per channel, :func:`gain_knots`).
 
     Returns ({photo: (3, 2, N_KNOTS)}, reference photo, or None for median and pooled).
     """
@@ -74,28 +113,28 @@ def transfers_from_mapped(
             if n == ref:
                 continue
             ov = vis[n] & vis[ref]
-            if _shares_enough(int(ov.sum()), int(vis[n].sum()), min_overlap):
-                ms, mr = ov, ov
-            else:  # too little common area: compare each photo's whole view of the polygon
-                ms, mr = vis[n], vis[ref]
+            paired = _shares_enough(int(ov.sum()), int(vis[n].sum()), min_overlap)
+            # too little common area: compare each photo's whole view of the polygon
+            ms, mr = (ov, ov) if paired else (vis[n], vis[ref])
             if ms.sum() == 0 or mr.sum() == 0:
                 continue
             for c in chan_ids:
-                out[n][c] = quantile_knots(hsv[n][c][ms], hsv[ref][c][mr])
+                out[n][c] = _knots(hsv[n][c][ms], hsv[ref][c][mr], model, paired)
         return out, ref
     if reference == "median":
-        return _median_transfers(hsv, vis, chan_ids, min_overlap), None
+        return _median_transfers(hsv, vis, chan_ids, min_overlap, model), None
     pooled = {c: np.concatenate([hsv[n][c][vis[n]] for n in colours]) for c in chan_ids}
     for n in colours:
         if vis[n].sum() == 0 or any(len(p) == 0 for p in pooled.values()):
             continue
         for c in chan_ids:
-            out[n][c] = quantile_knots(hsv[n][c][vis[n]], pooled[c])
+            out[n][c] = _knots(hsv[n][c][vis[n]], pooled[c], model, False)
     return out, None
 
 
 def _median_transfers(
-    hsv: dict[int, np.ndarray], vis: dict[int, np.ndarray], chan_ids: list[int], min_overlap: int
+    hsv: dict[int, np.ndarray], vis: dict[int, np.ndarray], chan_ids: list[int], min_overlap: int,
+    model: str = "quantile",
 ) -> dict[int, np.ndarray]:
     """Match every photo to the per-texel median of all photos (the consensus image).
 
@@ -123,19 +162,21 @@ def _median_transfers(
             med[:, b0 : b0 + block] = np.nanmedian(stack, axis=0)
     for n in names:
         ov = vis[n][defined]
-        if _shares_enough(int(ov.sum()), int(vis[n].sum()), min_overlap):
+        paired = _shares_enough(int(ov.sum()), int(vis[n].sum()), min_overlap)
+        if paired:  # the same texels in the same (flat) order on both sides
             src, ref = hsv[n][:, vis[n] & defined], med[:, ov]
         else:  # the photo sees little of the consensus area: compare whole views
             src, ref = hsv[n][:, vis[n]], med
         if src.shape[1] == 0 or ref.shape[1] == 0:
             continue
         for c in chan_ids:
-            out[n][c] = quantile_knots(src[c], ref[c])
+            out[n][c] = _knots(src[c], ref[c], model, paired)
     return out
 
 
 def mapped_transfers(
-    mapped: dict, n_photos: int, reference: str = "median", channels: str = "sv", names: list[str] | None = None
+    mapped: dict, n_photos: int, reference: str = "median", channels: str = "sv", names: list[str] | None = None,
+    model: str = "quantile",
 ) -> tuple[list, str | None]:
     """Transfers of every candidate from its raw mapped photo at one (coarse) level.
 
@@ -150,6 +191,6 @@ def mapped_transfers(
     cols = {n: mp.colour for n, mp in mapped.items() if mp is not None}
     vis = {n: mp.visible for n, mp in mapped.items() if mp is not None}
     fr = {n: mp.cos for n, mp in mapped.items() if mp is not None}
-    tr, ref = transfers_from_mapped(cols, vis, fr, reference, channels)
+    tr, ref = transfers_from_mapped(cols, vis, fr, reference, channels, model=model)
     name = names[ref] if (ref is not None and names is not None) else None
     return [tr.get(n) for n in range(n_photos)], name

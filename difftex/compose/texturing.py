@@ -62,7 +62,8 @@ def texture_polygon(
     transfers, ref = None, None
     if cfg.histogram_matching:
         transfers, ref = mapped_transfers(
-            raw, len(inp.photos), cfg.histmatch_reference, cfg.histmatch_channels, names=[p.name for p in inp.photos]
+            raw, len(inp.photos), cfg.histmatch_reference, cfg.histmatch_channels, names=[p.name for p in inp.photos],
+            model=cfg.histmatch_model,
         )
     first = None
     if match_frame.shape == level_frame(inp.frame, sides[0]).shape:

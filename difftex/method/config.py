@@ -16,6 +16,7 @@ from difftex.sampling import SUPERSAMPLE
 LossMode = Literal["texel", "render"]
 EliminationTest = Literal["loo", "paper"]
 HistmatchReference = Literal["median", "best", "pooled"]
+HistmatchModel = Literal["gain", "quantile"]
 Device = Literal["auto", "cpu", "cuda"]
 CompileMode = Literal["auto", "on", "off"]
 RenderUnits = Literal["noise", "raw"]
@@ -97,9 +98,15 @@ class OptimizeConfig:
     # Gaussian sigma, texels, of the low-pass under which photos are compared (Q_c, L_Render,
     # elimination, settling): relief parallax of thin details is not disagreement (0: full detail)
     consistency_sigma: float = 0.0
+    # the final blend takes in every candidate within this many sigma_c of the optimized blend's
+    # colour, Q-weighted (difftex.method.elimination.agreeing_blend; 0: the optimized weights)
+    reblend_sigma: float = 0.0
     settle_sigma: float = 3.0  # texels whose candidates agree within this many sigma_c keep their Q blend (0: off)
     align_tol_px: float = 0.1  # stop aligning once no weighted photo's correction moved more than this, pixels
     histmatch_reference: HistmatchReference = "median"  # per-texel median of the candidates, the best photo, or pooled
+    # transfer per photo and channel: one gain (gain) or a quantile map (quantile: the paper's
+    # histogram matching, which turns noise on flat-coloured tiles into salt-and-pepper)
+    histmatch_model: HistmatchModel = "gain"
     histmatch_channels: str = "sv"  # HSV channels matched; hue is circular and left alone by default
     exact_decode: bool = False  # decode every photo at full size (default: JPEG DCT scaling where levels allow)
     supersample: int = SUPERSAMPLE  # S x S photo samples per texel, each at 1/S of its footprint
@@ -114,6 +121,7 @@ class OptimizeConfig:
         if self.resolution_weight < 0:
             raise ValueError(f"resolution_weight must be >= 0, got {self.resolution_weight}")
         _check_choice("histmatch_reference", self.histmatch_reference, ("best", "median", "pooled"))
+        _check_choice("histmatch_model", self.histmatch_model, ("gain", "quantile"))
         if not set(self.histmatch_channels) <= set("hsv") or not self.histmatch_channels:
             raise ValueError(f"histmatch_channels must be letters of 'hsv', got {self.histmatch_channels!r}")
         if not 1.0 < float(self.level_step) <= 16.0:
@@ -122,8 +130,8 @@ class OptimizeConfig:
             raise ValueError("top_k, long_side_start and supersample must be >= 1")
         if not 0 <= self.tau < 1 or not 0 < self.tau_w <= 1:
             raise ValueError("tau must be in [0, 1) and tau_w in (0, 1]")
-        if self.ghost < 0:
-            raise ValueError(f"ghost must be >= 0, got {self.ghost}")
+        if self.ghost < 0 or self.reblend_sigma < 0:
+            raise ValueError(f"ghost and reblend_sigma must be >= 0, got {self.ghost}, {self.reblend_sigma}")
         if self.select_patch < 1 or self.select_smoothness < 0 or self.select_feather < 0:
             raise ValueError("select_patch must be >= 1, select_smoothness and select_feather >= 0")
         if self.parallax_sigma < 0 or self.parallax_gate < 0 or self.consistency_sigma < 0:
