@@ -98,9 +98,6 @@ class OptimizeConfig:
     # Gaussian sigma, texels, of the low-pass under which photos are compared (Q_c, L_Render,
     # elimination, settling): relief parallax of thin details is not disagreement (0: full detail)
     consistency_sigma: float = 0.0
-    # the final blend takes in every candidate within this many sigma_c of the optimized blend's
-    # colour, Q-weighted (difftex.method.elimination.agreeing_blend; 0: the optimized weights)
-    reblend_sigma: float = 0.0
     settle_sigma: float = 3.0  # texels whose candidates agree within this many sigma_c keep their Q blend (0: off)
     align_tol_px: float = 0.1  # stop aligning once no weighted photo's correction moved more than this, pixels
     histmatch_reference: HistmatchReference = "median"  # per-texel median of the candidates, the best photo, or pooled
@@ -130,8 +127,8 @@ class OptimizeConfig:
             raise ValueError("top_k, long_side_start and supersample must be >= 1")
         if not 0 <= self.tau < 1 or not 0 < self.tau_w <= 1:
             raise ValueError("tau must be in [0, 1) and tau_w in (0, 1]")
-        if self.ghost < 0 or self.reblend_sigma < 0:
-            raise ValueError(f"ghost and reblend_sigma must be >= 0, got {self.ghost}, {self.reblend_sigma}")
+        if self.ghost < 0:
+            raise ValueError(f"ghost must be >= 0, got {self.ghost}")
         if self.select_patch < 1 or self.select_smoothness < 0 or self.select_feather < 0:
             raise ValueError("select_patch must be >= 1, select_smoothness and select_feather >= 0")
         if self.parallax_sigma < 0 or self.parallax_gate < 0 or self.consistency_sigma < 0:

@@ -161,33 +161,3 @@ def settled_texels(
     settled = lv.mask & (wsum > 0) & worst_ok
     return settled, base & near & settled[None]
 
-
-def agreeing_blend(
-    lv: Level, W: torch.Tensor, base: torch.Tensor, k: float
-) -> tuple[torch.Tensor, dict]:
-    """The final blend: every candidate whose colour is within ``k`` sigma_c of the optimized
-    blend's colour, weighted by the blend's Q (:attr:`Level.blend_Q`).
-
-    Where the optimization chose (an occluder, relief parallax, an exposure outlier), it
-    narrows a texel to the one or two photos that show the facade, and keeps their noise: next
-    to settled texels, which average every agreeing photo, such texels show as noisier patches.
-    The photos that agree with the chosen colour within the noise show the same thing, so they
-    join the blend and average the noise away; the ones that disagree (the occluder, the
-    displaced relief) stay out, as in :func:`settled_texels`. A texel no candidate agrees with
-    (the blend of two disagreeing photos across a seam) keeps its weights.
-
-    Shapes: W (K, h, w) normalised weights, base (K, h, w) bool (slots that may carry weight)
-    -> W (K, h, w), stats {"changed_share", "photos_before", "photos_after"} (mean active
-    slots over the texels that changed).
-    """
-    mu = (W[:, None] * lv.colours).sum(0)
-    d2 = ((lv.colours - mu[None]) ** 2).sum(1)
-    q = lv.blend_Q * (base & (d2 <= (k * lv.noise) ** 2))
-    qs = q.sum(0)
-    use = lv.mask & (qs > 0) & (W.sum(0) > 0)
-    out = torch.where(use[None], q / qs.clamp_min(1e-12)[None], W)
-    changed = use & ((out - W).abs().sum(0) > 1e-6)
-    n = int(changed.sum())
-    before = float((W > 0)[:, changed].sum(0).float().mean()) if n else 0.0
-    after = float((out > 0)[:, changed].sum(0).float().mean()) if n else 0.0
-    return out, {"changed_share": n / max(int(lv.mask.sum()), 1), "photos_before": before, "photos_after": after}

@@ -23,7 +23,6 @@ from difftex.geometry.frames import level_sides
 from difftex.method import alignment, diagnostics, losses, parallax, selection, sparse
 from difftex.method.config import ComputeConfig, OptimizeConfig
 from difftex.method.elimination import (
-    agreeing_blend,
     base_mask,
     dropped_slot_mask,
     eliminate_pixels,
@@ -182,9 +181,6 @@ def optimize_polygon(
     lv = prev.level
     with torch.no_grad():
         W = losses.blend_weights(prev.z, prev.active)
-        if cfg.reblend_sigma > 0:
-            base = base_mask(lv, prev.eliminated, dropped_slot_mask(lv, prev.eliminated, dropped, W))
-            W, stats["reblend"] = agreeing_blend(lv, W, base, cfg.reblend_sigma)
         if cfg.parallax_sigma > 0:
             W, stats["parallax"] = parallax.parallax_weights(
                 W, lv.sharp, lv.cost, lv.sharp_noise, cfg.parallax_sigma, cfg.parallax_gate, lv.idx
