@@ -160,4 +160,3 @@ def settled_texels(
     worst_ok = (near | ~active).all(0)
     settled = lv.mask & (wsum > 0) & worst_ok
     return settled, base & near & settled[None]
-
