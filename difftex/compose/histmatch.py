@@ -1,8 +1,9 @@
-"""Brightness adjustment (paper 4.3): HSV histogram matching of the photos feeding one polygon.
+"""Brightness adjustment (paper 4.3): matching the photos feeding one polygon, per HSV channel.
 
-Each candidate photo k gets a monotone transfer per HSV channel (a quantile map), estimated on
-the polygon's texels that photo k and the reference both see, so occluders and content seen by
-only one photo do not bias it. References:
+Each candidate photo k gets a monotone transfer per HSV channel, estimated on the polygon's
+texels that photo k and the reference both see, so occluders and content seen by only one photo
+do not bias it: one gain (``gain``, the default, :func:`gain_knots`) or the paper's histogram
+matching, a quantile map (``quantile``, :func:`quantile_knots`). References:
 
 - ``median`` (default): the per-texel median of the photos that see the texel (the consensus
   image). A minority of outliers (an occluder, one badly exposed photo) does not move it, and
@@ -92,7 +93,7 @@ def transfers_from_mapped(
     reference: str = "best",
     channels: str = "sv",
     min_overlap: int = 64,
-    model: str = "quantile",
+    model: str = "gain",
 ) -> tuple[dict[int, np.ndarray], int | None]:
     """Transfers per photo from their mapped colours (3, h, w) and visibility (h, w) at one level.
 
@@ -134,7 +135,7 @@ def transfers_from_mapped(
 
 def _median_transfers(
     hsv: dict[int, np.ndarray], vis: dict[int, np.ndarray], chan_ids: list[int], min_overlap: int,
-    model: str = "quantile",
+    model: str = "gain",
 ) -> dict[int, np.ndarray]:
     """Match every photo to the per-texel median of all photos (the consensus image).
 
@@ -176,7 +177,7 @@ def _median_transfers(
 
 def mapped_transfers(
     mapped: dict, n_photos: int, reference: str = "median", channels: str = "sv", names: list[str] | None = None,
-    model: str = "quantile",
+    model: str = "gain",
 ) -> tuple[list, str | None]:
     """Transfers of every candidate from its raw mapped photo at one (coarse) level.
 
