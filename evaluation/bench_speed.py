@@ -44,21 +44,14 @@ def children_cpu() -> float:
 
 
 def read_benchmarks(results: Path) -> dict[str, dict]:
-    """{rule: {"jobs", "wall_s", "cpu_s", "max_rss_mb"}} from Snakemake's benchmark files."""
-    out: dict[str, dict] = {}
-    for tsv in sorted((results / "benchmarks").rglob("*.tsv")):
-        rule = tsv.relative_to(results / "benchmarks").parts[0]
-        head, row = (ln.split("\t") for ln in tsv.read_text().splitlines()[:2])
-        rec = dict(zip(head, row))
-        d = out.setdefault(rule, {"jobs": 0, "wall_s": 0.0, "cpu_s": 0.0, "max_rss_mb": 0.0})
-        d["jobs"] += 1
-        d["wall_s"] += float(rec["s"])
-        for key, dst in (("cpu_time", "cpu_s"),):
-            if rec.get(key, "NA") not in ("NA", "-", ""):
-                d[dst] += float(rec[key])
-        if rec.get("max_rss", "NA") not in ("NA", "-", ""):
-            d["max_rss_mb"] = max(d["max_rss_mb"], float(rec["max_rss"]))
-    return out
+    """{rule: {"jobs", "wall_s", "cpu_s", "max_rss_mb"}} from Snakemake's benchmark files
+    (difftex.evaluation.report.stage_benchmarks, under this benchmark's JSON keys)."""
+    from difftex.evaluation.report import stage_benchmarks
+
+    return {
+        rule: {"jobs": d["jobs"], "wall_s": d["seconds"], "cpu_s": d["cpu_s"], "max_rss_mb": d["max_rss_mb"]}
+        for rule, d in stage_benchmarks(results).items()
+    }
 
 
 def stage_lines(rows: list[dict]) -> list[str]:
