@@ -55,6 +55,35 @@ def mean_gradient(img: torch.Tensor, mask: torch.Tensor) -> float:
     return float((gx[mx].sum() + gy[my].sum()) / n) if n else 0.0
 
 
+def photo_coverage(idx: torch.Tensor, visible: torch.Tensor, W: torch.Tensor | None, mask: torch.Tensor) -> dict:
+    """Per photo: the texels of ``mask`` it sees and (with ``W``) its weight summed over them.
+
+    One scatter over the slots instead of a (K, h, w) comparison per photo: a texel's slots hold
+    distinct photos, so a photo is counted at most once per texel.
+
+    Returns:
+        {photo index: (texels seen, weight sum or 0.0)}.
+    """
+    sel = visible & mask[None] & (idx >= 0)
+    ids = idx[sel]
+    if ids.numel() == 0:
+        return {}
+    n = int(ids.max()) + 1
+    seen = torch.bincount(ids, minlength=n)
+    wsum = torch.zeros(n, dtype=torch.float64)
+    if W is not None:
+        wsum = torch.bincount(ids, weights=W[sel].double(), minlength=n)
+    return {int(p): (int(seen[p]), float(wsum[p])) for p in torch.nonzero(seen).flatten().tolist()}
+
+
+def photo_colours(
+    colours: torch.Tensor, idx: torch.Tensor, visible: torch.Tensor, n: int
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Photo ``n``'s colours (3, h, w) where it holds a visible slot, and that (h, w) mask."""
+    at = (idx == n) & visible  # at most one slot per texel: the sum picks it (a gather was slower)
+    return torch.where(at[:, None], colours, 0.0).sum(0), at.any(0)
+
+
 def sharpness(U: torch.Tensor, colours: torch.Tensor, idx: torch.Tensor, visible: torch.Tensor,
               mask: torch.Tensor, min_share: float = 0.25) -> dict:
     """The texture's mean gradient against the sharpest single photo's, on that photo's texels.
@@ -70,12 +99,11 @@ def sharpness(U: torch.Tensor, colours: torch.Tensor, idx: torch.Tensor, visible
     best = {"texture": mean_gradient(U, mask), "sharpest_photo": None, "ratio": None, "photo": None}
     n_tex = int(mask.sum())
     top = 0.0
-    for n in torch.unique(idx[idx >= 0]).tolist():
-        sel = (idx == n) & visible
-        seen = sel.any(0) & mask
-        if int(seen.sum()) < min_share * n_tex:
+    for n, (count, _) in photo_coverage(idx, visible, None, mask).items():
+        if count < min_share * n_tex:
             continue
-        col = (colours * sel[:, None]).sum(0)  # photo n's colours where it holds a slot
+        col, seen = photo_colours(colours, idx, visible, n)
+        seen = seen & mask
         g = mean_gradient(col, seen)
         if g > top:
             top = g
@@ -84,14 +112,16 @@ def sharpness(U: torch.Tensor, colours: torch.Tensor, idx: torch.Tensor, visible
 
 
 def misalignment(U: torch.Tensor, colours: torch.Tensor, idx: torch.Tensor, visible: torch.Tensor,
-                 W: torch.Tensor, mask: torch.Tensor, min_share: float = 0.25, max_side: int = 512) -> dict:
+                 W: torch.Tensor, mask: torch.Tensor, min_share: float = 0.25, max_side: int = 512,
+                 max_photos: int = 8) -> dict:
     """Shift (texels) of each photo's mapped colours against the texture, by phase correlation.
 
-    Photos that carry weight and see at least ``min_share`` of the polygon are measured, in grey,
-    on at most ``max_side`` texels (the shift is scaled back to the level's texels), to a tenth
-    of a texel; texels the photo does not see take the texture's values, so that the edge of
-    its view adds no false edge (scikit-image's masked variant only finds whole texels). The
-    texture includes the photo's own contribution, which pulls the figure towards zero.
+    The ``max_photos`` photos that carry the most weight and see at least ``min_share`` of the
+    polygon are measured, in grey, on at most ``max_side`` texels (the shift is scaled back to
+    the level's texels), to a tenth of a texel; texels the photo does not see take the
+    texture's values, so that the edge of its view adds no false edge (scikit-image's masked
+    variant only finds whole texels). The texture includes the photo's own contribution, which
+    pulls the figure towards zero.
 
     Returns:
         {photo index: [dy, dx] in texels, ...} and "median_abs" (the weight-share-weighted median of
@@ -111,20 +141,23 @@ def misalignment(U: torch.Tensor, colours: torch.Tensor, idx: torch.Tensor, visi
     n_tex = int(mask.sum())
     out: dict = {}
     mags, shares = [], []
-    for n in torch.unique(idx[idx >= 0]).tolist():
-        sel = (idx == n) & visible
-        seen = sel.any(0) & mask
-        share = float((W * (idx == n)).sum(0)[mask].sum()) / max(n_tex, 1)
-        if int(seen.sum()) < min_share * n_tex or share <= 0:
-            continue
-        col = (colours * sel[:, None]).sum(0).mean(0).cpu().numpy()
+    cover = photo_coverage(idx, visible, W, mask)
+    measured = [n for n, (count, wsum) in cover.items() if count >= min_share * n_tex and wsum > 0]
+    # the photos that carry the most weight: the others hardly show in the texture
+    measured = sorted(measured, key=lambda n: -cover[n][1])[:max_photos]
+    if measured:
+        ys, xs = np.nonzero(m)
+        box = (slice(ys.min(), ys.max() + 1), slice(xs.min(), xs.max() + 1))
+        filled = np.where(m, grey_u, grey_u[m].mean())
+        ref = filled[box]
+    for n in measured:
+        share = cover[n][1] / max(n_tex, 1)
+        col_n, seen = photo_colours(colours, idx, visible, n)
+        col = col_n.mean(0).cpu().numpy()
         sm = seen.cpu().numpy() & m
         if sm.sum() < 64:
             continue
-        ys, xs = np.nonzero(m)
-        box = (slice(ys.min(), ys.max() + 1), slice(xs.min(), xs.max() + 1))
-        ref = np.where(m, grey_u, grey_u[m].mean())[box]
-        mov = np.where(sm, col, np.where(m, grey_u, grey_u[m].mean()))[box]
+        mov = np.where(sm, col, filled)[box]
         try:
             shift = phase_cross_correlation(ref, mov, upsample_factor=10, normalization=None)[0]
         except (ValueError, RuntimeError):
