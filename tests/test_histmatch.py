@@ -37,6 +37,26 @@ def test_identity_transfer_changes_nothing_and_knots_are_monotone():
     assert (np.diff(k[0]) > 0).all() and (np.diff(k[1]) >= 0).all()
 
 
+@pytest.mark.parametrize("g", [0.25, 0.8, 1.0, 1.7, 4.0])
+def test_a_gain_transfer_is_applied_as_a_multiply_that_follows_its_knots(g):
+    rng = np.random.default_rng(2)
+    v = torch.from_numpy(rng.random(20000).astype(np.float32))
+    knots = histmatch.gain_knots(np.array([1.0]), np.array([g]), paired=True)
+    assert colour.knots_gain(knots[0], knots[1]) == pytest.approx(g, rel=1e-6)
+    fast = colour._apply_channel(v, knots[0], knots[1])
+    poly = colour._interp(v, torch.from_numpy(knots[0]), torch.from_numpy(knots[1]))
+    assert torch.allclose(fast, (g * v).clamp(0, 1))
+    # the knots' polyline cuts the corner at 1 inside one knot interval (< 0.8 % of the range)
+    step = float(np.diff(knots[0]).max())
+    off = (fast - poly).abs() > 1e-5
+    assert bool(((g * v[off] - 1).abs() < g * step).all())
+    # a quantile map is not a gain, and goes through its knots
+    q = histmatch.quantile_knots(rng.random(1000) ** 2, rng.random(1000))
+    assert colour.knots_gain(q[0], q[1]) is None
+    through = colour._interp(v, torch.from_numpy(q[0]), torch.from_numpy(q[1]))
+    assert torch.allclose(colour._apply_channel(v, q[0], q[1]), through)
+
+
 def matched_before_after(inp, reference: str, model: str = "gain"):
     """Every photo mapped into texel space without and with the transfers of ``reference``."""
     photos = PhotoSet.load(inp, "cpu")

@@ -53,18 +53,32 @@ def _interp(x: torch.Tensor, xs: torch.Tensor, ys: torch.Tensor) -> torch.Tensor
     return y0 + t * (y1 - y0)
 
 
+def knots_gain(xs: np.ndarray, ys: np.ndarray) -> float | None:
+    """g when the knots (xs, ys) of one channel are y = min(1, g x) (a brightness gain), else None."""
+    if xs[0] != 0.0 or ys[0] != 0.0 or xs[1] <= 0:
+        return None
+    g = float(ys[1] / xs[1])
+    return g if np.allclose(ys, np.minimum(1.0, g * xs), rtol=0, atol=1e-6) else None
+
+
+def _apply_channel(x: torch.Tensor, xs: np.ndarray, ys: np.ndarray) -> torch.Tensor:
+    """One HSV channel through its knots: unchanged (identity knots, hue by default), scaled (a
+    gain: one multiply instead of a search among the knots, which differs from the knots'
+    polyline only inside the one interval that holds the kink at 1) or piecewise linear."""
+    if np.array_equal(xs, ys):
+        return x
+    g = knots_gain(xs, ys)
+    if g is not None:
+        return (g * x).clamp(0.0, 1.0)
+    t = torch.as_tensor(np.stack([xs, ys]), dtype=x.dtype, device=x.device)
+    return _interp(x.reshape(-1), t[0], t[1]).reshape(x.shape)
+
+
 def apply_transfer_torch(rgb: torch.Tensor, transfer: np.ndarray) -> torch.Tensor:
     """Apply a (3, 2, N_KNOTS) HSV transfer to colours (3, ...) in [0, 1]."""
-    t = torch.as_tensor(np.asarray(transfer), dtype=rgb.dtype, device=rgb.device)
+    t = np.asarray(transfer, np.float32)
     hsv = rgb_to_hsv(rgb.clamp(0.0, 1.0))
-    # a channel whose knots map every value to itself (hue, by default) is left as it is
-    chans = [
-        hsv[c]
-        if torch.equal(t[c, 0], t[c, 1])
-        else _interp(hsv[c].reshape(-1), t[c, 0], t[c, 1]).reshape(hsv[c].shape)
-        for c in range(3)
-    ]
-    return hsv_to_rgb(torch.stack(chans))
+    return hsv_to_rgb(torch.stack([_apply_channel(hsv[c], t[c, 0], t[c, 1]) for c in range(3)]))
 
 
 def apply_transfer(rgb: np.ndarray, transfer: np.ndarray) -> np.ndarray:
