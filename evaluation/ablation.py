@@ -27,7 +27,11 @@ VARIANTS = {
     "no_para": ({"use_para": False}, "without L_Para"),
     "no_elimination": ({"data_elimination": False}, "without photo / pixel elimination"),
     "no_settling": ({"settle_sigma": 0.0}, "every texel optimized (no settled texels)"),
-    "no_alignment": ({"align": False}, "without the photos' alignment"),
+    "with_alignment": ({"align": True}, "with the photos' alignment refinement (off by default)"),
+    "histmatch_quantile": (
+        {"histmatch_model": "quantile"},
+        "brightness by the paper's quantile map (not one gain per photo)",
+    ),
     "no_histmatch": ({"histogram_matching": False}, "without HSV histogram matching"),
     "histmatch_best": (
         {"histmatch_reference": "best"},
