@@ -74,12 +74,13 @@ def base_config(long_side: int | None, preset: str | None = "fast", overrides: d
     """The stage sections from config/config.yaml, a preset over them, then ``overrides`` (nested).
 
     ``long_side``: every polygon's map gets this long side (``texture.density: null``); None keeps
-    the preset's density (``auto``: from the photos' ground sampling distance).
+    the preset's density (``auto``: from the photos' ground sampling distance). ``preset`` None,
+    "" or "default": config.yaml alone, what the workflow runs without a preset.
     """
     import yaml
 
     cfg = yaml.safe_load((ROOT / "config" / "config.yaml").read_text())
-    if preset:
+    if preset and preset != "default":
         cfg = _merge(cfg, yaml.safe_load((ROOT / "config" / "presets" / f"{preset}.yaml").read_text()) or {})
     cfg = {k: v for k, v in cfg.items() if isinstance(v, dict) and k not in ("run",)}
     if long_side is not None:

@@ -40,7 +40,9 @@ def main(argv=None) -> int:
         default=None,
         help="texture long side of every polygon and method (default: the preset's density, auto)",
     )
-    ap.add_argument("--preset", default="fast", help="difftex preset (config/presets/<name>.yaml)")
+    ap.add_argument(
+        "--preset", default="fast", help="difftex preset (config/presets/<name>.yaml; default: the workflow defaults)"
+    )
     ap.add_argument("--methods", default="difftex,average,frontal,mrf,texrecon,meshlab-face,meshlab-blend")
     ap.add_argument("--optimize", default=None, help="JSON of optimize: overrides (ablations)")
     C.add_table_args(ap, "table1")

@@ -57,7 +57,8 @@ def main(argv=None) -> int:
     ap.add_argument("--scene", default="evaluation/out/scenes/tiny")
     ap.add_argument(
         "--runs", default="fast@128,fast@256,balanced@128,balanced@256",
-        help="comma-separated preset@long_side, or preset@auto for the preset's density from the photos"
+        help="comma-separated preset@long_side, or preset@auto for the preset's density from the photos "
+        "(preset 'default': no preset, the workflow's defaults)"
     )
     ap.add_argument(
         "--baselines",
