@@ -85,9 +85,14 @@ def main(argv=None) -> int:
         preset, res = r.split("@")
         runs.append((preset, None if res == "auto" else int(res)))
     commons, rows = {}, []
+    sides: dict[str, str] = {}  # texture section -> the label of the first run with it
     for preset, size in runs:
         # the visibility (texel frames) and the baselines are shared by the runs at one resolution
+        # (presets with the same texture section, e.g. paper and the defaults, share them too)
         side = size if size is not None else f"auto-{preset}"
+        if size is None:
+            key = repr(sorted(C.base_config(None, preset)["texture"].items()))
+            side = sides.setdefault(key, side)
         if side not in commons:
             cfg = C.base_config(size, "fast" if size is not None else preset, {"evaluate": {"views": False}})
             commons[side] = C.run_common(scene, work / f"common{side}", cfg, only)
