@@ -5,6 +5,7 @@ reads partial results, and (with Chromium) renders as a page a person can read."
 from __future__ import annotations
 
 import re
+import xml.etree.ElementTree as ET
 import shutil
 import subprocess
 from pathlib import Path
@@ -174,8 +175,11 @@ def test_report_links_resolve_and_loss_curves_are_readable(tmp_path):
     for link in links:
         assert (out.parent / link).resolve().is_file(), link
     for pid in ("wall00", "roof00"):
-        curve = read_image(out.parent / f"loss_{pid}.png")
-        assert curve.shape[1] >= 800 and curve.shape[0] >= 400  # axes and legend readable at 100 %
+        svg = ET.parse(out.parent / f"loss_{pid}.svg").getroot()  # well-formed
+        assert float(svg.get("width")) >= 800 and float(svg.get("height")) >= 400  # readable at 100 %
+        lines = svg.findall("{http://www.w3.org/2000/svg}polyline")
+        assert {ln.get("stroke") for ln in lines} >= {"#000000", "#1f77b4"}  # total and render drawn
+        assert f'loss_{pid}.svg"' in text
 
 
 def test_report_says_what_is_untextured_and_shows_held_out_metrics(tmp_path):

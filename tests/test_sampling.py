@@ -252,3 +252,31 @@ def test_a_level_is_the_same_whether_its_slots_are_written_at_the_end_or_per_pho
     assert not held.fixed_slots
     for name in ("idx", "visible", "colours", "sharp", "Q", "cost", "z0"):
         assert torch.equal(getattr(held, name), getattr(streamed, name)), name
+
+
+@pytest.mark.parametrize(("fmt", "channels"), [("uint8", 3), ("uint8", 4), ("uint8", 1), ("uint16", 3), ("uint16", 2)])
+def test_integer_images_read_as_oiio_converts_them_to_float(tmp_path, fmt, channels):
+    """read_image reads 8/16-bit pixels as stored and scales them itself (faster): every value of
+    the format equals OpenImageIO's own conversion to float, for RGB, RGBA, grey and grey + alpha."""
+    import OpenImageIO as oiio
+
+    from difftex.scene.files import read_image
+
+    top = 255 if fmt == "uint8" else 65535
+    values = np.arange(top + 1, dtype=np.uint8 if fmt == "uint8" else np.uint16)
+    h, w = 64, (top + 1) // 64
+    pixels = np.stack([np.roll(values, 17 * c).reshape(h, w) for c in range(channels)], axis=2)
+    path = tmp_path / f"{fmt}_{channels}.png"
+    out = oiio.ImageOutput.create(str(path))
+    assert out.open(str(path), oiio.ImageSpec(w, h, channels, oiio.UINT8 if fmt == "uint8" else oiio.UINT16))
+    assert out.write_image(pixels)
+    out.close()
+    inp = oiio.ImageInput.open(str(path))
+    ref = inp.read_image(0, 0, 0, channels, oiio.FLOAT).reshape(h, w, channels)
+    inp.close()
+    ref = ref[:, :, :3] if channels >= 3 else np.repeat(ref[:, :, :1], 3, axis=2)
+    got = read_image(path)
+    assert got.dtype == np.float32 and got.shape == (h, w, 3) and got.flags.c_contiguous
+    assert np.array_equal(got, ref)  # with alpha, OIIO's associated (premultiplied) colour in both
+    if channels in (1, 3):
+        assert got.min() == 0.0 and got.max() == 1.0

@@ -4,7 +4,8 @@ One page that a person reads without the docs: what was textured and what not (a
 model rendered beside a photo, the metrics, per polygon its maps with a named colour legend, the
 texel size and what set it, the optimizer's loss curves and per-level diagnostics, and the photo
 filter's decisions. Plain HTML with relative links to the PNGs the stages wrote, plus the loss
-curves drawn here with matplotlib (Agg); no scripts, no network, so it opens from disk.
+curves written here as SVG (difftex.evaluation.losscurve); no scripts, no network, so it opens
+from disk.
 
 Every file is optional and read defensively: a missing file drops its section, a missing key
 shows "n/a" (the optimizer's stats.json gains diagnostics over time).
@@ -17,6 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from difftex.evaluation.html import CSS, _esc, _fig, _html, _num, _read, _table
+from difftex.evaluation.losscurve import LOSS_COLOURS, loss_curve
 from difftex.scene.files import write_text
 
 BOUND = {  # difftex.geometry.density.TexelSize.bound: what set a polygon's texel size
@@ -27,7 +29,6 @@ BOUND = {  # difftex.geometry.density.TexelSize.bound: what set a polygon's texe
     "density": "fixed density",
     "long_side": "fixed long_side",
 }
-LOSS_COLOURS = (("total", "k"), ("render", "C0"), ("ghost", "C3"), ("persp", "C1"), ("para", "C2"))
 # per-level keys the diagnostics table shows in its own columns, or not at all
 _LEVEL_SHOWN = {
     "level",
@@ -46,53 +47,6 @@ _LEVEL_SHOWN = {
     "time_s",
     "v_tilde",
 }
-
-
-def loss_curve(stats: dict, out: Path, title: str = "") -> Path | None:
-    """PNG of the optimizer's loss terms per iteration, levels one after another (log scale).
-
-    Large enough to read its axes and legend at 100 % (900 x 420 px); a term that is zero
-    throughout (switched off) is left out.
-    """
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    levels = [lv for lv in stats.get("levels") or [] if isinstance(lv, dict)]
-    if not any((lv.get("loss") or {}).get("total") for lv in levels):
-        return None
-    fig, ax = plt.subplots(figsize=(9, 4.2), dpi=100)
-    for key, colour in LOSS_COLOURS:
-        ys = [float(y) for lv in levels for y in ((lv.get("loss") or {}).get(key) or [])]
-        y = np.array(ys, float)
-        if y.size and (y > 0).any():
-            ax.plot(np.arange(1, y.size + 1), np.where(y > 0, y, np.nan), colour, lw=1.6, label=key)
-    start = 0
-    for i, lv in enumerate(levels):
-        n = len((lv.get("loss") or {}).get("total") or [])
-        shape = lv.get("shape")
-        label = f"level {i}" + (f"\n{shape[1]}x{shape[0]}" if isinstance(shape, list) and len(shape) == 2 else "")
-        if i:
-            ax.axvline(start + 0.5, color="#888", lw=1, ls="--")
-        ax.text(start + 1, 1.0, label, transform=ax.get_xaxis_transform(), va="top", fontsize=10, color="#555")
-        start += n
-    ax.set_yscale("log")
-    ax.set_xlabel("iteration (all levels, coarse to fine)", fontsize=12)
-    ax.set_ylabel("loss", fontsize=12)
-    ax.tick_params(labelsize=11)
-    ax.grid(True, which="major", color="#ddd")
-    ax.legend(fontsize=11, loc="upper left", bbox_to_anchor=(1.01, 1.0), frameon=False)
-    if title:
-        ax.set_title(title, fontsize=12)
-    fig.tight_layout()
-    out.parent.mkdir(parents=True, exist_ok=True)
-    from difftex.scene.files import atomic_path
-
-    with atomic_path(out) as tmp:
-        fig.savefig(tmp, format="png")
-    plt.close(fig)
-    return out
 
 
 def _share(x: float) -> str:
@@ -419,7 +373,7 @@ def write_report(results: str | Path, out: str | Path | None = None, scene: str 
         if scene is not None:
             figs.append(_fig(scene / "ground_truth" / "maps" / f"{pid}.png", base, "ground truth", "map"))
         st = stats.get(pid) or {}
-        curve = loss_curve(st, base / f"loss_{pid}.png", f"{pid}: loss per iteration") if st else None
+        curve = loss_curve(st, base / f"loss_{pid}.svg", f"{pid}: loss per iteration") if st else None
         v = vis.get(pid, {})
         n_cand = len(v.get("photos", []))
         facts = [
