@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 import torch
 
 from difftex.method import diagnostics
@@ -104,3 +105,23 @@ def test_misalignment_measures_only_the_photos_that_carry_the_most_weight():
     W = torch.tensor([0.4, 0.3, 0.2, 0.1])[:, None, None].expand(K, h, w)
     out = diagnostics.misalignment(U, colours, idx, visible, W, torch.ones((h, w), dtype=torch.bool), max_photos=2)
     assert set(k for k in out if k != "median_abs") == {10, 11}
+
+
+@pytest.mark.parametrize(("shape", "shift"), [((64, 96), (3.3, -7.6)), ((37, 51), (-12.0, 0.45)), ((1, 40), (0.0, 5.2)),
+                                              ((48, 48), (0.0, 0.0)), ((50, 30), (24.0, -14.9))])
+def test_phase_shift_is_scikit_images_phase_correlation(shape, shift):
+    """phase_shift (written out: scikit-image's import cost more than the measurement) gives
+    scikit-image's result, on odd sizes, one row, no shift and shifts near half the image."""
+    from scipy.ndimage import fourier_shift
+    from skimage.registration import phase_cross_correlation
+
+    rng = np.random.default_rng(3)
+    ref = rng.random(shape)
+    mov = np.fft.ifftn(fourier_shift(np.fft.fftn(ref), shift)).real
+    got = diagnostics.phase_shift(ref, mov, upsample=10)
+    want = phase_cross_correlation(ref, mov, upsample_factor=10, normalization=None)[0]
+    assert np.allclose(got, want, atol=1e-9), (got, want)
+    if shape[0] > 1:
+        assert np.allclose(got, -np.asarray(shift), atol=0.06)  # registers moving back onto reference
+    with pytest.raises(ValueError):
+        diagnostics.phase_shift(ref, mov[:, :-1] if shape[1] > 1 else mov[:-1])
