@@ -5,9 +5,9 @@ reads partial results, and (with Chromium) renders as a page a person can read."
 from __future__ import annotations
 
 import re
-import xml.etree.ElementTree as ET
 import shutil
 import subprocess
+import xml.etree.ElementTree as ET
 from pathlib import Path
 
 import numpy as np

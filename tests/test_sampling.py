@@ -280,3 +280,24 @@ def test_integer_images_read_as_oiio_converts_them_to_float(tmp_path, fmt, chann
     assert np.array_equal(got, ref)  # with alpha, OIIO's associated (premultiplied) colour in both
     if channels in (1, 3):
         assert got.min() == 0.0 and got.max() == 1.0
+
+
+@pytest.mark.parametrize(("suffix", "reduce"), [(".png", 1), (".png", 2), (".jpg", 1), (".jpg", 2), (".jpg", 4)])
+def test_decode_as_stored_converts_to_the_float_decode(tmp_path, suffix, reduce):
+    """decode_photo(..., as_stored=True) returns the integer values where no box averaging is
+    left (a PNG at full size, a JPEG at a DCT-scaled size), and to_float of it is the float decode."""
+    from PIL import Image
+
+    from difftex.scene.files import DecodeCache, decode_photo, to_float
+
+    rng = np.random.default_rng(1)
+    path = tmp_path / f"p{suffix}"
+    Image.fromarray((rng.random((64, 96, 3)) * 255).astype(np.uint8)).save(path)
+    ref = decode_photo(path, (96, 64), reduce)
+    got = decode_photo(path, (96, 64), reduce, as_stored=True)
+    assert ref.dtype == np.float32
+    assert got.dtype == (np.float32 if (suffix == ".png" and reduce > 1) else np.uint8)
+    assert np.array_equal(to_float(got), ref)
+    cache = DecodeCache(budget_mb=10)
+    assert np.array_equal(cache(path, (96, 64), reduce, as_stored=True), got)
+    assert cache(path, (96, 64), reduce).dtype == np.float32 and cache.decodes == 2  # kept apart

@@ -123,7 +123,7 @@ def loss_svg(levels: list[dict], title: str = "") -> str | None:
         label = f"level {k}" + (f" {shape[1]}x{shape[0]}" if isinstance(shape, list) and len(shape) == 2 else "")
         out.append(f'<text x="{x + 3:.1f}" y="{y0 + 14}" font-size="11" fill="#555555">{_esc(label)}</text>')
         start += count
-    for key, colour, ys in series:
+    for _key, colour, ys in series:
         runs, cur = [], []
         for i, y in enumerate(ys, 1):
             if y > 0 and math.isfinite(y):

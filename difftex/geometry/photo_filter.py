@@ -76,7 +76,8 @@ def viewing_angles(proxy: Proxy, photo: Photo, ids: np.ndarray, dist: np.ndarray
     # (a (N, 3) @ (3, 3) product per photo, most of this function's time)
     pid = ids.ravel()[flat]
     normals = np.array([p.normal for p in proxy.polygons], np.float32) @ photo.R.astype(np.float32).T
-    cos = -np.einsum("ij,ij->i", camera_rays(photo, stride).reshape(-1, 3)[flat], normals[pid])  # rays point at the surface
+    rays = camera_rays(photo, stride).reshape(-1, 3)[flat]
+    cos = -np.einsum("ij,ij->i", rays, normals[pid])  # rays point at the surface
     # per polygon, its front-facing pixels in one sort: counts from a bincount (not np.unique, a
     # second sort), and 16-bit keys, which numpy's stable sort orders by radix, in linear time
     front = cos > 0

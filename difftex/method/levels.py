@@ -419,15 +419,16 @@ def build_level(
         write(pick, reg, values)
     for n, (reg, values) in later.items():
         y0, y1, x0, x1 = reg
-        at = idx[:, y0:y1, x0:x1] == n  # (K, h, w): the slot photo n holds at each texel (at most one)
-        if not bool(at.any()):
+        # (slot, y, x) of every texel where photo n holds a slot (at most one slot per texel): its
+        # values are scattered there, not blended in by a where over every slot of its region
+        js, ys, xs = (idx[:, y0:y1, x0:x1] == n).nonzero(as_tuple=True)
+        if ys.numel() == 0:
             continue
-
-        def put(old, new, at=at):
-            """``old`` (K, [C,] h, w) with the photo's ``new`` in the slots it holds."""
-            return torch.where(per_slot(at, old), new.unsqueeze(0), old)
-
-        write(put, reg, values)
+        for t, new in zip(slot_data, values):
+            if t.dim() == 3:
+                t[js, ys + y0, xs + x0] = new[ys, xs]
+            else:
+                t[js, :, ys + y0, xs + x0] = new[:, ys, xs].T
     idx = torch.where(vis, idx, torch.full_like(idx, -1))
     robust = robust_noise(cols, vis & mask, cfg.sigma_min)
     if robust is not None:

@@ -30,7 +30,7 @@ from difftex.sampling import SUPERSAMPLE
 from difftex.sampling.colour import apply_transfer_torch
 from difftex.sampling.texels import Region, level_frame, resample_nearest, texel_map
 from difftex.scene.camera import Photo
-from difftex.scene.files import decode_photo
+from difftex.scene.files import decode_photo, to_float
 
 
 def pick_device(name: str | torch.device) -> torch.device:
@@ -114,8 +114,9 @@ class PhotoSampler:
         if x0 % s or y0 % s:
             raise ValueError("the crop box must start on a multiple of the decode scale")
         self.x0, self.y0, self.base = int(x0), int(y0), int(base)
+        # (an image as stored, 8/16-bit, is converted here: only the crop)
         crop = torch.from_numpy(
-            np.ascontiguousarray(image[y0 // s : -(-y1 // s), x0 // s : -(-x1 // s)], dtype=np.float32)
+            np.ascontiguousarray(to_float(image[y0 // s : -(-y1 // s), x0 // s : -(-x1 // s)]))
         ).permute(2, 0, 1)
         self.device = device
         levels = [crop.to(device=device, dtype=torch.float16)]
@@ -317,7 +318,7 @@ class PhotoSet:
                         f"{ph.image_path}: image is {img.shape[1]}x{img.shape[0]}, camera says {ph.width}x{ph.height}"
                     )
             else:
-                img = decode(ph.image_path, (ph.width, ph.height), reduce)
+                img = decode(ph.image_path, (ph.width, ph.height), reduce, as_stored=True)
             ps.reads += 1
             base = int(math.log2(reduce))
             ps.samplers[n] = PhotoSampler(img, box, device, base=base)

@@ -129,11 +129,15 @@ def _first_line(text: str) -> str:
     return lines[0] if lines else ""
 
 
-def read_image(path: str | os.PathLike, expected_size: tuple[int, int] | None = None) -> np.ndarray:
+def read_image(
+    path: str | os.PathLike, expected_size: tuple[int, int] | None = None, as_stored: bool = False
+) -> np.ndarray:
     """Read an image as float32 RGB in [0, 1] (H, W, 3) with OpenImageIO.
 
-    8/16-bit integer formats are normalised by OIIO; float formats (EXR) are kept linear as stored.
-    ``expected_size`` is (width, height): a mismatch is an error naming the file.
+    8/16-bit integer formats are normalised to [0, 1]; float formats (EXR) are kept linear as
+    stored. ``expected_size`` is (width, height): a mismatch is an error naming the file.
+    ``as_stored``: an 8/16-bit image is returned as its uint8/uint16 RGB values
+    (:func:`to_float` converts them), so that a caller that needs only a crop converts only that.
     """
     import OpenImageIO as oiio
 
@@ -163,8 +167,12 @@ def read_image(path: str | os.PathLike, expected_size: tuple[int, int] | None = 
         inp.close()
     pixels = pixels.reshape(spec.height, spec.width, spec.nchannels)
     if native:
-        pixels = pixels[:, :, :3] if spec.nchannels >= 3 else pixels
-        pixels = pixels.astype(np.float32) * np.float32(1.0 / native[1])
+        if spec.nchannels == 1:
+            pixels = np.repeat(pixels, 3, axis=2)
+        elif spec.nchannels == 2:  # grey + alpha
+            pixels = np.repeat(pixels[:, :, :1], 3, axis=2)
+        pixels = np.ascontiguousarray(pixels[:, :, :3])
+        return pixels if as_stored else to_float(pixels)
     if spec.nchannels == 1:
         pixels = np.repeat(pixels, 3, axis=2)
     elif spec.nchannels == 2:  # grey + alpha
@@ -176,6 +184,21 @@ def read_image(path: str | os.PathLike, expected_size: tuple[int, int] | None = 
     if spec.format.basetype in (oiio.FLOAT, oiio.HALF, oiio.DOUBLE) and not np.isfinite(pixels).all():
         raise DifftexError(f"{path}: image holds NaN or infinite values")
     return np.ascontiguousarray(pixels, dtype=np.float32)
+
+
+def to_float(pixels: np.ndarray) -> np.ndarray:
+    """float32 in [0, 1] of uint8 / uint16 values (read_image(..., as_stored=True)); float as it is.
+
+    Multiplied by the float32 reciprocal of 255 or 65535, in place on the converted copy: OIIO's
+    own conversion to float, bit for bit (tests/test_sampling.py), without a second full-size
+    temporary.
+    """
+    top = {np.dtype(np.uint8): 255, np.dtype(np.uint16): 65535}.get(pixels.dtype)
+    if top is None:
+        return np.asarray(pixels, dtype=np.float32)
+    out = pixels.astype(np.float32)
+    out *= np.float32(1.0 / top)
+    return out
 
 
 def image_size(path: str | os.PathLike) -> tuple[int, int]:
@@ -219,7 +242,9 @@ def write_image(path: str | os.PathLike, pixels: np.ndarray, bits: int = 8) -> N
 JPEG_SUFFIXES = {".jpg", ".jpeg"}
 
 
-def decode_photo(path: str | os.PathLike, size: tuple[int, int], reduce: int = 1) -> np.ndarray:
+def decode_photo(
+    path: str | os.PathLike, size: tuple[int, int], reduce: int = 1, as_stored: bool = False
+) -> np.ndarray:
     """An image of ``size`` (width, height) as float32 RGB (h, w, 3) in [0, 1], at 1/``reduce`` of
     full size (a power of 2).
 
@@ -228,18 +253,25 @@ def decode_photo(path: str | os.PathLike, size: tuple[int, int], reduce: int = 1
     OpenImageIO (difftex.scene.files.read_image) and box-averaged. Pixel (j, i) of the result covers
     full-resolution pixels [j r, (j + 1) r) x [i r, (i + 1) r), as in a box pyramid. The size
     is ceil(width / r) x ceil(height / r).
+
+    ``as_stored``: where no box-averaging is left to do, an 8/16-bit image comes back as its
+    integer values (:func:`to_float` converts them): a texture job converts only the polygon's
+    crop of each photo, not the whole photo (the conversion of a kept full-size float copy,
+    page faults included, cost about as much as decoding a PNG).
     """
     if reduce < 1 or reduce & (reduce - 1):
         raise ValueError(f"reduce must be a power of two, got {reduce}")
     path = Path(path)
     if reduce > 1 and path.suffix.lower() in JPEG_SUFFIXES:
         img, got = _decode_jpeg_scaled(path, size, reduce)
-        return box_reduce(img, reduce // got)
-    return box_reduce(read_image(path, expected_size=size), reduce)
+        return img if (as_stored and got == reduce) else box_reduce(to_float(img), reduce // got)
+    img = read_image(path, expected_size=size, as_stored=as_stored and reduce == 1)
+    return img if reduce == 1 else box_reduce(img, reduce)
 
 
 def _decode_jpeg_scaled(path: Path, size: tuple[int, int], reduce: int) -> tuple[np.ndarray, int]:
-    """(image, achieved reduction) of a JPEG decoded with DCT scaling (at most 1/8)."""
+    """(image as stored (uint8, or what read_image gives), achieved reduction) of a JPEG decoded with
+    DCT scaling (at most 1/8)."""
     from PIL import Image
 
     try:
@@ -250,7 +282,7 @@ def _decode_jpeg_scaled(path: Path, size: tuple[int, int], reduce: int) -> tuple
             r = min(reduce, 8)
             im.draft("RGB", (math.ceil(width / r), math.ceil(height / r)))
             got = max(1, round(width / im.size[0]))
-            arr = np.asarray(im.convert("RGB"), dtype=np.float32) / 255.0
+            arr = np.asarray(im.convert("RGB"))  # uint8
     except DifftexError:
         raise
     except (OSError, ValueError, SyntaxError) as exc:
@@ -259,7 +291,7 @@ def _decode_jpeg_scaled(path: Path, size: tuple[int, int], reduce: int) -> tuple
         ) from None
     if arr.shape[:2] != (math.ceil(height / got), math.ceil(width / got)):
         # a decoder that did not honour the draft exactly: fall back to the general path
-        return read_image(path, expected_size=size), 1
+        return read_image(path, expected_size=size, as_stored=True), 1
     return arr, got
 
 
@@ -275,7 +307,8 @@ def box_reduce(img: np.ndarray, r: int) -> np.ndarray:
 
 
 class DecodeCache:
-    """``decode_photo`` with the last decodes kept, up to ``budget_mb`` of float32 pixels.
+    """``decode_photo`` with the last decodes kept, up to ``budget_mb`` of pixels (as decoded: float32,
+    or 8/16-bit with ``as_stored``).
 
     A texture job of several polygons of one facade decodes the same photos for each of them
     (0.1 s for a 6-Mpixel JPEG at 1/2, about half of a small polygon's time). functools.lru_cache
@@ -287,20 +320,22 @@ class DecodeCache:
         from collections import OrderedDict
 
         self.budget = int(budget_mb * 2**20)
-        self.entries: OrderedDict[tuple[str, tuple[int, int], int], np.ndarray] = OrderedDict()
+        self.entries: OrderedDict[tuple[str, tuple[int, int], int, bool], np.ndarray] = OrderedDict()
         self.decodes = 0
         self.hits = 0
 
     def nbytes(self) -> int:
         return int(sum(a.nbytes for a in self.entries.values()))
 
-    def __call__(self, path: str | os.PathLike, size: tuple[int, int], reduce: int = 1) -> np.ndarray:
-        key = (str(path), (int(size[0]), int(size[1])), int(reduce))
+    def __call__(
+        self, path: str | os.PathLike, size: tuple[int, int], reduce: int = 1, as_stored: bool = False
+    ) -> np.ndarray:
+        key = (str(path), (int(size[0]), int(size[1])), int(reduce), bool(as_stored))
         if key in self.entries:
             self.entries.move_to_end(key)
             self.hits += 1
             return self.entries[key]
-        img = decode_photo(path, size, reduce)
+        img = decode_photo(path, size, reduce, as_stored)
         self.decodes += 1
         if img.nbytes <= self.budget:
             self.entries[key] = img
