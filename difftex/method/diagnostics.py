@@ -162,9 +162,8 @@ def misalignment(U: torch.Tensor, colours: torch.Tensor, idx: torch.Tensor, visi
     polygon are measured, in grey, on at most ``max_side`` texels (the shift is scaled back to
     the level's texels), to a tenth of a texel; texels the photo does not see take the
     texture's values, so that the edge of its view adds no false edge (scikit-image's masked
-    variant only finds whole texels;
-    :func:`phase_shift` is its unmasked one). The texture includes the photo's own contribution, which
-    pulls the figure towards zero.
+    variant only finds whole texels; :func:`phase_shift` is its unmasked one). The texture
+    includes the photo's own contribution, which pulls the figure towards zero.
 
     Returns:
         {photo index: [dy, dx] in texels, ...} and "median_abs" (the weight-share-weighted median of
