@@ -376,3 +376,28 @@ def test_small_polygons_share_texture_jobs_and_large_ones_keep_their_own():
     est = {name: sum(work[p] for p in pids) for name, pids in plan.items()}
     assert max(prio, key=prio.get) == max(est, key=est.get)
     assert all(abs(prio[n] - est[n]) <= 1 for n in plan)
+
+
+def test_polygons_that_share_photos_share_a_job_when_it_fits():
+    """A roof goes into the job of the wall whose photos see it (the job decodes them once), not
+    into the least-loaded job, as long as that job stays within the limit plus the decodes saved;
+    a polygon that shares few photos does not tip a job over the limit."""
+    cfg = wf.resolve_config(REPO, {"preset": "fast", "run": {"pack_jobs": 2}})
+    a = [f"a{i}.png" for i in range(60)]
+    b = [f"b{i}.png" for i in range(60)]
+    rows = [
+        {"id": "wallA", "width": 640, "height": 240, "photos": a},
+        {"id": "wallB", "width": 620, "height": 230, "photos": b},  # slightly less work: least loaded
+        {"id": "roofA", "width": 240, "height": 90, "photos": a[:35] + ["c.png"]},
+        {"id": "roofB", "width": 230, "height": 90, "photos": b[:30] + ["d.png"]},
+    ]
+    plan = sorted(sorted(m) for m in jobs.texture_jobs(rows, cfg).values())
+    assert plan == [["roofA", "wallA"], ["roofB", "wallB"]]
+    # without the shared photos, the least-loaded rule pairs the roofs the other way round for the first
+    blind = [dict(r, photos=[f"{r['id']}-{i}" for i in range(len(r["photos"]))]) for r in rows]
+    assert sorted(sorted(m) for m in jobs.texture_jobs(blind, cfg).values()) != plan
+    # no allowance: only the limit decides again
+    none = wf.deep_merge(cfg, {"run": {"photo_decode_s": 0}})
+    work = {r["id"]: jobs.polygon_seconds(r, cfg) for r in rows}
+    for members in jobs.texture_jobs(rows, none).values():
+        assert sum(work[p] for p in members) <= sum(work.values()) / 2 + max(work.values())

@@ -153,8 +153,10 @@ def texture_jobs(rows: list[dict], cfg: dict) -> dict[str, list[str]]:
     ``limit`` of estimated seconds (``polygon_seconds``) is ``run.pack_seconds``, or the largest
     polygon's if that is less (but not under the total over ``run.pack_jobs``). Polygons at the
     limit or above get a job each; the others share ceil(their seconds / limit) jobs, each
-    polygon (largest first) joining the least-loaded job, so a shared job ends within one small
-    polygon of the limit. ``pack_seconds: 0`` gives every polygon its own job.
+    polygon (largest first) joining, among the jobs it fits in, the one that already has most of
+    its photos (the job decodes a photo once for all its polygons, difftex.scene.files.DecodeCache),
+    else the least-loaded job; so a shared job ends within one small polygon of the limit.
+    ``pack_seconds: 0`` gives every polygon its own job.
 
     Args:
         rows: the visibility summary's rows of the polygons to texture.
@@ -178,12 +180,25 @@ def texture_jobs(rows: list[dict], cfg: dict) -> dict[str, list[str]]:
     # the small ones in as many jobs as their work needs at the limit, each added to the
     # least-loaded job (largest first): balanced jobs, each within one polygon of the limit
     n = max(1, math.ceil(sum(w for w, _ in small) / limit - 1e-9)) if small else 0
-    shared: list[list] = [[0.0, []] for _ in range(n)]
+    photos = {str(r["id"]): set(r.get("photos") or ()) for r in rows}
+    decode_s = float(cfg["run"].get("photo_decode_s", 0.0))
+    shared: list[list] = [[0.0, [], set()] for _ in range(n)]
     for work, pid in small:
+        mine = photos[pid]
         least = min(shared, key=lambda g: g[0])
-        least[0] += work
-        least[1].append(pid)
-    groups = alone + [members for _, members in shared if members]
+
+        def fits(g, work=work, mine=mine, least=least) -> bool:
+            # within the limit, allowing the decodes its shared photos save; the least-loaded job
+            # always takes it (a job ends within one polygon of the limit, as without the photos)
+            return g is least or g[0] + work <= limit + decode_s * len(mine & g[2])
+
+        # the job that already decodes most of its photos (DecodeCache: a roof and the wall below
+        # it share half their photos), then the least loaded
+        best = max((g for g in shared if fits(g)), key=lambda g: (len(mine & g[2]), -g[0]))
+        best[0] += work
+        best[1].append(pid)
+        best[2] |= mine
+    groups = alone + [members for _, members, _ in shared if members]
     jobs = [sorted(members, key=order.__getitem__) for members in groups]
     jobs.sort(key=lambda m: order[m[0]])
     return {job_name(m): m for m in jobs}
