@@ -177,3 +177,45 @@ def test_photos_and_polygons_cast_side_by_side_give_the_same_visibility(tmp_path
         assert np.array_equal(a.a_bbox, b.a_bbox)
         assert all(np.array_equal(x, y) for x, y in zip(a.a_masks, b.a_masks))
         assert a.texel_size == b.texel_size
+
+
+def _projected_crop_visibility(frame, photo, mask, bbox, crop):
+    """The reference: each texel centre of the mask through texel_to_pixel, kept where it lands
+    on a pixel of the crop (crop_texel_visibility before its pinhole fast path)."""
+    from difftex.geometry.frames import texel_to_pixel
+
+    x0, y0, x1, y1 = bbox
+    seen = np.zeros(frame.shape, bool)
+    ty, tx = np.nonzero(mask)
+    pix, depth = texel_to_pixel(frame, photo, tx + 0.5, ty + 0.5)
+    ok = (depth > 1e-9) & photo.in_image(pix)
+    px = np.floor(np.where(ok, pix[:, 0], -1)).astype(np.int64) - x0
+    py = np.floor(np.where(ok, pix[:, 1], -1)).astype(np.int64) - y0
+    inside = ok & (px >= 0) & (py >= 0) & (px < x1 - x0) & (py < y1 - y0)
+    hit = np.zeros_like(inside)
+    hit[inside] = crop[py[inside], px[inside]]
+    seen[ty[hit], tx[hit]] = True
+    return seen
+
+
+def test_pinhole_crop_visibility_is_the_projected_one(occlusion_scene):
+    """The pinhole fast path of crop_texel_visibility (the homography broadcast over the mask's
+    rows and columns) marks the same texels as projecting each texel centre, with a partial crop
+    box, a mask with holes, and a frame whose texels overhang the photo."""
+    import difftex.geometry.visibility as V
+    from difftex.geometry.frames import texel_mask, uv_frame
+
+    sc = occlusion_scene
+    ph = sc.photos[0]
+    assert ph.is_pinhole
+    ids, _ = id_buffer(V.ProxyCaster.build(sc.proxy), ph)
+    for i, poly in enumerate(sc.proxy.polygons):
+        frame = uv_frame(poly, sc.up, long_side=173)
+        mask = texel_mask(poly, frame)
+        mask[::7, ::5] = False  # holes
+        a = ids == i
+        rows, cols = np.flatnonzero(a.any(1)), np.flatnonzero(a.any(0))
+        for box in [(int(cols[0]), int(rows[0]), int(cols[-1]) + 1, int(rows[-1]) + 1), (100, 60, 180, 140)]:
+            crop = a[box[1] : box[3], box[0] : box[2]]
+            fast = V.crop_texel_visibility(frame, ph, mask, box, crop)
+            assert fast.any() and np.array_equal(fast, _projected_crop_visibility(frame, ph, mask, box, crop))

@@ -20,7 +20,7 @@ import numpy as np
 
 from difftex.config import TextureConfig
 from difftex.errors import DifftexError
-from difftex.geometry.frames import UVFrame, texel_footprint, texel_mask, texel_to_pixel, uv_frame
+from difftex.geometry.frames import UVFrame, texel_footprint, texel_homography, texel_mask, texel_to_pixel, uv_frame
 from difftex.geometry.raycast import NO_POLYGON, ProxyCaster, id_buffer, prepare  # noqa: F401  (id_buffer, prepare: re-exported)
 from difftex.scene.camera import Photo
 from difftex.scene.proxy import Proxy
@@ -127,6 +127,8 @@ def crop_texel_visibility(frame: UVFrame, photo: Photo, mask: np.ndarray, bbox, 
     seen = np.zeros(frame.shape, bool)
     if x1 <= x0 or y1 <= y0:
         return seen
+    if photo.is_pinhole:
+        return _crop_texel_visibility_pinhole(frame, photo, mask, (x0, y0, x1, y1), crop)
     ty, tx = np.nonzero(mask)
     pix, depth = texel_to_pixel(frame, photo, tx + 0.5, ty + 0.5)
     ok = (depth > 1e-9) & photo.in_image(pix)
@@ -136,6 +138,37 @@ def crop_texel_visibility(frame: UVFrame, photo: Photo, mask: np.ndarray, bbox, 
     hit = np.zeros_like(inside)
     hit[inside] = crop[py[inside], px[inside]]
     seen[ty[hit], tx[hit]] = True
+    return seen
+
+
+def _crop_texel_visibility_pinhole(
+    frame: UVFrame, photo: Photo, mask: np.ndarray, bbox, crop: np.ndarray
+) -> np.ndarray:
+    """crop_texel_visibility for a pinhole photo: the homography evaluated on the grid of the
+    mask's bounding rows and columns by broadcasting (the same float64 operations as
+    texel_to_pixel, so the same pixels), instead of on gathered texel lists: half the time of
+    the visibility stage's second pass. A texel centre inside the crop's box is inside the image."""
+    x0, y0, x1, y1 = bbox
+    seen = np.zeros(frame.shape, bool)
+    rows, cols = np.flatnonzero(mask.any(1)), np.flatnonzero(mask.any(0))
+    if rows.size == 0:
+        return seen
+    r0, r1, c0, c1 = rows[0], rows[-1] + 1, cols[0], cols[-1] + 1
+    H = texel_homography(frame, photo)
+    tx = np.arange(c0, c1, dtype=np.float64)[None, :] + 0.5
+    ty = np.arange(r0, r1, dtype=np.float64)[:, None] + 0.5
+    depth = H[2, 0] * tx + H[2, 1] * ty + H[2, 2]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        inv = 1.0 / depth
+        u = (H[0, 0] * tx + H[0, 1] * ty + H[0, 2]) * inv
+        v = (H[1, 0] * tx + H[1, 1] * ty + H[1, 2]) * inv
+    ok = (depth > 1e-9) & mask[r0:r1, c0:c1] & np.isfinite(u) & np.isfinite(v)
+    px = np.floor(np.where(ok, u, -1.0)).astype(np.int64) - x0
+    py = np.floor(np.where(ok, v, -1.0)).astype(np.int64) - y0
+    inside = ok & (px >= 0) & (py >= 0) & (px < x1 - x0) & (py < y1 - y0)
+    hit = np.zeros_like(inside)
+    hit[inside] = crop[py[inside], px[inside]]
+    seen[r0:r1, c0:c1] = hit
     return seen
 
 
