@@ -94,7 +94,9 @@ def main(argv=None) -> int:
             f"for difftex); shared filter {common['filter_s']:.0f} s + visibility {common['visibility_s']:.0f} s not "
             "included.",
             "Lower is better for Error and LPIPS, higher for SSIM, PSNR, Q_front, Q_vc. Sharpness: mean colour "
-            "gradient over the ground truth's on the same texels (1 = as sharp; below: blurred; above: noise, seams).",
+            "gradient over the ground truth's on the same texels (1 = as sharp; below: blurred; above: noise, seams). "
+            "Detail: the ground truth's gradients the texture reproduces, sum(grad T . grad GT) / sum(|grad GT|^2) "
+            "(1 = its edges at full contrast and in place; noise, seams and occluders' edges add nothing).",
         ]
         + [n for n in [P.timing_note(rows)] if n]
         + skipped
@@ -109,13 +111,13 @@ def main(argv=None) -> int:
     ]
     lv = next((r["metrics"]["maps"]["overall"]["lpips_variant"] for r in rows if "maps" in r.get("metrics", {})), "n/a")
     lines.append(
-        f"| Method | Error (90%) | Error (95%) | SSIM | LPIPS ({lv}) | PSNR | Sharpness vs GT | views SSIM | "
-        "views LPIPS | Q_front | Q_vc | Time (s) |"
+        f"| Method | Error (90%) | Error (95%) | SSIM | LPIPS ({lv}) | PSNR | Sharpness vs GT | Detail vs GT | "
+        "views SSIM | views LPIPS | Q_front | Q_vc | Time (s) |"
     )
-    lines.append("|---|---|---|---|---|---|---|---|---|---|---|---|")
+    lines.append("|---|---|---|---|---|---|---|---|---|---|---|---|---|")
     for r in rows:
         if r.get("missing"):
-            lines.append(P.missing_line(C.LABELS[r["method"]], r["missing"], 12))
+            lines.append(P.missing_line(C.LABELS[r["method"]], r["missing"], 13))
             continue
         mm = r["metrics"]
         o = mm["maps"]["overall"]
@@ -124,7 +126,7 @@ def main(argv=None) -> int:
         lines.append(
             f"| {C.LABELS.get(r['method'], r['method'])} | {C.fmt(o['error90'])} | {C.fmt(o['error95'])} | "
             f"{C.fmt(o['ssim'])} | {C.fmt(o['lpips'])} | {C.fmt(o['psnr'], 2)} | {C.fmt(o.get('sharpness'), 3)} | "
-            f"{C.fmt(v.get('ssim'))} | "
+            f"{C.fmt(o.get('detail'), 3)} | {C.fmt(v.get('ssim'))} | "
             f"{C.fmt(v.get('lpips'))} | {C.fmt(q.get('q_front'))} | {C.fmt(q.get('q_vc'))} | "
             f"{r['run']['total_s']:.0f} |"
         )

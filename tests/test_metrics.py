@@ -519,3 +519,27 @@ def test_mean_gradient_orders_blur_sharp_and_noise():
     one[5, 5] = True
     with pytest.raises(DifftexError, match="no pair"):
         metrics.mean_gradient(sharp, one)
+
+
+def test_detail_gain_counts_the_references_edges_not_noise():
+    """detail_gain is 1 for the reference itself, half for half its contrast, below 1 when blurred
+    or displaced, and stays near 1 with noise added, which mean_gradient counts as sharpness."""
+    from difftex.evaluation.metrics import detail_gain, mean_gradient
+
+    rng = np.random.default_rng(0)
+    x = np.arange(256)
+    ref = np.repeat(np.repeat(((x // 8) % 2).astype(np.float32)[None, :, None], 128, 0), 3, 2) * 0.6 + 0.2
+    assert detail_gain(ref, ref) == pytest.approx(1.0)
+    assert detail_gain(0.5 + 0.5 * (ref - 0.5), ref) == pytest.approx(0.5)
+    blurred = (ref + np.roll(ref, 1, 1) + np.roll(ref, -1, 1)) / 3
+    assert 0.2 < detail_gain(blurred, ref) < 0.5
+    assert detail_gain(np.roll(ref, 4, 1), ref) == pytest.approx(0.0, abs=1e-6)  # every edge displaced
+    assert detail_gain(np.roll(ref, 8, 1), ref) == pytest.approx(-1.0)  # half a period: inverted
+    noisy = np.clip(ref + rng.normal(0, 0.05, ref.shape), 0, 1).astype(np.float32)
+    assert detail_gain(noisy, ref) == pytest.approx(1.0, abs=0.03)
+    assert mean_gradient(noisy) > 1.5 * mean_gradient(ref)  # the plain gradient takes noise for detail
+    # only pairs inside the mask count: a mask inside one stripe sees no edge of the reference
+    mask = np.zeros(ref.shape[:2], bool)
+    mask[:, 3:7] = True  # inside one stripe: the reference is flat there
+    with pytest.raises(DifftexError):
+        detail_gain(noisy, ref, mask)

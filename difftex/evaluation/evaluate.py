@@ -214,6 +214,8 @@ def evaluate_maps(
         pairs = bool((gmask[:, 1:] & gmask[:, :-1]).any() or (gmask[1:] & gmask[:-1]).any())
         g_ref = metrics.mean_gradient(ref, gmask) if pairs else 0.0
         row["sharpness"] = metrics.mean_gradient(img, gmask) / g_ref if g_ref > 0 else None
+        # the ground truth's detail the texture reproduces (noise does not count, metrics.detail_gain)
+        row["detail"] = metrics.detail_gain(img, ref, gmask) if g_ref > 0 else None
         if lp_variant and min(gmask.shape) >= metrics.LPIPS_MIN_SIDE:
             row["lpips"], lp_label = metrics.lpips(img, ref, gmask, variant=lp_variant, device=cfg.device)
         else:
@@ -239,6 +241,7 @@ def evaluate_maps(
         "ssim": wmean("ssim"),
         "lpips": wmean("lpips"),
         "sharpness": wmean("sharpness"),
+        "detail": wmean("detail"),
         "psnr": metrics.psnr_from_mse(mse),
         "lpips_variant": lp_label or "unavailable: no polygon has 32x32 ground-truth texels",
         "texels": int(tot),
