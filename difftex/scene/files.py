@@ -155,7 +155,7 @@ def read_image(
             )
         # 8/16-bit images are read as stored and scaled here: OIIO's own conversion to float was
         # a third of a PNG photo's read (23 -> 16 ms at 1024 x 768), and multiplying by the
-        # float32 reciprocal gives its values bit for bit (tests/test_files.py)
+        # float32 reciprocal gives its values bit for bit (tests/test_sampling.py)
         native = {oiio.UINT8: (oiio.UINT8, 255), oiio.UINT16: (oiio.UINT16, 65535)}.get(spec.format.basetype)
         pixels = inp.read_image(0, 0, 0, spec.nchannels, native[0] if native else oiio.FLOAT)
         if pixels is None or not isinstance(pixels, np.ndarray):
