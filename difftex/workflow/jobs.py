@@ -155,7 +155,8 @@ def texture_jobs(rows: list[dict], cfg: dict) -> dict[str, list[str]]:
     limit or above get a job each; the others share ceil(their seconds / limit) jobs, each
     polygon (largest first) joining, among the jobs it fits in, the one that already has most of
     its photos (the job decodes a photo once for all its polygons, difftex.scene.files.DecodeCache),
-    else the least-loaded job; so a shared job ends within one small polygon of the limit.
+    else the least-loaded job; so a shared job ends within one small polygon (and
+    ``run.photo_decode_s`` per photo it shares) of the limit.
     ``pack_seconds: 0`` gives every polygon its own job.
 
     Args:
@@ -177,8 +178,9 @@ def texture_jobs(rows: list[dict], cfg: dict) -> dict[str, list[str]]:
     limit = min(pack, max(works[0][0] if works else 0.0, total / n_jobs))
     alone = [[pid] for work, pid in works if work >= limit]  # a job each
     small = [(work, pid) for work, pid in works if work < limit]
-    # the small ones in as many jobs as their work needs at the limit, each added to the
-    # least-loaded job (largest first): balanced jobs, each within one polygon of the limit
+    # the small ones in as many jobs as their work needs at the limit, largest first, each added
+    # to the job that already has most of its photos among those it fits in, else to the
+    # least-loaded one: balanced jobs, each within one polygon (and the decodes it saves) of the limit
     n = max(1, math.ceil(sum(w for w, _ in small) / limit - 1e-9)) if small else 0
     photos = {str(r["id"]): set(r.get("photos") or ()) for r in rows}
     decode_s = float(cfg["run"].get("photo_decode_s", 0.0))
