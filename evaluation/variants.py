@@ -10,8 +10,9 @@ overrides; null for the plain per-texel average; ``{"baseline": "average" | "fro
 visibility (``texture.density: auto`` at ``--density-scale``), and is scored against the
 ground-truth ortho map resampled to the texture's frame: Error 90/95 % and SSIM over the
 polygon's texels (difftex.metrics), sharpness = mean colour gradient magnitude over the ground
-truth's, and the effective number of photos per texel 1 / sum W^2 (mean over texels). Same
-metric code as the tables; no held-out views, no assembly. Writes <out>.json and <out>.md.
+truth's, detail = the share of the ground truth's gradients reproduced (metrics.detail_gain),
+and the effective number of photos per texel 1 / sum W^2 (mean over texels). Same metric code
+as the tables; no held-out views, no assembly. Writes <out>.json and <out>.md.
 """
 
 from __future__ import annotations
@@ -63,7 +64,7 @@ def run(
     gt = scene / "ground_truth"
     out = {}
     for name, overrides in variants.items():
-        errs, ssims, weights, sharp, gsharp, neff, seconds = [], [], [], [], [], [], 0.0
+        errs, ssims, weights, sharp, gsharp, detail, neff, seconds = [], [], [], [], [], [], [], 0.0
         for v in vis:
             inp = polygon_input_from_visibility(v, by_name)
             t0 = time.perf_counter()
@@ -92,6 +93,7 @@ def run(
             weights.append(float(mk.sum()))
             sharp.append(metrics.mean_gradient(U, mk))
             gsharp.append(metrics.mean_gradient(ref, mk))
+            detail.append(metrics.detail_gain(U, ref, mk))
         e, w = np.concatenate(errs), np.asarray(weights)
         out[name] = {
             "overrides": overrides,
@@ -99,13 +101,15 @@ def run(
             "e95": float(np.percentile(e, 95)),
             "ssim": float((np.asarray(ssims) * w).sum() / w.sum()),
             "sharpness_vs_gt": float((np.asarray(sharp) * w).sum() / (np.asarray(gsharp) * w).sum()),
+            "detail_vs_gt": float((np.asarray(detail) * w).sum() / w.sum()),
             "effective_photos": float(np.concatenate(neff).mean()) if neff else None,
             "seconds": seconds,
         }
         r = out[name]
         print(
             f"{scene.name} {name:14s} E90 {r['e90']:.4f} E95 {r['e95']:.4f} SSIM {r['ssim']:.4f} "
-            f"sharpness/gt {r['sharpness_vs_gt']:.3f} photos/texel {r['effective_photos']} {seconds:.0f}s",
+            f"sharpness/gt {r['sharpness_vs_gt']:.3f} detail/gt {r['detail_vs_gt']:.3f} "
+            f"photos/texel {r['effective_photos']} {seconds:.0f}s",
             flush=True,
         )
     return {
@@ -157,14 +161,15 @@ def main(argv=None) -> int:
                 f"{res['texels']} texels; metrics against the ground-truth maps at each texture's resolution."
             ],
         ),
-        "| variant | overrides | Error 90 % | Error 95 % | SSIM | sharpness / GT | photos per texel | seconds |",
-        "|---|---|---|---|---|---|---|---|",
+        "| variant | overrides | Error 90 % | Error 95 % | SSIM | sharpness / GT | detail / GT | photos per texel "
+        "| seconds |",
+        "|---|---|---|---|---|---|---|---|---|",
     ]
     for name, r in res["variants"].items():
         neff = f"{r['effective_photos']:.1f}" if r["effective_photos"] is not None else "(blend of all)"
         lines.append(
             f"| {name} | `{json.dumps(r['overrides'])}` | {r['e90']:.4f} | {r['e95']:.4f} | {r['ssim']:.4f} | "
-            f"{r['sharpness_vs_gt']:.3f} | {neff} | {r['seconds']:.0f} |"
+            f"{r['sharpness_vs_gt']:.3f} | {r['detail_vs_gt']:.3f} | {neff} | {r['seconds']:.0f} |"
         )
     C.write_outputs(
         Path(args.out),
