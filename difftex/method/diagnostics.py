@@ -123,9 +123,9 @@ def _upsampled_dft(data: np.ndarray, size: int, factor: float, offsets: np.ndarr
 def phase_shift(reference: np.ndarray, moving: np.ndarray, upsample: int = 10) -> np.ndarray:
     """(dy, dx) that registers ``moving`` to ``reference`` by phase correlation, to 1/``upsample`` pixel.
 
-    scikit-image's ``registration.phase_cross_correlation(..., normalization=None)``, step for
-    step (tests/test_diagnostics.py compares them): importing it (with scipy.fft) was 0.4 s of
-    every texture job, more than the measurement itself.
+    scikit-image's ``registration.phase_cross_correlation(..., normalization=None)`` (BSD-3-Clause),
+    step for step (tests/test_diagnostics.py compares them): importing it (with scipy.fft) was
+    0.4 s of every texture job, more than the measurement itself.
 
     Args:
         reference, moving: (h, w) real images of one shape.
