@@ -210,7 +210,7 @@ def main() -> int:
 
     write_json(args.out + ".json", info)
     m = info["machine"]
-    from difftex.method.config import ComputeConfig
+    from difftex.method.config import ComputeConfig, OptimizeConfig
 
     lines = [
         f"# Optimizer time and memory per polygon ({Path(args.scene).name} / {args.polygon})",
@@ -222,7 +222,8 @@ def main() -> int:
         f"{tuple(round(x, 1) for x in m['load_avg'])}.",
         "",
         f"Each level ran {args.iters} iterations (0 = config caps). 'full run' = read + setup + first iteration "
-        "(which carries torch.compile's cost) + the rest of the default caps (300, 150, 80, 40 iterations per level) "
+        "(which carries torch.compile's cost) + the rest of the default caps "
+        f"({', '.join(str(c) for c in OptimizeConfig().max_iters_per_level)} iterations per level, the last repeating) "
         "x the median time of the later iterations. `compile`: OptimizeConfig.compile (auto compiles levels with "
         f"at least {ComputeConfig().compile_min_slots} K x H x W slot entries); 'compiled' lists the levels that were.",
         "",
