@@ -179,29 +179,10 @@ def test_photos_and_polygons_cast_side_by_side_give_the_same_visibility(tmp_path
         assert a.texel_size == b.texel_size
 
 
-def _projected_crop_visibility(frame, photo, mask, bbox, crop):
-    """The reference: each texel centre of the mask through texel_to_pixel, kept where it lands
-    on a pixel of the crop (crop_texel_visibility before its pinhole fast path)."""
-    from difftex.geometry.frames import texel_to_pixel
-
-    x0, y0, x1, y1 = bbox
-    seen = np.zeros(frame.shape, bool)
-    ty, tx = np.nonzero(mask)
-    pix, depth = texel_to_pixel(frame, photo, tx + 0.5, ty + 0.5)
-    ok = (depth > 1e-9) & photo.in_image(pix)
-    px = np.floor(np.where(ok, pix[:, 0], -1)).astype(np.int64) - x0
-    py = np.floor(np.where(ok, pix[:, 1], -1)).astype(np.int64) - y0
-    inside = ok & (px >= 0) & (py >= 0) & (px < x1 - x0) & (py < y1 - y0)
-    hit = np.zeros_like(inside)
-    hit[inside] = crop[py[inside], px[inside]]
-    seen[ty[hit], tx[hit]] = True
-    return seen
-
-
 def test_pinhole_crop_visibility_is_the_projected_one(occlusion_scene):
     """The pinhole fast path of crop_texel_visibility (the homography broadcast over the mask's
-    rows and columns) marks the same texels as projecting each texel centre, with a partial crop
-    box, a mask with holes, and a frame whose texels overhang the photo."""
+    rows and columns) marks the same texels as its general path, which projects each texel
+    centre, with a partial crop box, a mask with holes, and a frame whose texels overhang the photo."""
     import difftex.geometry.visibility as V
     from difftex.geometry.frames import texel_mask, uv_frame
 
@@ -218,4 +199,5 @@ def test_pinhole_crop_visibility_is_the_projected_one(occlusion_scene):
         for box in [(int(cols[0]), int(rows[0]), int(cols[-1]) + 1, int(rows[-1]) + 1), (100, 60, 180, 140)]:
             crop = a[box[1] : box[3], box[0] : box[2]]
             fast = V.crop_texel_visibility(frame, ph, mask, box, crop)
-            assert fast.any() and np.array_equal(fast, _projected_crop_visibility(frame, ph, mask, box, crop))
+            projected = V._crop_texel_visibility_projected(frame, ph, mask, box, crop)
+            assert fast.any() and np.array_equal(fast, projected)

@@ -106,7 +106,7 @@ def loss_svg(levels: list[dict], title: str = "") -> str | None:
         out.append(f'<line x1="{x0}" y1="{y:.1f}" x2="{x1}" y2="{y:.1f}" stroke="#dddddd"/>')
         out.append(f'<text x="{x0 - 6}" y="{y + 4:.1f}" font-size="12" text-anchor="end">{_tick_label(t)}</text>')
     step = linear_step(n)
-    for i in range(step if step > 1 else 1, n + 1, step):
+    for i in range(step, n + 1, step):
         x = px(i)
         out.append(f'<line x1="{x:.1f}" y1="{y1}" x2="{x:.1f}" y2="{y1 + 5}" stroke="#000000"/>')
         out.append(f'<text x="{x:.1f}" y="{y1 + 19}" font-size="12" text-anchor="middle">{i}</text>')

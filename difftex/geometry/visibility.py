@@ -123,20 +123,35 @@ def crop_texel_visibility(frame: UVFrame, photo: Photo, mask: np.ndarray, bbox, 
         bbox: (x0, y0, x1, y1) of ``crop`` in full-resolution pixels.
         crop: (y1 - y0, x1 - x0) bool, the pixels whose nearest proxy surface is the polygon.
     """
-    x0, y0, x1, y1 = (int(v) for v in bbox)
-    seen = np.zeros(frame.shape, bool)
+    bbox = tuple(int(v) for v in bbox)
+    x0, y0, x1, y1 = bbox
     if x1 <= x0 or y1 <= y0:
-        return seen
+        return np.zeros(frame.shape, bool)
     if photo.is_pinhole:
-        return _crop_texel_visibility_pinhole(frame, photo, mask, (x0, y0, x1, y1), crop)
-    ty, tx = np.nonzero(mask)
-    pix, depth = texel_to_pixel(frame, photo, tx + 0.5, ty + 0.5)
-    ok = (depth > 1e-9) & photo.in_image(pix)
-    px = np.floor(np.where(ok, pix[:, 0], -1)).astype(np.int64) - x0
-    py = np.floor(np.where(ok, pix[:, 1], -1)).astype(np.int64) - y0
+        return _crop_texel_visibility_pinhole(frame, photo, mask, bbox, crop)
+    return _crop_texel_visibility_projected(frame, photo, mask, bbox, crop)
+
+
+def _on_crop(u: np.ndarray, v: np.ndarray, ok: np.ndarray, bbox, crop: np.ndarray) -> np.ndarray:
+    """Which of the pixel positions (u, v) valid where ``ok`` fall on a True pixel of ``crop``
+    (whose box is ``bbox``); the same shape as ``u``."""
+    x0, y0, x1, y1 = bbox
+    px = np.floor(np.where(ok, u, -1.0)).astype(np.int64) - x0
+    py = np.floor(np.where(ok, v, -1.0)).astype(np.int64) - y0
     inside = ok & (px >= 0) & (py >= 0) & (px < x1 - x0) & (py < y1 - y0)
     hit = np.zeros_like(inside)
     hit[inside] = crop[py[inside], px[inside]]
+    return hit
+
+
+def _crop_texel_visibility_projected(
+    frame: UVFrame, photo: Photo, mask: np.ndarray, bbox, crop: np.ndarray
+) -> np.ndarray:
+    """crop_texel_visibility for any camera model: each texel centre of the mask through f_k^i."""
+    seen = np.zeros(frame.shape, bool)
+    ty, tx = np.nonzero(mask)
+    pix, depth = texel_to_pixel(frame, photo, tx + 0.5, ty + 0.5)
+    hit = _on_crop(pix[:, 0], pix[:, 1], (depth > 1e-9) & photo.in_image(pix), bbox, crop)
     seen[ty[hit], tx[hit]] = True
     return seen
 
@@ -147,9 +162,8 @@ def _crop_texel_visibility_pinhole(
     """crop_texel_visibility for a pinhole photo: the homography evaluated on the grid of the
     mask's bounding rows and columns by broadcasting (the same float64 operations as
     texel_to_pixel, so the same pixels), instead of on gathered texel lists: 6x faster on
-    archive's photos (tests/test_visibility.py compares the texels). A texel centre inside the
-    crop's box is inside the image."""
-    x0, y0, x1, y1 = bbox
+    archive's photos (tests/test_visibility.py compares it with the projected path). A texel
+    centre inside the crop's box is inside the image."""
     seen = np.zeros(frame.shape, bool)
     rows, cols = np.flatnonzero(mask.any(1)), np.flatnonzero(mask.any(0))
     if rows.size == 0:
@@ -164,12 +178,7 @@ def _crop_texel_visibility_pinhole(
         u = (H[0, 0] * tx + H[0, 1] * ty + H[0, 2]) * inv
         v = (H[1, 0] * tx + H[1, 1] * ty + H[1, 2]) * inv
     ok = (depth > 1e-9) & mask[r0:r1, c0:c1] & np.isfinite(u) & np.isfinite(v)
-    px = np.floor(np.where(ok, u, -1.0)).astype(np.int64) - x0
-    py = np.floor(np.where(ok, v, -1.0)).astype(np.int64) - y0
-    inside = ok & (px >= 0) & (py >= 0) & (px < x1 - x0) & (py < y1 - y0)
-    hit = np.zeros_like(inside)
-    hit[inside] = crop[py[inside], px[inside]]
-    seen[r0:r1, c0:c1] = hit
+    seen[r0:r1, c0:c1] = _on_crop(u, v, ok, bbox, crop)
     return seen
 
 

@@ -166,19 +166,15 @@ def read_image(
     finally:
         inp.close()
     pixels = pixels.reshape(spec.height, spec.width, spec.nchannels)
-    if native:
-        if spec.nchannels == 1:
-            pixels = np.repeat(pixels, 3, axis=2)
-        elif spec.nchannels == 2:  # grey + alpha
-            pixels = np.repeat(pixels[:, :, :1], 3, axis=2)
-        pixels = np.ascontiguousarray(pixels[:, :, :3])
-        return pixels if as_stored else to_float(pixels)
     if spec.nchannels == 1:
         pixels = np.repeat(pixels, 3, axis=2)
     elif spec.nchannels == 2:  # grey + alpha
         pixels = np.repeat(pixels[:, :, :1], 3, axis=2)
     else:
         pixels = pixels[:, :, :3]
+    if native:
+        pixels = np.ascontiguousarray(pixels)
+        return pixels if as_stored else to_float(pixels)
     # only a float format can store NaN or infinity; an 8/16-bit one decodes to finite values,
     # and the check was a quarter of a PNG photo's read time
     if spec.format.basetype in (oiio.FLOAT, oiio.HALF, oiio.DOUBLE) and not np.isfinite(pixels).all():
