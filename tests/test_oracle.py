@@ -1,0 +1,100 @@
+"""The selection oracle of evaluation/bounds.py (difftex.evaluation.oracle)."""
+
+import math
+
+import pytest
+import torch
+
+from difftex.errors import DifftexError
+from difftex.evaluation.oracle import patch_oracle
+
+
+def _scene(h=24, w=32, seed=0):
+    g = torch.Generator().manual_seed(seed)
+    ref = torch.rand(3, h, w, generator=g)
+    return ref, g
+
+
+def test_a_texel_takes_the_candidate_that_matches_the_truth_there():
+    ref, g = _scene()
+    good_left = ref.clone()
+    good_left[:, :, 16:] = torch.rand(3, 24, 16, generator=g)  # wrong on the right half
+    good_right = ref.clone()
+    good_right[:, :, :16] = torch.rand(3, 24, 16, generator=g)
+    cols = torch.stack([good_left, good_right])
+    vis = torch.ones(2, 24, 32, dtype=torch.bool)
+    for patch in (1, 5):
+        tex, choice = patch_oracle(cols, vis, ref, patch)
+        # away from the boundary between the halves, each side takes its exact candidate
+        assert (choice[:, : 16 - patch // 2] == 0).all() and (choice[:, 16 + patch // 2 :] == 1).all()
+        assert torch.allclose(tex[:, :, :14], ref[:, :, :14]) and torch.allclose(tex[:, :, 18:], ref[:, :, 18:])
+
+
+def test_a_larger_patch_resists_a_lucky_noise_sample():
+    ref, g = _scene()
+    noisy = ref + 0.05 * torch.randn(3, 24, 32, generator=g)
+    wrong = torch.rand(3, 24, 32, generator=g)
+    wrong[:, 10, 10] = ref[:, 10, 10]  # one lucky texel in an otherwise wrong photo
+    cols = torch.stack([noisy, wrong])
+    vis = torch.ones(2, 24, 32, dtype=torch.bool)
+    _, c1 = patch_oracle(cols, vis, ref, 1)
+    _, c5 = patch_oracle(cols, vis, ref, 5)
+    assert c1[10, 10] == 1 and c5[10, 10] == 0
+
+
+def test_a_candidate_never_wins_where_it_does_not_see():
+    ref, _ = _scene()
+    exact = ref.clone()
+    far = ref + 0.5
+    cols = torch.stack([exact, far])
+    vis = torch.ones(2, 24, 32, dtype=torch.bool)
+    vis[0, :, 20:] = False  # the exact photo does not see the right part
+    vis[:, 0, 0] = False  # nobody sees the corner
+    tex, choice = patch_oracle(cols, vis, ref, 7)
+    assert (choice[:, 20:][vis[1, :, 20:]] == 1).all()
+    rows, cols_ = torch.arange(24)[:, None], torch.arange(32)
+    assert bool(vis[choice.clamp_min(0), rows, cols_][choice >= 0].all())  # the chosen photo sees the texel
+    assert choice[0, 0] == -1 and (tex[:, 0, 0] == 0).all()
+
+
+def test_an_edge_texel_that_one_photo_barely_reaches_goes_to_the_photo_that_covers_it():
+    ref, _ = _scene()
+    edge = ref.clone()  # exact, but sees only column 0 (a sliver at its view's edge)
+    cover = ref + 0.1  # slightly off, sees everything
+    vis = torch.ones(2, 24, 32, dtype=torch.bool)
+    vis[0, :, 1:] = False
+    _, choice = patch_oracle(torch.stack([edge, cover]), vis, ref, 9)
+    assert (choice[:, 0] == 1).all()
+
+
+def test_bad_shapes_and_patch_sizes_are_refused():
+    ref, _ = _scene()
+    cols = ref[None].repeat(2, 1, 1, 1)
+    vis = torch.ones(2, 24, 32, dtype=torch.bool)
+    with pytest.raises(DifftexError, match="odd"):
+        patch_oracle(cols, vis, ref, 4)
+    with pytest.raises(DifftexError, match="do not match"):
+        patch_oracle(cols, vis[:, :10], ref, 3)
+    with pytest.raises(DifftexError, match=r"\(K, 3, H, W\)"):
+        patch_oracle(cols[:, :2], vis, ref, 3)
+
+
+def test_the_bounds_script_scores_every_row_of_every_polygon(small_synth_scene, tmp_path):
+    import json
+
+    from evaluation import bounds
+
+    out = tmp_path / "bounds"
+    assert bounds.main(["--scene", str(small_synth_scene), "--preset", "fast", "--patches", "1,3",
+                        "--out", str(out)]) == 0
+    res = json.loads(out.with_suffix(".json").read_text())
+    names = ["ground truth at the texture's texel size", "average", "oracle, 1x1 patches", "oracle, 3x3 patches",
+             "difftex (fast)"]
+    assert list(res["rows"]) == names and res["polygons"]
+    for n in names:
+        assert [p["polygon_id"] for p in res["rows"][n]["polygons"]] == res["polygons"]
+        assert 0 < res["rows"][n]["error95"] < math.sqrt(3) and -1 <= res["rows"][n]["ssim"] <= 1
+    # the truth at about its own texel size is far closer to itself than any texture of the photos
+    gt = res["rows"][names[0]]
+    assert all(gt["ssim"] > res["rows"][n]["ssim"] and gt["error95"] < res["rows"][n]["error95"] for n in names[1:])
+    assert "| oracle, 3x3 patches |" in out.with_suffix(".md").read_text()
