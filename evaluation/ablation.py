@@ -10,6 +10,7 @@ the ground-truth maps (Error 90/95, SSIM, LPIPS) and for perspective quality (Q_
 from __future__ import annotations
 
 import argparse
+import shlex
 import sys
 import time
 from pathlib import Path
@@ -98,7 +99,7 @@ def main(argv=None) -> int:
     lines = [
         C.header(
             "Ablation: each loss term and data-quality step off in turn",
-            "python evaluation/ablation.py " + " ".join(sys.argv[1:] if argv is None else argv),
+            "python evaluation/ablation.py " + shlex.join(sys.argv[1:] if argv is None else argv),
             mach,
             notes,
         )

@@ -29,6 +29,7 @@ import argparse
 import json
 import os
 import resource
+import shlex
 import subprocess
 import sys
 import tempfile
@@ -199,7 +200,7 @@ def main() -> int:
                 flush=True,
             )
     info = {
-        "command": " ".join(sys.argv),
+        "command": shlex.join(sys.argv),
         "scene": args.scene,
         "polygon": args.polygon,
         "iters_per_level": args.iters,

@@ -26,6 +26,7 @@ import argparse
 import json
 import os
 import resource
+import shlex
 import shutil
 import subprocess
 import sys
@@ -219,7 +220,7 @@ def write(stem: Path, rows: list[dict], mach: dict, args) -> None:
     lines = [
         C.header(
             "Speed: the workflow per preset against texrecon and a plain average",
-            "python evaluation/bench_speed.py " + " ".join(sys.argv[1:]),
+            "python evaluation/bench_speed.py " + shlex.join(sys.argv[1:]),
             mach,
             [
                 "One run per row, in the order texrecon's input (the first preset's run), the presets, "

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import shlex
 import subprocess
 import sys
 import tempfile
@@ -69,7 +70,7 @@ def main() -> None:
             rows.append({"stage": "visibility", "long_side": ls, **v, "files_mib": size / 2**20})
     pixels = sum(p.width * p.height for p in sc.photos)
     result = {
-        "command": "python evaluation/bench_visibility.py " + " ".join(sys.argv[1:]),
+        "command": "python evaluation/bench_visibility.py " + shlex.join(sys.argv[1:]),
         "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
         "machine": machine(),
         "scene": {

@@ -11,6 +11,7 @@ whole pipeline runs on the copy and every method is scored on the ground-truth m
 from __future__ import annotations
 
 import argparse
+import shlex
 import sys
 import time
 from pathlib import Path
@@ -85,7 +86,7 @@ def main(argv=None) -> int:
     lines = [
         C.header(
             "Stress test: fewer and fewer photos",
-            "python evaluation/stress.py " + " ".join(sys.argv[1:] if argv is None else argv),
+            "python evaluation/stress.py " + shlex.join(sys.argv[1:] if argv is None else argv),
             mach,
             notes,
         )

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import shlex
 import sys
 import time
 from pathlib import Path
@@ -104,7 +105,7 @@ def main(argv=None) -> int:
     lines = [
         C.header(
             "Table 1: synthetic scene, texture maps against ground truth",
-            "python evaluation/table1.py " + " ".join(sys.argv[1:] if argv is None else argv),
+            "python evaluation/table1.py " + shlex.join(sys.argv[1:] if argv is None else argv),
             mach,
             notes,
         )

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import shlex
 import sys
 import time
 from pathlib import Path
@@ -118,7 +119,7 @@ def main(argv=None) -> int:
     lines = [
         C.header(
             "Table 2: real scenes, held-out photos and perspective quality",
-            "python evaluation/table2.py " + " ".join(sys.argv[1:] if argv is None else argv),
+            "python evaluation/table2.py " + shlex.join(sys.argv[1:] if argv is None else argv),
             mach,
             notes,
         )

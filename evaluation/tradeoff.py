@@ -12,6 +12,7 @@ reference points, so a user can pick a preset from measured evidence.
 from __future__ import annotations
 
 import argparse
+import shlex
 import sys
 import time
 from pathlib import Path
@@ -139,7 +140,7 @@ def main(argv=None) -> int:
     lines = [
         C.header(
             "Speed/accuracy trade: presets and resolutions",
-            "python evaluation/tradeoff.py " + " ".join(sys.argv[1:] if argv is None else argv),
+            "python evaluation/tradeoff.py " + shlex.join(sys.argv[1:] if argv is None else argv),
             mach,
             notes,
         )

@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import shlex
 import sys
 import time
 from pathlib import Path
@@ -152,7 +153,7 @@ def main(argv=None) -> int:
     lines = [
         C.header(
             f"Optimizer variants on {args.scene.name}",
-            "python evaluation/variants.py " + " ".join(sys.argv[1:]),
+            "python evaluation/variants.py " + shlex.join(sys.argv[1:]),
             mach,
             [
                 f"density auto x {args.density_scale} (max {args.max_long_side}), "
