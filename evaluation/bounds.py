@@ -23,6 +23,7 @@ Writes <out>.json (per polygon too) and <out>.md.
 from __future__ import annotations
 
 import argparse
+import shlex
 import sys
 import time
 from pathlib import Path
@@ -34,8 +35,8 @@ from evaluation import common as C  # noqa: E402
 
 
 def candidates(photos, inp, cfg):
-    """(colours (K, 3, H, W), visible (K, H, W)) of every photo that sees the polygon, at its
-    frame, through the brightness transfers texture_polygon would estimate."""
+    """(colours (K, 3, H, W), visible (K, H, W), cos (K, H, W)) of every photo that sees the
+    polygon, at its frame, through the brightness transfers texture_polygon would estimate."""
     import torch
 
     from difftex.compose.histmatch import mapped_transfers
@@ -50,7 +51,7 @@ def candidates(photos, inp, cfg):
         transfers, _ = mapped_transfers(
             raw, len(inp.photos), cfg.histmatch_reference, cfg.histmatch_channels, model=cfg.histmatch_model
         )
-    cols, vis = [], []
+    cols, vis, cos = [], [], []
     for n in sorted(photos.samplers):
         mp = photos.map(n, inp.frame, inp.texel_mask)
         if mp is None:
@@ -58,7 +59,8 @@ def candidates(photos, inp, cfg):
         mp = with_transfer(mp, transfers[n] if transfers else None)
         cols.append(mp.colour)
         vis.append(mp.visible)
-    return torch.stack(cols), torch.stack(vis)
+        cos.append(mp.cos)
+    return torch.stack(cols), torch.stack(vis), torch.stack(cos)
 
 
 def run(scene: Path, density_scale: float, max_long_side: int, preset: str, patches: list[int],
@@ -70,7 +72,7 @@ def run(scene: Path, density_scale: float, max_long_side: int, preset: str, patc
     from difftex.config import TextureConfig
     from difftex.evaluation import metrics
     from difftex.evaluation.evaluate import resample_texture
-    from difftex.evaluation.oracle import patch_oracle
+    from difftex.evaluation.oracle import patch_oracle, tail_causes
     from difftex.geometry.frames import UVFrame
     from difftex.geometry.visibility import scene_visibility
     from difftex.method.config import ComputeConfig, OptimizeConfig
@@ -91,6 +93,7 @@ def run(scene: Path, density_scale: float, max_long_side: int, preset: str, patc
         names.append(f"difftex ({preset})")
     per: dict[str, list[dict]] = {n: [] for n in names}
     errs: dict[str, list[np.ndarray]] = {n: [] for n in names}
+    tails: list[dict] = []
     for v in vis:
         t0 = time.perf_counter()
         inp = polygon_input_from_visibility(v, by_name)
@@ -98,9 +101,11 @@ def run(scene: Path, density_scale: float, max_long_side: int, preset: str, patc
         ref = read_image(gt / "maps" / f"{v.polygon_id}.png")
         gmask = read_image(gt / "masks" / f"{v.polygon_id}.png")[..., 0] > 0.5
         ref_here = resample_texture(ref, gframe, v.frame)
-        photos = PhotoSet.load(inp, torch.device("cpu"), supersample=cfg.supersample)
-        cols, seen = candidates(photos, inp, cfg)
         maps = {names[0]: ref_here}
+        if preset != "none":
+            maps[f"difftex ({preset})"] = texture_polygon(inp, cfg, ComputeConfig(device="cpu")).texture
+        photos = PhotoSet.load(inp, torch.device("cpu"), supersample=cfg.supersample)
+        cols, seen, cos = candidates(photos, inp, cfg)
         wsum = seen.sum(0).float()
         avg = (cols * seen[:, None]).sum(0) / wsum.clamp_min(1)
         maps["average"] = finish_texture(avg.permute(1, 2, 0).numpy(), wsum.numpy(), inp.texel_mask)[0]
@@ -109,9 +114,11 @@ def run(scene: Path, density_scale: float, max_long_side: int, preset: str, patc
             t, _ = patch_oracle(cols, seen, ref_t, p)
             t = t.permute(1, 2, 0).numpy()
             maps[f"oracle, {p}x{p} patches"] = finish_texture(t, wsum.numpy(), inp.texel_mask)[0]
-        del cols, seen
-        if preset != "none":
-            maps[f"difftex ({preset})"] = texture_polygon(inp, cfg, ComputeConfig(device="cpu")).texture
+        if preset != "none":  # why difftex's worst texels are wrong, at its own frame
+            tex_t = torch.from_numpy(np.ascontiguousarray(maps[f"difftex ({preset})"].transpose(2, 0, 1)))
+            tails.append(tail_causes(cols, seen, cos, ref_t, tex_t, torch.from_numpy(inp.texel_mask)))
+            tails[-1]["polygon_id"] = v.polygon_id
+        del cols, seen, cos
         for name, img in maps.items():
             out = resample_texture(img, v.frame, gframe)
             e = metrics.texel_error(out, ref)[gmask]
@@ -131,7 +138,7 @@ def run(scene: Path, density_scale: float, max_long_side: int, preset: str, patc
             "ssim": float((np.array([r["ssim"] for r in per[n]]) * w).sum() / w.sum()),
             "polygons": per[n],
         }
-    return {"scene": str(scene), "polygons": [v.polygon_id for v in vis], "rows": rows}
+    return {"scene": str(scene), "polygons": [v.polygon_id for v in vis], "rows": rows, "difftex_tail": tails}
 
 
 def main(argv=None) -> int:
@@ -153,7 +160,7 @@ def main(argv=None) -> int:
     lines = [
         C.header(
             f"Upper bounds of photo selection on {args.scene.name}",
-            "python evaluation/bounds.py " + " ".join(sys.argv[1:] if argv is None else argv),
+            "python evaluation/bounds.py " + shlex.join(sys.argv[1:] if argv is None else argv),
             mach,
             [
                 f"Polygons {', '.join(res['polygons'])}; frames of `density: auto` x {args.density_scale} "
@@ -172,6 +179,20 @@ def main(argv=None) -> int:
     for n, r in res["rows"].items():
         pp = ", ".join(f"{p['polygon_id']} {p['ssim']:.3f}" for p in r["polygons"])
         lines.append(f"| {n} | {r['error95']:.4f} | {r['ssim']:.4f} | {pp} |")
+    if res["difftex_tail"]:
+        lines += [
+            "",
+            "difftex's worst texels (at or above its Error 95 %, per polygon at its own frame; "
+            "difftex.evaluation.oracle.tail_causes): share where the median photo is further from the truth "
+            "than that, where no photo is within 0.15 of it (mean over 5x5 texels: shadows of occluders the "
+            "truth lacks, relief every photo sees), where one of the 3 most frontal photos is.",
+            "",
+            "| polygon | Error 95 % | median photo worse | no photo right | a frontal photo right |",
+            "|---|---|---|---|---|",
+        ]
+        for t in res["difftex_tail"]:
+            lines.append(f"| {t['polygon_id']} | {t['error95']:.4f} | {t['median_photo_worse']:.2f} | "
+                         f"{t['no_photo_right']:.2f} | {t['frontal_right']:.2f} |")
     lines += ["", f"Whole command: {time.perf_counter() - t_all:.0f} s."]
     data = {"machine": mach, "args": vars(args) | {"scene": str(args.scene)}, **res}
     C.write_outputs(Path(args.out), "\n".join(lines) + "\n", data)

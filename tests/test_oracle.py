@@ -98,3 +98,29 @@ def test_the_bounds_script_scores_every_row_of_every_polygon(small_synth_scene, 
     gt = res["rows"][names[0]]
     assert all(gt["ssim"] > res["rows"][n]["ssim"] and gt["error95"] < res["rows"][n]["error95"] for n in names[1:])
     assert "| oracle, 3x3 patches |" in out.with_suffix(".md").read_text()
+    assert [t["polygon_id"] for t in res["difftex_tail"]] == res["polygons"]
+    for t in res["difftex_tail"]:
+        assert t["tail_texels"] > 0 and all(0 <= t[k] <= 1 for k in ("median_photo_worse", "no_photo_right",
+                                                                     "frontal_right"))
+
+
+def test_tail_causes_sorts_the_worst_texels_by_what_the_photos_hold():
+    from difftex.evaluation.oracle import tail_causes
+
+    h, w = 20, 40
+    ref = torch.full((3, h, w), 0.5)
+    right, wrong = ref.clone(), ref + 0.3
+    frontal = wrong.clone()
+    frontal[:, :, 10:20] = ref[:, :, 10:20]  # the frontal photo and one other are right in columns 10-19
+    other = frontal.clone()
+    cols = torch.stack([frontal, other, wrong, right])
+    vis = torch.ones(4, h, w, dtype=torch.bool)
+    vis[3, :, :30] = False  # the photo that is right everywhere sees only columns 30-39
+    cos = torch.tensor([0.99, 0.6, 0.5, 0.4])[:, None, None].expand(4, h, w).contiguous()
+    texture = ref.clone()
+    texture[:, :, :20] += 0.2  # the texture is wrong in columns 0-19 (its tail), less than the wrong photos
+    out = tail_causes(cols, vis, cos, ref, texture, torch.ones(h, w, dtype=torch.bool), patch=1, frontal=1)
+    assert out["tail_texels"] == 20 * h
+    assert out["median_photo_worse"] == pytest.approx(0.5)  # columns 0-9: every photo there is worse
+    assert out["no_photo_right"] == pytest.approx(0.5)  # columns 0-9: no photo is right
+    assert out["frontal_right"] == pytest.approx(0.5)  # columns 10-19

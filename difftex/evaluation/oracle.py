@@ -63,3 +63,56 @@ def patch_oracle(
     seen = visible.any(0)
     tex = torch.gather(colours, 0, choice[None, None].expand(1, 3, H, W))[0] * seen[None]
     return tex, torch.where(seen, choice, torch.full_like(choice, -1))
+
+
+def tail_causes(
+    colours: torch.Tensor,
+    visible: torch.Tensor,
+    cos: torch.Tensor,
+    ref: torch.Tensor,
+    texture: torch.Tensor,
+    mask: torch.Tensor,
+    patch: int = 5,
+    near: float = 0.15,
+    frontal: int = 3,
+) -> dict:
+    """Why a texture's worst texels (its Error 95 % tail) are wrong, in shares of those texels.
+
+    Args:
+        colours: (K, 3, H, W) the candidates' colours; visible: (K, H, W) bool; cos: (K, H, W)
+            their frontality (Q_a).
+        ref: (3, H, W) the ground truth; texture: (3, H, W) the texture; mask: (H, W) bool texels scored.
+        patch: neighbourhood side over which a photo's distance to the truth is averaged.
+        near: a photo is "right" where that mean distance is below this (RGB, in [0, sqrt 3]).
+        frontal: how many of the texel's most frontal photos the last share looks at.
+
+    Returns:
+        dict: ``error95`` of the texture over ``mask``; the shares of its tail (texels at or above
+        it) where ``median_photo_worse`` the median candidate's distance to the truth exceeds
+        ``error95``, ``no_photo_right`` no candidate is right, ``frontal_right`` one of the
+        ``frontal`` most frontal candidates is right; ``tail_texels``.
+    """
+    seen = visible.any(0) & mask
+    err = ((texture - ref) ** 2).sum(0).sqrt()
+    if not bool(seen.any()):
+        raise DifftexError("tail_causes: no texel is both in the mask and seen by a candidate")
+    e95 = float(torch.quantile(err[seen].double(), 0.95))
+    tail = seen & (err >= e95)
+    d = ((colours - ref[None]) ** 2).sum(1).sqrt()
+    med = torch.where(visible, d, torch.full_like(d, float("nan"))).nanmedian(0).values
+    r = patch // 2
+    vis = visible.float()
+    num = F.avg_pool2d((d * vis)[:, None], patch, 1, r, count_include_pad=True)[:, 0]
+    den = F.avg_pool2d(vis[:, None], patch, 1, r, count_include_pad=True)[:, 0]
+    dp = torch.where(visible, num / den.clamp_min(1e-12), torch.full_like(num, float("inf")))
+    right = dp < near
+    order = torch.where(visible, cos, torch.full_like(cos, -2.0)).argsort(0, descending=True)[:frontal]
+    front_right = torch.gather(right & visible, 0, order).any(0)
+    n = float(tail.sum())
+    return {
+        "error95": e95,
+        "tail_texels": int(n),
+        "median_photo_worse": float((tail & (med > e95)).sum()) / n,
+        "no_photo_right": float((tail & ~right.any(0)).sum()) / n,
+        "frontal_right": float((tail & front_right).sum()) / n,
+    }
