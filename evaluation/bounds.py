@@ -1,4 +1,4 @@
-"""How far selection and blending of the photos can go on a synthetic building: upper bounds.
+"""How far selecting the photos can go on a synthetic building: upper bounds, beside difftex.
 
     python evaluation/bounds.py --scene data/synth/paper/archive --density-scale 1.0 \
         --preset default --out evaluation/results/bounds_archive

@@ -124,3 +124,7 @@ def test_tail_causes_sorts_the_worst_texels_by_what_the_photos_hold():
     assert out["median_photo_worse"] == pytest.approx(0.5)  # columns 0-9: every photo there is worse
     assert out["no_photo_right"] == pytest.approx(0.5)  # columns 0-9: no photo is right
     assert out["frontal_right"] == pytest.approx(0.5)  # columns 10-19
+    with pytest.raises(DifftexError, match="do not match"):
+        tail_causes(cols, vis, cos, ref[:, :10], texture, torch.ones(h, w, dtype=torch.bool))
+    with pytest.raises(DifftexError, match="no texel"):
+        tail_causes(cols, vis, cos, ref, texture, torch.zeros(h, w, dtype=torch.bool))

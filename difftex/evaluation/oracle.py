@@ -1,13 +1,14 @@
 """Upper bounds of texturing by photo selection, given the ground truth (evaluation only).
 
-A method that textures a texel with a weighted blend or a selection of the photos that see it
-(difftex, averaging, MRF, texrecon, MeshLab) cannot score better than the best choice among
-those photos. :func:`patch_oracle` makes that choice with the ground truth in hand: per texel,
-the photo whose neighbourhood is closest to the truth. Its score bounds what any selection of
-patches that size can reach; a 1-texel patch picks each texel's luckiest noise sample, so the
-bound is only meaningful at patch sizes where noise averages out (evaluation/bounds.py reports
-several). No library offers this (it needs the candidates' texel-space colours, which only the
-optimizer's photo mapping produces).
+A method that textures each patch from one of the photos that see it (MRF, texrecon, the most
+frontal photo, a sparse difftex) cannot score better than the best choice among those photos.
+:func:`patch_oracle` makes that choice with the ground truth in hand: per texel, the photo whose
+neighbourhood is closest to the truth. Its score bounds what any selection of patches that size
+can reach; a 1-texel patch picks each texel's luckiest noise sample, so the bound is only
+meaningful at patch sizes where noise averages out (evaluation/bounds.py reports several). A
+blend can score above it by averaging the photos' noise. :func:`tail_causes` sorts a texture's
+worst texels by what the photos hold there. No library offers either (they need the candidates'
+texel-space colours, which only the optimizer's photo mapping produces).
 """
 
 from __future__ import annotations
@@ -92,6 +93,15 @@ def tail_causes(
         ``error95``, ``no_photo_right`` no candidate is right, ``frontal_right`` one of the
         ``frontal`` most frontal candidates is right; ``tail_texels``.
     """
+    if colours.ndim != 4 or colours.shape[1] != 3:
+        raise DifftexError(f"tail_causes: colours must be (K, 3, H, W), got {tuple(colours.shape)}")
+    K, _, H, W = colours.shape
+    if any(t.shape != s for t, s in ((visible, (K, H, W)), (cos, (K, H, W)), (ref, (3, H, W)),
+                                     (texture, (3, H, W)), (mask, (H, W)))):
+        raise DifftexError(
+            f"tail_causes: visible {tuple(visible.shape)}, cos {tuple(cos.shape)}, ref {tuple(ref.shape)}, texture "
+            f"{tuple(texture.shape)}, mask {tuple(mask.shape)} do not match colours {tuple(colours.shape)}"
+        )
     seen = visible.any(0) & mask
     err = ((texture - ref) ** 2).sum(0).sqrt()
     if not bool(seen.any()):
