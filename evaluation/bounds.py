@@ -34,26 +34,18 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from evaluation import common as C  # noqa: E402
 
 
-def candidates(photos, inp, cfg):
+def candidates(photos, cfg):
     """(colours (K, 3, H, W), visible (K, H, W), cos (K, H, W)) of every photo that sees the
     polygon, at its frame, through the brightness transfers texture_polygon would estimate."""
     import torch
 
-    from difftex.compose.histmatch import mapped_transfers
+    from difftex.compose.texturing import polygon_transfers
     from difftex.sampling.photos import with_transfer
-    from difftex.sampling.texels import level_frame, resample_nearest
 
-    transfers = None
-    if cfg.histogram_matching:
-        mf = level_frame(inp.frame, min(cfg.long_side_start, max(inp.frame.shape)))
-        mm = resample_nearest(inp.texel_mask, inp.frame, mf)
-        raw = {n: photos.map(n, mf, mm) for n in sorted(photos.samplers)}
-        transfers, _ = mapped_transfers(
-            raw, len(inp.photos), cfg.histmatch_reference, cfg.histmatch_channels, model=cfg.histmatch_model
-        )
+    transfers = polygon_transfers(photos, cfg)[2]
     cols, vis, cos = [], [], []
     for n in sorted(photos.samplers):
-        mp = photos.map(n, inp.frame, inp.texel_mask)
+        mp = photos.map(n, photos.inp.frame, photos.inp.texel_mask)
         if mp is None:
             continue
         mp = with_transfer(mp, transfers[n] if transfers else None)
@@ -105,7 +97,7 @@ def run(scene: Path, density_scale: float, max_long_side: int, preset: str, patc
         if preset != "none":
             maps[f"difftex ({preset})"] = texture_polygon(inp, cfg, ComputeConfig(device="cpu")).texture
         photos = PhotoSet.load(inp, torch.device("cpu"), supersample=cfg.supersample)
-        cols, seen, cos = candidates(photos, inp, cfg)
+        cols, seen, cos = candidates(photos, cfg)
         wsum = seen.sum(0).float()
         avg = (cols * seen[:, None]).sum(0) / wsum.clamp_min(1)
         maps["average"] = finish_texture(avg.permute(1, 2, 0).numpy(), wsum.numpy(), inp.texel_mask)[0]
@@ -127,8 +119,9 @@ def run(scene: Path, density_scale: float, max_long_side: int, preset: str, patc
                 "polygon_id": v.polygon_id, "texels": int(gmask.sum()), "frame": list(v.frame.shape),
                 "error95": float(np.percentile(e, 95)), "ssim": metrics.ssim(out, ref, gmask),
             })
-        print(f"{scene.name} {v.polygon_id} {v.frame.width}x{v.frame.height} texels, {len(photos.samplers)} photos: "
-              + ", ".join(f"{n.split(' (')[0].split(',')[0]} {per[n][-1]['ssim']:.3f}" for n in names)
+        short = {names[0]: "truth", **{f"oracle, {p}x{p} patches": f"oracle {p}x{p}" for p in patches}}
+        print(f"{scene.name} {v.polygon_id} {v.frame.width}x{v.frame.height} texels, {len(photos.samplers)} photos, "
+              "SSIM: " + ", ".join(f"{short.get(n, n)} {per[n][-1]['ssim']:.3f}" for n in names)
               + f" ({time.perf_counter() - t0:.0f} s)", flush=True)
     rows = {}
     for n in names:

@@ -19,7 +19,7 @@ import numpy as np
 from difftex.compose.composite import dominant_from_slots, finish_texture
 from difftex.compose.histmatch import mapped_transfers
 from difftex.compose.outputs import write_composite
-from difftex.geometry.frames import level_sides
+from difftex.geometry.frames import UVFrame, level_sides
 from difftex.method.config import ComputeConfig, OptimizeConfig
 from difftex.method.loop import optimize_polygon
 from difftex.sampling.photos import PhotoSet, PolygonInput, pick_device, with_transfer
@@ -42,6 +42,26 @@ class TexturedPolygon:
     report: dict = field(default_factory=dict)  # fill and summary figures
 
 
+def polygon_transfers(photos: PhotoSet, cfg: OptimizeConfig) -> tuple[UVFrame, dict, list | None, str | None]:
+    """The polygon's brightness transfers, estimated on its photos mapped at the coarse level.
+
+    Returns:
+        (the coarse level's frame, {photo index: MappedPhoto or None} there before any transfer,
+        per photo transfers or None without histogram matching, the reference photo's name or None).
+    """
+    inp = photos.inp
+    match_frame = level_frame(inp.frame, min(cfg.long_side_start, max(inp.frame.shape)))
+    mask = resample_nearest(inp.texel_mask, inp.frame, match_frame)
+    raw = {n: photos.map(n, match_frame, mask) for n in sorted(photos.samplers)}
+    transfers, ref = None, None
+    if cfg.histogram_matching:
+        transfers, ref = mapped_transfers(
+            raw, len(inp.photos), cfg.histmatch_reference, cfg.histmatch_channels, names=[p.name for p in inp.photos],
+            model=cfg.histmatch_model,
+        )
+    return match_frame, raw, transfers, ref
+
+
 def texture_polygon(
     inp: PolygonInput,
     cfg: OptimizeConfig,
@@ -56,15 +76,7 @@ def texture_polygon(
     photos = PhotoSet.load(inp, device, exact_decode=cfg.exact_decode, decode=decode, supersample=cfg.supersample)
     t_read = time.perf_counter() - t0
     sides = level_sides(max(inp.frame.shape), cfg.long_side_start, cfg.coarse_to_fine, cfg.level_step)
-    match_frame = level_frame(inp.frame, min(cfg.long_side_start, max(inp.frame.shape)))
-    mask = resample_nearest(inp.texel_mask, inp.frame, match_frame)
-    raw = {n: photos.map(n, match_frame, mask) for n in sorted(photos.samplers)}
-    transfers, ref = None, None
-    if cfg.histogram_matching:
-        transfers, ref = mapped_transfers(
-            raw, len(inp.photos), cfg.histmatch_reference, cfg.histmatch_channels, names=[p.name for p in inp.photos],
-            model=cfg.histmatch_model,
-        )
+    match_frame, raw, transfers, ref = polygon_transfers(photos, cfg)
     first = None
     if match_frame.shape == level_frame(inp.frame, sides[0]).shape:
         first = {

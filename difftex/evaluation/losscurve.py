@@ -9,6 +9,7 @@ browser draws it sharp at any zoom, and the file is text.
 from __future__ import annotations
 
 import math
+from html import escape as _esc
 from pathlib import Path
 
 # matplotlib's colours for the terms (k, C0, C3, C1, C2), so the curves look as they did
@@ -21,10 +22,6 @@ LOSS_COLOURS = (
 )
 SIZE = (900, 420)  # px: axes and legend readable at 100 %
 MARGIN = (80, 110, 34, 52)  # left, right (legend), top (title), bottom (axis label)
-
-
-def _esc(text: str) -> str:
-    return text.replace("&", "&amp;").replace("<", "&lt;").replace(">", "&gt;").replace('"', "&quot;")
 
 
 def log_ticks(lo: float, hi: float) -> list[float]:

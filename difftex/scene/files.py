@@ -172,9 +172,8 @@ def read_image(
         pixels = np.repeat(pixels[:, :, :1], 3, axis=2)
     else:
         pixels = pixels[:, :, :3]
-    if native:
-        pixels = np.ascontiguousarray(pixels)
-        return pixels if as_stored else to_float(pixels)
+    if native:  # to_float's conversion is a contiguous copy already
+        return np.ascontiguousarray(pixels) if as_stored else to_float(pixels)
     # only a float format can store NaN or infinity; an 8/16-bit one decodes to finite values,
     # and the check was a quarter of a PNG photo's read time
     if spec.format.basetype in (oiio.FLOAT, oiio.HALF, oiio.DOUBLE) and not np.isfinite(pixels).all():
