@@ -13,6 +13,9 @@ frames of ``texture.density: auto`` x ``--density-scale``:
 - ``oracle, P x P patches``: per texel, the photo (through difftex's brightness transfers) whose
   P x P neighbourhood is closest to the truth (difftex.evaluation.oracle). A bound on what a
   per-patch selection of these photos can reach; at small P it also picks lucky noise.
+- ``blend oracle, T x T tiles``: per T x T block, the convex blend of the photos closest to the
+  truth (difftex.evaluation.oracle.blend_oracle): about what a blend with block-constant weights
+  can reach. A blend beats selection by averaging noise; this measures how far that goes.
 - ``average``: every photo that sees a texel, equal weights, the same transfers.
 - ``difftex``: texture_polygon with the preset's ``optimize:`` section (``--preset none``: skip).
 
@@ -56,7 +59,7 @@ def candidates(photos, cfg):
 
 
 def run(scene: Path, density_scale: float, max_long_side: int, preset: str, patches: list[int],
-        polygons: list[str] | None) -> dict:
+        polygons: list[str] | None, tiles: tuple[int, ...] = ()) -> dict:
     import torch
 
     from difftex.compose.composite import finish_texture
@@ -64,7 +67,7 @@ def run(scene: Path, density_scale: float, max_long_side: int, preset: str, patc
     from difftex.config import TextureConfig
     from difftex.evaluation import metrics
     from difftex.evaluation.evaluate import resample_texture
-    from difftex.evaluation.oracle import patch_oracle, tail_causes
+    from difftex.evaluation.oracle import blend_oracle, patch_oracle, tail_causes
     from difftex.geometry.frames import UVFrame
     from difftex.geometry.visibility import scene_visibility
     from difftex.method.config import ComputeConfig, OptimizeConfig
@@ -81,6 +84,7 @@ def run(scene: Path, density_scale: float, max_long_side: int, preset: str, patc
     by_name = {p.name: p for p in sc.photos}
     gt = scene / "ground_truth"
     names = ["ground truth at the texture's texel size", "average"] + [f"oracle, {p}x{p} patches" for p in patches]
+    names += [f"blend oracle, {t}x{t} tiles" for t in tiles]
     if preset != "none":
         names.append(f"difftex ({preset})")
     per: dict[str, list[dict]] = {n: [] for n in names}
@@ -106,6 +110,9 @@ def run(scene: Path, density_scale: float, max_long_side: int, preset: str, patc
             t, _ = patch_oracle(cols, seen, ref_t, p)
             t = t.permute(1, 2, 0).numpy()
             maps[f"oracle, {p}x{p} patches"] = finish_texture(t, wsum.numpy(), inp.texel_mask)[0]
+        for t in tiles:
+            b = blend_oracle(cols, seen, ref_t, t).permute(1, 2, 0).numpy()
+            maps[f"blend oracle, {t}x{t} tiles"] = finish_texture(b, wsum.numpy(), inp.texel_mask)[0]
         if preset != "none":  # why difftex's worst texels are wrong, at its own frame
             tex_t = torch.from_numpy(np.ascontiguousarray(maps[f"difftex ({preset})"].transpose(2, 0, 1)))
             tails.append(tail_causes(cols, seen, cos, ref_t, tex_t, torch.from_numpy(inp.texel_mask)))
@@ -119,7 +126,8 @@ def run(scene: Path, density_scale: float, max_long_side: int, preset: str, patc
                 "polygon_id": v.polygon_id, "texels": int(gmask.sum()), "frame": list(v.frame.shape),
                 "error95": float(np.percentile(e, 95)), "ssim": metrics.ssim(out, ref, gmask),
             })
-        short = {names[0]: "truth", **{f"oracle, {p}x{p} patches": f"oracle {p}x{p}" for p in patches}}
+        short = {names[0]: "truth", **{f"oracle, {p}x{p} patches": f"oracle {p}x{p}" for p in patches},
+                 **{f"blend oracle, {t}x{t} tiles": f"blend {t}x{t}" for t in tiles}}
         print(f"{scene.name} {v.polygon_id} {v.frame.width}x{v.frame.height} texels, {len(photos.samplers)} photos, "
               "SSIM: " + ", ".join(f"{short.get(n, n)} {per[n][-1]['ssim']:.3f}" for n in names)
               + f" ({time.perf_counter() - t0:.0f} s)", flush=True)
@@ -143,12 +151,15 @@ def main(argv=None) -> int:
         "--preset", default="default", help="difftex's preset for its row (default: config.yaml; none: no row)"
     )
     ap.add_argument("--patches", default="5,15,31", help="oracle patch sides, odd, comma-separated")
+    ap.add_argument("--blend-tiles", default="15", help="blend oracle tile sides, comma-separated (empty: none)")
     ap.add_argument("--polygons", default="all", help="comma-separated polygon ids, or all")
     ap.add_argument("--out", required=True)
     args = ap.parse_args(argv)
     t_all = time.perf_counter()
     patches = [int(p) for p in args.patches.split(",")]
-    res = run(args.scene, args.density_scale, args.max_long_side, args.preset, patches, C.polygon_ids(args.polygons))
+    tiles = tuple(int(t) for t in args.blend_tiles.split(",") if t.strip())
+    res = run(args.scene, args.density_scale, args.max_long_side, args.preset, patches, C.polygon_ids(args.polygons),
+              tiles)
     mach = C.machine()
     lines = [
         C.header(
@@ -163,7 +174,8 @@ def main(argv=None) -> int:
                 "texels, SSIM texel-weighted over polygons.",
                 "The oracle rows choose photos with the ground truth in hand (difftex.evaluation.oracle): no "
                 "method that selects among these photos at that patch size scores better. At 5x5 it also picks "
-                "each patch's luckiest noise.",
+                "each patch's luckiest noise. The blend oracle fits each tile's convex weights to the truth: "
+                "about the most a blend with tile-constant weights reaches.",
             ],
         ),
         "| texture | Error 95 % | SSIM | SSIM per polygon |",

@@ -6,7 +6,7 @@ import pytest
 import torch
 
 from difftex.errors import DifftexError
-from difftex.evaluation.oracle import patch_oracle
+from difftex.evaluation.oracle import blend_oracle, patch_oracle
 
 
 def _scene(h=24, w=32, seed=0):
@@ -128,3 +128,51 @@ def test_tail_causes_sorts_the_worst_texels_by_what_the_photos_hold():
         tail_causes(cols, vis, cos, ref[:, :10], texture, torch.ones(h, w, dtype=torch.bool))
     with pytest.raises(DifftexError, match="no texel"):
         tail_causes(cols, vis, cos, ref, texture, torch.zeros(h, w, dtype=torch.bool))
+
+
+def _rms(a, b):
+    return float(((a - b) ** 2).mean().sqrt())
+
+
+def test_the_blend_oracle_averages_the_noise_of_the_right_photos_and_leaves_out_the_wrong_ones():
+    ref, g = _scene()
+    noisy = [ref + 0.1 * torch.randn(3, 24, 32, generator=g) for _ in range(4)]
+    wrong = [torch.rand(3, 24, 32, generator=g) for _ in range(2)]
+    cols = torch.stack(noisy + wrong)
+    vis = torch.ones(6, 24, 32, dtype=torch.bool)
+    blend = blend_oracle(cols, vis, ref, 8)
+    select, _ = patch_oracle(cols, vis, ref, 7)
+    mean_right = torch.stack(noisy).mean(0)
+    # four photos' noise averaged: about half a single photo's, as the mean of the right ones
+    assert _rms(blend, ref) < 0.6 * _rms(select, ref)
+    assert _rms(blend, ref) < 1.15 * _rms(mean_right, ref)
+    assert _rms(blend, ref) < 0.5 * _rms(cols.mean(0), ref)  # the wrong photos are left out
+
+
+def test_the_blend_oracle_renormalises_over_the_photos_that_see_a_texel():
+    ref, g = _scene()
+    exact = ref.clone()
+    exact[:, :, 20:] = 5.0  # garbage where it does not see
+    off = ref + 0.2
+    vis = torch.ones(2, 24, 32, dtype=torch.bool)
+    vis[0, :, 20:] = False
+    vis[:, 0, 0] = False  # nobody sees the corner
+    tex = blend_oracle(torch.stack([exact, off]), vis, ref, 12)
+    # where only the offset photo sees, it is the texture; the garbage never leaks in
+    assert torch.allclose(tex[:, 1:, 24:], off[:, 1:, 24:], atol=1e-5)
+    assert _rms(tex[:, 1:, :12], ref[:, 1:, :12]) < 0.02  # where both see, the exact photo wins
+    assert (tex[:, 0, 0] == 0).all()
+
+
+def test_the_blend_oracle_handles_frames_that_are_not_a_multiple_of_the_tile_and_extreme_tiles():
+    ref, g = _scene(h=7, w=11)
+    cols = torch.stack([ref + 0.05 * torch.randn(3, 7, 11, generator=g) for _ in range(3)])
+    vis = torch.ones(3, 7, 11, dtype=torch.bool)
+    for tile in (1, 4, 64):
+        tex = blend_oracle(cols, vis, ref, tile, chunk_values=50)  # several batches of blocks
+        assert tex.shape == (3, 7, 11) and torch.isfinite(tex).all()
+        assert _rms(tex, ref) <= _rms(cols.mean(0), ref) + 1e-4  # never worse than the average it starts from
+    with pytest.raises(DifftexError, match="tile"):
+        blend_oracle(cols, vis, ref, 0)
+    with pytest.raises(DifftexError, match="do not match"):
+        blend_oracle(cols, vis[:2], ref, 3)

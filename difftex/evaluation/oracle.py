@@ -66,6 +66,87 @@ def patch_oracle(
     return tex, torch.where(seen, choice, torch.full_like(choice, -1))
 
 
+def blend_oracle(
+    colours: torch.Tensor,
+    visible: torch.Tensor,
+    ref: torch.Tensor,
+    tile: int,
+    iters: int = 200,
+    lr: float = 0.1,
+    chunk_values: int = 2**25,
+) -> torch.Tensor:
+    """Per ``tile`` x ``tile`` block of texels, the convex blend of the candidates closest to ``ref``.
+
+    Each block gets one weight per candidate (non-negative, summing to one), fitted to the ground
+    truth by least squares: T(x) = sum_k w_k v_k(x) c_k(x) / sum_k w_k v_k(x), the weights of the
+    candidates that see x renormalised there, as a blend of photos does. With the truth in hand
+    this is near the best any blend with block-constant weights can do; it averages noise where
+    the candidates agree with the truth, which a selection cannot. Per-texel weights would fit
+    each texel's noise (K unknowns for 3 values), so the block must hold many more values than
+    there are candidates for the figure to mean anything (tile 15: 675 values). Fitted with Adam
+    on the weights' logits from the plain average (scipy's NNLS would need one call per block
+    and cannot renormalise per texel); the blocks are independent and batched.
+
+    Args:
+        colours: (K, 3, H, W) the candidates' colours in texel space.
+        visible: (K, H, W) bool, which candidate sees which texel.
+        ref: (3, H, W) the ground truth at the same texels.
+        tile: block side, texels (>= 1).
+        iters: Adam steps; lr: its step on the logits.
+        chunk_values: blocks are fitted in batches of about this many candidate values (memory).
+
+    Returns:
+        (3, H, W) the blended texture (zero where no candidate sees the texel).
+    """
+    if colours.ndim != 4 or colours.shape[1] != 3:
+        raise DifftexError(f"blend_oracle: colours must be (K, 3, H, W), got {tuple(colours.shape)}")
+    K, _, H, W = colours.shape
+    if visible.shape != (K, H, W) or ref.shape != (3, H, W):
+        raise DifftexError(
+            f"blend_oracle: visible {tuple(visible.shape)} / ref {tuple(ref.shape)} do not match colours "
+            f"{tuple(colours.shape)}"
+        )
+    if tile < 1 or iters < 0:
+        raise DifftexError(f"blend_oracle: tile must be >= 1 and iters >= 0, got {tile}, {iters}")
+    ny, nx = -(-H // tile), -(-W // tile)
+    ph, pw = ny * tile - H, nx * tile - W
+
+    def blocks(t: torch.Tensor) -> torch.Tensor:
+        """(..., H, W) -> (ny * nx, ..., tile * tile), padded with zeros (unseen)."""
+        t = F.pad(t, (0, pw, 0, ph))
+        lead = t.shape[:-2]
+        t = t.reshape(*lead, ny, tile, nx, tile).movedim((-4, -2), (0, 1)).reshape(ny * nx, *lead, tile * tile)
+        return t
+
+    c = blocks(colours)  # (B, K, 3, P)
+    v = blocks(visible.float())  # (B, K, P)
+    g = blocks(ref)  # (B, 3, P)
+    out = torch.zeros_like(g)
+    step = max(1, chunk_values // max(1, K * 3 * tile * tile))
+    for b0 in range(0, c.shape[0], step):
+        cb, vb, gb = c[b0:b0 + step], v[b0:b0 + step], g[b0:b0 + step]
+        sees = vb.sum(-1) > 0  # (b, K)
+        # start from the plain average: equal weights over the candidates that see the block
+        z = torch.where(sees, 0.0, float("-inf")).requires_grad_(True)
+        opt = torch.optim.Adam([z], lr=lr)
+        seen = (vb.sum(1) > 0).float()[:, None]  # (b, 1, P)
+
+        def blend(z=z, cb=cb, vb=vb, sees=sees):
+            w = torch.softmax(torch.where(sees.any(1, keepdim=True), z, torch.zeros_like(z)), dim=1)
+            wv = w[..., None] * vb  # (b, K, P)
+            return (wv[:, :, None] * cb).sum(1) / wv.sum(1).clamp_min(1e-12)[:, None]
+
+        for _ in range(iters):
+            loss = (((blend() - gb) ** 2) * seen).sum()
+            opt.zero_grad()
+            loss.backward()
+            opt.step()
+        with torch.no_grad():
+            out[b0:b0 + step] = blend() * seen
+    out = out.reshape(ny, nx, 3, tile, tile).permute(2, 0, 3, 1, 4).reshape(3, ny * tile, nx * tile)
+    return out[:, :H, :W]
+
+
 def tail_causes(
     colours: torch.Tensor,
     visible: torch.Tensor,
