@@ -90,6 +90,7 @@ def run(scene: Path, density_scale: float, max_long_side: int, preset: str, patc
     per: dict[str, list[dict]] = {n: [] for n in names}
     errs: dict[str, list[np.ndarray]] = {n: [] for n in names}
     tails: list[dict] = []
+    n_photos: dict[str, list[tuple[float, int]]] = {}  # row -> per polygon (sum of 1 / sum w^2, texels)
     for v in vis:
         t0 = time.perf_counter()
         inp = polygon_input_from_visibility(v, by_name)
@@ -99,7 +100,12 @@ def run(scene: Path, density_scale: float, max_long_side: int, preset: str, patc
         ref_here = resample_texture(ref, gframe, v.frame)
         maps = {names[0]: ref_here}
         if preset != "none":
-            maps[f"difftex ({preset})"] = texture_polygon(inp, cfg, ComputeConfig(device="cpu")).texture
+            tp = texture_polygon(inp, cfg, ComputeConfig(device="cpu"))
+            maps[f"difftex ({preset})"] = tp.texture
+            m = inp.texel_mask & (tp.W.sum(0) > 0)
+            n_photos.setdefault(f"difftex ({preset})", []).append(
+                (float((1.0 / np.maximum((tp.W**2).sum(0), 1e-9))[m].sum()), int(m.sum())))
+            del tp
         photos = PhotoSet.load(inp, torch.device("cpu"), supersample=cfg.supersample)
         cols, seen, cos = candidates(photos, cfg)
         wsum = seen.sum(0).float()
@@ -111,8 +117,11 @@ def run(scene: Path, density_scale: float, max_long_side: int, preset: str, patc
             t = t.permute(1, 2, 0).numpy()
             maps[f"oracle, {p}x{p} patches"] = finish_texture(t, wsum.numpy(), inp.texel_mask)[0]
         for t in tiles:
-            b = blend_oracle(cols, seen, ref_t, t).permute(1, 2, 0).numpy()
-            maps[f"blend oracle, {t}x{t} tiles"] = finish_texture(b, wsum.numpy(), inp.texel_mask)[0]
+            b, n_eff = blend_oracle(cols, seen, ref_t, t)
+            maps[f"blend oracle, {t}x{t} tiles"] = finish_texture(b.permute(1, 2, 0).numpy(), wsum.numpy(),
+                                                                  inp.texel_mask)[0]
+            m = torch.from_numpy(inp.texel_mask) & seen.any(0)
+            n_photos.setdefault(f"blend oracle, {t}x{t} tiles", []).append((float(n_eff[m].sum()), int(m.sum())))
         if preset != "none":  # why difftex's worst texels are wrong, at its own frame
             tex_t = torch.from_numpy(np.ascontiguousarray(maps[f"difftex ({preset})"].transpose(2, 0, 1)))
             tails.append(tail_causes(cols, seen, cos, ref_t, tex_t, torch.from_numpy(inp.texel_mask)))
@@ -139,6 +148,8 @@ def run(scene: Path, density_scale: float, max_long_side: int, preset: str, patc
             "ssim": float((np.array([r["ssim"] for r in per[n]]) * w).sum() / w.sum()),
             "polygons": per[n],
         }
+        if n in n_photos:  # effective photos per texel, mean over the textured texels
+            rows[n]["photos_per_texel"] = sum(a for a, _ in n_photos[n]) / max(1, sum(b for _, b in n_photos[n]))
     return {"scene": str(scene), "polygons": [v.polygon_id for v in vis], "rows": rows, "difftex_tail": tails}
 
 
@@ -176,14 +187,17 @@ def main(argv=None) -> int:
                 "method that selects among these photos at that patch size scores better. At 5x5 it also picks "
                 "each patch's luckiest noise. The blend oracle fits each tile's convex weights to the truth: "
                 "about the most a blend with tile-constant weights reaches.",
+                "Photos per texel: 1 / sum W^2, mean over the textured texels (difftex: its final weights; the "
+                "blend oracle: its tile's weights).",
             ],
         ),
-        "| texture | Error 95 % | SSIM | SSIM per polygon |",
-        "|---|---|---|---|",
+        "| texture | Error 95 % | SSIM | photos per texel | SSIM per polygon |",
+        "|---|---|---|---|---|",
     ]
     for n, r in res["rows"].items():
         pp = ", ".join(f"{p['polygon_id']} {p['ssim']:.3f}" for p in r["polygons"])
-        lines.append(f"| {n} | {r['error95']:.4f} | {r['ssim']:.4f} | {pp} |")
+        ph = f"{r['photos_per_texel']:.1f}" if "photos_per_texel" in r else ""
+        lines.append(f"| {n} | {r['error95']:.4f} | {r['ssim']:.4f} | {ph} | {pp} |")
     if res["difftex_tail"]:
         lines += [
             "",

@@ -86,10 +86,10 @@ def test_the_bounds_script_scores_every_row_of_every_polygon(small_synth_scene, 
 
     out = tmp_path / "bounds"
     assert bounds.main(["--scene", str(small_synth_scene), "--preset", "fast", "--patches", "1,3",
-                        "--out", str(out)]) == 0
+                        "--blend-tiles", "7", "--out", str(out)]) == 0
     res = json.loads(out.with_suffix(".json").read_text())
     names = ["ground truth at the texture's texel size", "average", "oracle, 1x1 patches", "oracle, 3x3 patches",
-             "difftex (fast)"]
+             "blend oracle, 7x7 tiles", "difftex (fast)"]
     assert list(res["rows"]) == names and res["polygons"]
     for n in names:
         assert [p["polygon_id"] for p in res["rows"][n]["polygons"]] == res["polygons"]
@@ -98,6 +98,11 @@ def test_the_bounds_script_scores_every_row_of_every_polygon(small_synth_scene, 
     gt = res["rows"][names[0]]
     assert all(gt["ssim"] > res["rows"][n]["ssim"] and gt["error95"] < res["rows"][n]["error95"] for n in names[1:])
     assert "| oracle, 3x3 patches |" in out.with_suffix(".md").read_text()
+    # the blend fitted to the truth is closer to it than the equal-weight blend it starts from
+    assert res["rows"]["blend oracle, 7x7 tiles"]["error95"] < res["rows"]["average"]["error95"]
+    for n in ("blend oracle, 7x7 tiles", "difftex (fast)"):
+        assert 1.0 <= res["rows"][n]["photos_per_texel"] <= 20  # the scene's 20 photos at most
+    assert "photos_per_texel" not in res["rows"]["average"]
     assert [t["polygon_id"] for t in res["difftex_tail"]] == res["polygons"]
     for t in res["difftex_tail"]:
         assert t["tail_texels"] > 0 and all(0 <= t[k] <= 1 for k in ("median_photo_worse", "no_photo_right",
@@ -140,13 +145,14 @@ def test_the_blend_oracle_averages_the_noise_of_the_right_photos_and_leaves_out_
     wrong = [torch.rand(3, 24, 32, generator=g) for _ in range(2)]
     cols = torch.stack(noisy + wrong)
     vis = torch.ones(6, 24, 32, dtype=torch.bool)
-    blend = blend_oracle(cols, vis, ref, 8)
+    blend, photos = blend_oracle(cols, vis, ref, 8)
     select, _ = patch_oracle(cols, vis, ref, 7)
     mean_right = torch.stack(noisy).mean(0)
     # four photos' noise averaged: about half a single photo's, as the mean of the right ones
     assert _rms(blend, ref) < 0.6 * _rms(select, ref)
     assert _rms(blend, ref) < 1.15 * _rms(mean_right, ref)
     assert _rms(blend, ref) < 0.5 * _rms(cols.mean(0), ref)  # the wrong photos are left out
+    assert 2.5 < float(photos.min()) and float(photos.max()) < 4.5  # about the four right photos
 
 
 def test_the_blend_oracle_renormalises_over_the_photos_that_see_a_texel():
@@ -157,11 +163,12 @@ def test_the_blend_oracle_renormalises_over_the_photos_that_see_a_texel():
     vis = torch.ones(2, 24, 32, dtype=torch.bool)
     vis[0, :, 20:] = False
     vis[:, 0, 0] = False  # nobody sees the corner
-    tex = blend_oracle(torch.stack([exact, off]), vis, ref, 12)
+    tex, photos = blend_oracle(torch.stack([exact, off]), vis, ref, 12)
     # where only the offset photo sees, it is the texture; the garbage never leaks in
     assert torch.allclose(tex[:, 1:, 24:], off[:, 1:, 24:], atol=1e-5)
     assert _rms(tex[:, 1:, :12], ref[:, 1:, :12]) < 0.02  # where both see, the exact photo wins
-    assert (tex[:, 0, 0] == 0).all()
+    assert (tex[:, 0, 0] == 0).all() and photos[0, 0] == 0
+    assert float(photos[1:, :12].max()) < 1.1  # one photo where the exact one sees the whole block
 
 
 def test_the_blend_oracle_handles_frames_that_are_not_a_multiple_of_the_tile_and_extreme_tiles():
@@ -169,7 +176,8 @@ def test_the_blend_oracle_handles_frames_that_are_not_a_multiple_of_the_tile_and
     cols = torch.stack([ref + 0.05 * torch.randn(3, 7, 11, generator=g) for _ in range(3)])
     vis = torch.ones(3, 7, 11, dtype=torch.bool)
     for tile in (1, 4, 64):
-        tex = blend_oracle(cols, vis, ref, tile, chunk_values=50)  # several batches of blocks
+        tex, photos = blend_oracle(cols, vis, ref, tile, chunk_values=50)  # several batches of blocks
+        assert float(photos.min()) >= 1.0 - 1e-5 and float(photos.max()) <= 3.0 + 1e-5
         assert tex.shape == (3, 7, 11) and torch.isfinite(tex).all()
         assert _rms(tex, ref) <= _rms(cols.mean(0), ref) + 1e-4  # never worse than the average it starts from
     with pytest.raises(DifftexError, match="tile"):

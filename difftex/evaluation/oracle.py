@@ -74,7 +74,7 @@ def blend_oracle(
     iters: int = 200,
     lr: float = 0.1,
     chunk_values: int = 2**25,
-) -> torch.Tensor:
+) -> tuple[torch.Tensor, torch.Tensor]:
     """Per ``tile`` x ``tile`` block of texels, the convex blend of the candidates closest to ``ref``.
 
     Each block gets one weight per candidate (non-negative, summing to one), fitted to the ground
@@ -96,7 +96,9 @@ def blend_oracle(
         chunk_values: blocks are fitted in batches of about this many candidate values (memory).
 
     Returns:
-        (3, H, W) the blended texture (zero where no candidate sees the texel).
+        texture (3, H, W): the blend (zero where no candidate sees the texel);
+        photos (H, W): the effective number of photos of the texel's block, 1 / sum w_k^2 over
+        its weights (1: one photo; n: n photos equally), zero where no candidate sees the texel.
     """
     if colours.ndim != 4 or colours.shape[1] != 3:
         raise DifftexError(f"blend_oracle: colours must be (K, 3, H, W), got {tuple(colours.shape)}")
@@ -122,6 +124,7 @@ def blend_oracle(
     v = blocks(visible.float())  # (B, K, P)
     g = blocks(ref)  # (B, 3, P)
     out = torch.zeros_like(g)
+    n_eff = torch.zeros(g.shape[0])
     step = max(1, chunk_values // max(1, K * 3 * tile * tile))
     for b0 in range(0, c.shape[0], step):
         cb, vb, gb = c[b0:b0 + step], v[b0:b0 + step], g[b0:b0 + step]
@@ -143,8 +146,12 @@ def blend_oracle(
             opt.step()
         with torch.no_grad():
             out[b0:b0 + step] = blend() * seen
+            w = torch.softmax(torch.where(sees.any(1, keepdim=True), z, torch.zeros_like(z)), dim=1)
+            n_eff[b0:b0 + step] = torch.where(sees.any(1), 1.0 / (w**2).sum(1), 0.0)
     out = out.reshape(ny, nx, 3, tile, tile).permute(2, 0, 3, 1, 4).reshape(3, ny * tile, nx * tile)
-    return out[:, :H, :W]
+    per_texel = n_eff.reshape(ny, 1, nx, 1).expand(ny, tile, nx, tile).reshape(ny * tile, nx * tile)
+    seen_any = visible.any(0)
+    return out[:, :H, :W], torch.where(seen_any, per_texel[:H, :W], torch.zeros_like(per_texel[:H, :W]))
 
 
 def tail_causes(
