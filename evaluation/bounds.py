@@ -38,15 +38,16 @@ from evaluation import common as C  # noqa: E402
 
 
 def candidates(photos, cfg):
-    """(colours (K, 3, H, W), visible (K, H, W), cos (K, H, W)) of every photo that sees the
-    polygon, at its frame, through the brightness transfers texture_polygon would estimate."""
+    """(colours (K, 3, H, W), visible (K, H, W), cos (K, H, W), footprint (K, H, W), photo indices)
+    of every photo that sees the polygon, at its frame, through the brightness transfers
+    texture_polygon would estimate."""
     import torch
 
     from difftex.compose.texturing import polygon_transfers
     from difftex.sampling.photos import with_transfer
 
     transfers = polygon_transfers(photos, cfg)[2]
-    cols, vis, cos = [], [], []
+    cols, vis, cos, fp, ids = [], [], [], [], []
     for n in sorted(photos.samplers):
         mp = photos.map(n, photos.inp.frame, photos.inp.texel_mask)
         if mp is None:
@@ -55,7 +56,19 @@ def candidates(photos, cfg):
         cols.append(mp.colour)
         vis.append(mp.visible)
         cos.append(mp.cos)
-    return torch.stack(cols), torch.stack(vis), torch.stack(cos)
+        fp.append(torch.where(mp.visible, mp.footprint, torch.zeros_like(mp.footprint)))
+        ids.append(n)
+    return torch.stack(cols), torch.stack(vis), torch.stack(cos), torch.stack(fp), ids
+
+
+def photo_weights(idx: np.ndarray, W: np.ndarray, ids: list[int]):
+    """(len(ids), H, W) each photo's weight per texel from difftex's slots (idx, W: (K, H, W))."""
+    import torch
+
+    w = torch.zeros((len(ids), *W.shape[1:]))
+    for j, n in enumerate(ids):
+        w[j] = torch.from_numpy(np.where(idx == n, W, 0.0).sum(0))
+    return w
 
 
 def run(scene: Path, density_scale: float, max_long_side: int, preset: str, patches: list[int],
@@ -67,7 +80,7 @@ def run(scene: Path, density_scale: float, max_long_side: int, preset: str, patc
     from difftex.config import TextureConfig
     from difftex.evaluation import metrics
     from difftex.evaluation.evaluate import resample_texture
-    from difftex.evaluation.oracle import blend_oracle, patch_oracle, tail_causes
+    from difftex.evaluation.oracle import blend_oracle, blend_summary, patch_oracle, tail_causes
     from difftex.geometry.frames import UVFrame
     from difftex.geometry.visibility import scene_visibility
     from difftex.method.config import ComputeConfig, OptimizeConfig
@@ -90,7 +103,7 @@ def run(scene: Path, density_scale: float, max_long_side: int, preset: str, patc
     per: dict[str, list[dict]] = {n: [] for n in names}
     errs: dict[str, list[np.ndarray]] = {n: [] for n in names}
     tails: list[dict] = []
-    n_photos: dict[str, list[tuple[float, int]]] = {}  # row -> per polygon (sum of 1 / sum w^2, texels)
+    made_of: dict[str, list[tuple[dict, int]]] = {}  # row -> per polygon (blend_summary, texels)
     for v in vis:
         t0 = time.perf_counter()
         inp = polygon_input_from_visibility(v, by_name)
@@ -102,12 +115,17 @@ def run(scene: Path, density_scale: float, max_long_side: int, preset: str, patc
         if preset != "none":
             tp = texture_polygon(inp, cfg, ComputeConfig(device="cpu"))
             maps[f"difftex ({preset})"] = tp.texture
-            m = inp.texel_mask & (tp.W.sum(0) > 0)
-            n_photos.setdefault(f"difftex ({preset})", []).append(
-                (float((1.0 / np.maximum((tp.W**2).sum(0), 1e-9))[m].sum()), int(m.sum())))
-            del tp
         photos = PhotoSet.load(inp, torch.device("cpu"), supersample=cfg.supersample)
-        cols, seen, cos = candidates(photos, cfg)
+        cols, seen, cos, fp, ids = candidates(photos, cfg)
+        mask_t = torch.from_numpy(inp.texel_mask)
+
+        def made(name, weights, cos=cos, fp=fp, mask_t=mask_t):
+            s = blend_summary(weights, mask_t, {"cos": cos, "texel_px": fp})
+            made_of.setdefault(name, []).append((s, int((mask_t & (weights.sum(0) > 0)).sum())))
+
+        if preset != "none":
+            made(f"difftex ({preset})", photo_weights(tp.idx, tp.W, ids))
+            del tp
         wsum = seen.sum(0).float()
         avg = (cols * seen[:, None]).sum(0) / wsum.clamp_min(1)
         maps["average"] = finish_texture(avg.permute(1, 2, 0).numpy(), wsum.numpy(), inp.texel_mask)[0]
@@ -117,16 +135,17 @@ def run(scene: Path, density_scale: float, max_long_side: int, preset: str, patc
             t = t.permute(1, 2, 0).numpy()
             maps[f"oracle, {p}x{p} patches"] = finish_texture(t, wsum.numpy(), inp.texel_mask)[0]
         for t in tiles:
-            b, n_eff = blend_oracle(cols, seen, ref_t, t)
+            b, share = blend_oracle(cols, seen, ref_t, t)
             maps[f"blend oracle, {t}x{t} tiles"] = finish_texture(b.permute(1, 2, 0).numpy(), wsum.numpy(),
                                                                   inp.texel_mask)[0]
-            m = torch.from_numpy(inp.texel_mask) & seen.any(0)
-            n_photos.setdefault(f"blend oracle, {t}x{t} tiles", []).append((float(n_eff[m].sum()), int(m.sum())))
+            made(f"blend oracle, {t}x{t} tiles", share)
+            del share
+        made("average", seen.float())
         if preset != "none":  # why difftex's worst texels are wrong, at its own frame
             tex_t = torch.from_numpy(np.ascontiguousarray(maps[f"difftex ({preset})"].transpose(2, 0, 1)))
             tails.append(tail_causes(cols, seen, cos, ref_t, tex_t, torch.from_numpy(inp.texel_mask)))
             tails[-1]["polygon_id"] = v.polygon_id
-        del cols, seen, cos
+        del cols, seen, cos, fp
         for name, img in maps.items():
             out = resample_texture(img, v.frame, gframe)
             e = metrics.texel_error(out, ref)[gmask]
@@ -148,8 +167,9 @@ def run(scene: Path, density_scale: float, max_long_side: int, preset: str, patc
             "ssim": float((np.array([r["ssim"] for r in per[n]]) * w).sum() / w.sum()),
             "polygons": per[n],
         }
-        if n in n_photos:  # effective photos per texel, mean over the textured texels
-            rows[n]["photos_per_texel"] = sum(a for a, _ in n_photos[n]) / max(1, sum(b for _, b in n_photos[n]))
+        if n in made_of:  # what the blend is made of, texel-weighted over polygons
+            tot = sum(b for _, b in made_of[n])
+            rows[n]["made_of"] = {k: sum(s[k] * b for s, b in made_of[n]) / max(1, tot) for k in made_of[n][0][0]}
     return {"scene": str(scene), "polygons": [v.polygon_id for v in vis], "rows": rows, "difftex_tail": tails}
 
 
@@ -187,17 +207,21 @@ def main(argv=None) -> int:
                 "method that selects among these photos at that patch size scores better. At 5x5 it also picks "
                 "each patch's luckiest noise. The blend oracle fits each tile's convex weights to the truth: "
                 "about the most a blend with tile-constant weights reaches.",
-                "Photos per texel: 1 / sum W^2, mean over the textured texels (difftex: its final weights; the "
-                "blend oracle: its tile's weights).",
+                "What each blend is made of (difftex.evaluation.oracle.blend_summary; difftex: its final "
+                "weights, the blend oracle its tiles' weights, the average equal weights), mean over the "
+                "textured texels: photos per texel 1 / sum W^2; frontality, the weighted cosine between the "
+                "view and the normal (Q_a); texel (px), the weighted size of a texel in the photos' pixels "
+                "(larger: the photos hold more detail there).",
             ],
         ),
-        "| texture | Error 95 % | SSIM | photos per texel | SSIM per polygon |",
-        "|---|---|---|---|---|",
+        "| texture | Error 95 % | SSIM | photos per texel | frontality | texel (px) | SSIM per polygon |",
+        "|---|---|---|---|---|---|---|",
     ]
     for n, r in res["rows"].items():
         pp = ", ".join(f"{p['polygon_id']} {p['ssim']:.3f}" for p in r["polygons"])
-        ph = f"{r['photos_per_texel']:.1f}" if "photos_per_texel" in r else ""
-        lines.append(f"| {n} | {r['error95']:.4f} | {r['ssim']:.4f} | {ph} | {pp} |")
+        mo = r.get("made_of")
+        made = f"{mo['photos_per_texel']:.1f} | {mo['cos']:.3f} | {mo['texel_px']:.2f}" if mo else " | | "
+        lines.append(f"| {n} | {r['error95']:.4f} | {r['ssim']:.4f} | {made} | {pp} |")
     if res["difftex_tail"]:
         lines += [
             "",

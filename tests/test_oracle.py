@@ -100,9 +100,13 @@ def test_the_bounds_script_scores_every_row_of_every_polygon(small_synth_scene, 
     assert "| oracle, 3x3 patches |" in out.with_suffix(".md").read_text()
     # the blend fitted to the truth is closer to it than the equal-weight blend it starts from
     assert res["rows"]["blend oracle, 7x7 tiles"]["error95"] < res["rows"]["average"]["error95"]
-    for n in ("blend oracle, 7x7 tiles", "difftex (fast)"):
-        assert 1.0 <= res["rows"][n]["photos_per_texel"] <= 20  # the scene's 20 photos at most
-    assert "photos_per_texel" not in res["rows"]["average"]
+    for n in ("blend oracle, 7x7 tiles", "difftex (fast)", "average"):
+        mo = res["rows"][n]["made_of"]
+        assert 1.0 <= mo["photos_per_texel"] <= 20 and 0 < mo["cos"] <= 1 and mo["texel_px"] > 0  # 20 photos
+    # the average weighs every photo equally: more photos per texel than the blends that choose
+    assert res["rows"]["average"]["made_of"]["photos_per_texel"] > res["rows"]["difftex (fast)"]["made_of"][
+        "photos_per_texel"]
+    assert "made_of" not in res["rows"]["oracle, 3x3 patches"]
     assert [t["polygon_id"] for t in res["difftex_tail"]] == res["polygons"]
     for t in res["difftex_tail"]:
         assert t["tail_texels"] > 0 and all(0 <= t[k] <= 1 for k in ("median_photo_worse", "no_photo_right",
@@ -145,7 +149,8 @@ def test_the_blend_oracle_averages_the_noise_of_the_right_photos_and_leaves_out_
     wrong = [torch.rand(3, 24, 32, generator=g) for _ in range(2)]
     cols = torch.stack(noisy + wrong)
     vis = torch.ones(6, 24, 32, dtype=torch.bool)
-    blend, photos = blend_oracle(cols, vis, ref, 8)
+    blend, share = blend_oracle(cols, vis, ref, 8)
+    photos = 1.0 / (share**2).sum(0)
     select, _ = patch_oracle(cols, vis, ref, 7)
     mean_right = torch.stack(noisy).mean(0)
     # four photos' noise averaged: about half a single photo's, as the mean of the right ones
@@ -163,7 +168,8 @@ def test_the_blend_oracle_renormalises_over_the_photos_that_see_a_texel():
     vis = torch.ones(2, 24, 32, dtype=torch.bool)
     vis[0, :, 20:] = False
     vis[:, 0, 0] = False  # nobody sees the corner
-    tex, photos = blend_oracle(torch.stack([exact, off]), vis, ref, 12)
+    tex, share = blend_oracle(torch.stack([exact, off]), vis, ref, 12)
+    photos = torch.where(share.sum(0) > 0, 1.0 / (share**2).sum(0).clamp_min(1e-12), 0.0)
     # where only the offset photo sees, it is the texture; the garbage never leaks in
     assert torch.allclose(tex[:, 1:, 24:], off[:, 1:, 24:], atol=1e-5)
     assert _rms(tex[:, 1:, :12], ref[:, 1:, :12]) < 0.02  # where both see, the exact photo wins
@@ -176,7 +182,9 @@ def test_the_blend_oracle_handles_frames_that_are_not_a_multiple_of_the_tile_and
     cols = torch.stack([ref + 0.05 * torch.randn(3, 7, 11, generator=g) for _ in range(3)])
     vis = torch.ones(3, 7, 11, dtype=torch.bool)
     for tile in (1, 4, 64):
-        tex, photos = blend_oracle(cols, vis, ref, tile, chunk_values=50)  # several batches of blocks
+        tex, share = blend_oracle(cols, vis, ref, tile, chunk_values=50)  # several batches of blocks
+        assert torch.allclose(share.sum(0), torch.ones(7, 11), atol=1e-5)  # shares of every seen texel
+        photos = 1.0 / (share**2).sum(0)
         assert float(photos.min()) >= 1.0 - 1e-5 and float(photos.max()) <= 3.0 + 1e-5
         assert tex.shape == (3, 7, 11) and torch.isfinite(tex).all()
         assert _rms(tex, ref) <= _rms(cols.mean(0), ref) + 1e-4  # never worse than the average it starts from
@@ -184,3 +192,24 @@ def test_the_blend_oracle_handles_frames_that_are_not_a_multiple_of_the_tile_and
         blend_oracle(cols, vis, ref, 0)
     with pytest.raises(DifftexError, match="do not match"):
         blend_oracle(cols, vis[:2], ref, 3)
+
+
+def test_blend_summary_counts_photos_and_weighs_their_features():
+    from difftex.evaluation.oracle import blend_summary
+
+    w = torch.zeros(4, 2, 3)
+    w[0, 0] = 1.0  # row 0: one photo
+    w[:, 1] = 0.25  # row 1: four photos equally
+    cos = torch.stack([torch.full((2, 3), c) for c in (1.0, 0.5, 0.5, 0.5)])
+    mask = torch.ones(2, 3, dtype=torch.bool)
+    s = blend_summary(w, mask, {"cos": cos})
+    assert math.isclose(s["photos_per_texel"], 2.5, rel_tol=1e-6)  # (1 + 4) / 2
+    assert math.isclose(s["cos"], (1.0 + 0.625) / 2, rel_tol=1e-6)
+    # unnormalised weights are normalised per texel; texels without weight are left out
+    w2 = w * 7.0
+    w2[:, 0, 2] = 0.0
+    assert math.isclose(blend_summary(w2, mask, {})["photos_per_texel"], (2 * 1 + 3 * 4) / 5, rel_tol=1e-6)
+    with pytest.raises(DifftexError, match="no texel"):
+        blend_summary(torch.zeros(4, 2, 3), mask, {})
+    with pytest.raises(DifftexError, match="not shaped"):
+        blend_summary(w, mask, {"cos": cos[:2]})

@@ -97,8 +97,8 @@ def blend_oracle(
 
     Returns:
         texture (3, H, W): the blend (zero where no candidate sees the texel);
-        photos (H, W): the effective number of photos of the texel's block, 1 / sum w_k^2 over
-        its weights (1: one photo; n: n photos equally), zero where no candidate sees the texel.
+        weights (K, H, W): each candidate's share of each texel, w_k v_k(x) / sum_j w_j v_j(x)
+        (zero where no candidate sees the texel), for :func:`blend_summary`.
     """
     if colours.ndim != 4 or colours.shape[1] != 3:
         raise DifftexError(f"blend_oracle: colours must be (K, 3, H, W), got {tuple(colours.shape)}")
@@ -124,7 +124,7 @@ def blend_oracle(
     v = blocks(visible.float())  # (B, K, P)
     g = blocks(ref)  # (B, 3, P)
     out = torch.zeros_like(g)
-    n_eff = torch.zeros(g.shape[0])
+    share = torch.zeros_like(v)
     step = max(1, chunk_values // max(1, K * 3 * tile * tile))
     for b0 in range(0, c.shape[0], step):
         cb, vb, gb = c[b0:b0 + step], v[b0:b0 + step], g[b0:b0 + step]
@@ -137,21 +137,53 @@ def blend_oracle(
         def blend(z=z, cb=cb, vb=vb, sees=sees):
             w = torch.softmax(torch.where(sees.any(1, keepdim=True), z, torch.zeros_like(z)), dim=1)
             wv = w[..., None] * vb  # (b, K, P)
-            return (wv[:, :, None] * cb).sum(1) / wv.sum(1).clamp_min(1e-12)[:, None]
+            wv = wv / wv.sum(1, keepdim=True).clamp_min(1e-12)
+            return (wv[:, :, None] * cb).sum(1), wv
 
         for _ in range(iters):
-            loss = (((blend() - gb) ** 2) * seen).sum()
+            loss = (((blend()[0] - gb) ** 2) * seen).sum()
             opt.zero_grad()
             loss.backward()
             opt.step()
         with torch.no_grad():
-            out[b0:b0 + step] = blend() * seen
-            w = torch.softmax(torch.where(sees.any(1, keepdim=True), z, torch.zeros_like(z)), dim=1)
-            n_eff[b0:b0 + step] = torch.where(sees.any(1), 1.0 / (w**2).sum(1), 0.0)
-    out = out.reshape(ny, nx, 3, tile, tile).permute(2, 0, 3, 1, 4).reshape(3, ny * tile, nx * tile)
-    per_texel = n_eff.reshape(ny, 1, nx, 1).expand(ny, tile, nx, tile).reshape(ny * tile, nx * tile)
-    seen_any = visible.any(0)
-    return out[:, :H, :W], torch.where(seen_any, per_texel[:H, :W], torch.zeros_like(per_texel[:H, :W]))
+            t, wv = blend()
+            out[b0:b0 + step] = t * seen
+            share[b0:b0 + step] = wv
+
+    def unblock(t: torch.Tensor) -> torch.Tensor:
+        """(ny * nx, C, tile * tile) -> (C, H, W), the inverse of ``blocks``."""
+        C = t.shape[1]
+        return t.reshape(ny, nx, C, tile, tile).permute(2, 0, 3, 1, 4).reshape(C, ny * tile, nx * tile)[:, :H, :W]
+
+    return unblock(out), unblock(share)
+
+
+def blend_summary(weights: torch.Tensor, mask: torch.Tensor, features: dict[str, torch.Tensor]) -> dict:
+    """What a blend is made of, averaged over the texels of ``mask``: the effective number of
+    photos per texel, 1 / sum_k w_k^2 (1: one photo; n: n photos equally), and the
+    weight-averaged value of each per-photo feature (frontality, pixels per texel ...).
+
+    Args:
+        weights: (K, H, W) each photo's share of each texel (summing to one where a photo sees it).
+        mask: (H, W) bool texels to average over (texels without weight are left out).
+        features: name -> (K, H, W) the photos' values.
+
+    Returns:
+        dict: ``photos_per_texel`` and each feature's name -> mean over the texels.
+    """
+    if weights.ndim != 3 or mask.shape != weights.shape[1:]:
+        raise DifftexError(f"blend_summary: weights (K, H, W) {tuple(weights.shape)} / mask {tuple(mask.shape)}")
+    total = weights.sum(0)
+    m = mask & (total > 0)
+    if not bool(m.any()):
+        raise DifftexError("blend_summary: no texel of the mask has weight")
+    w = weights[:, m] / total[m]
+    out = {"photos_per_texel": float((1.0 / (w**2).sum(0)).mean())}
+    for name, f in features.items():
+        if f.shape != weights.shape:
+            raise DifftexError(f"blend_summary: feature {name} {tuple(f.shape)} is not shaped as the weights")
+        out[name] = float((w * f[:, m]).sum(0).mean())
+    return out
 
 
 def tail_causes(
