@@ -1,4 +1,4 @@
-"""How far selecting the photos can go on a synthetic building: upper bounds, beside difftex.
+"""How far selecting or blending the photos can go on a synthetic building: upper bounds, beside difftex.
 
     python evaluation/bounds.py --scene data/synth/paper/archive --density-scale 1.0 \
         --preset default --out evaluation/results/bounds_archive
@@ -194,7 +194,7 @@ def main(argv=None) -> int:
     mach = C.machine()
     lines = [
         C.header(
-            f"Upper bounds of photo selection on {args.scene.name}",
+            f"Upper bounds of photo selection and blending on {args.scene.name}",
             "python evaluation/bounds.py " + shlex.join(sys.argv[1:] if argv is None else argv),
             mach,
             [

@@ -1,4 +1,4 @@
-"""Upper bounds of texturing by photo selection, given the ground truth (evaluation only).
+"""Upper bounds of texturing by photo selection and blending, given the ground truth (evaluation only).
 
 A method that textures each patch from one of the photos that see it (MRF, texrecon, the most
 frontal photo, a sparse difftex) cannot score better than the best choice among those photos.
@@ -6,9 +6,11 @@ frontal photo, a sparse difftex) cannot score better than the best choice among 
 neighbourhood is closest to the truth. Its score bounds what any selection of patches that size
 can reach; a 1-texel patch picks each texel's luckiest noise sample, so the bound is only
 meaningful at patch sizes where noise averages out (evaluation/bounds.py reports several). A
-blend can score above it by averaging the photos' noise. :func:`tail_causes` sorts a texture's
-worst texels by what the photos hold there. No library offers either (they need the candidates'
-texel-space colours, which only the optimizer's photo mapping produces).
+blend can score above it by averaging the photos' noise: :func:`blend_oracle` fits each tile's
+blend weights to the truth, about the most a blend can reach, and :func:`blend_summary` says what
+a blend is made of (photos per texel, their frontality and resolution). :func:`tail_causes`
+sorts a texture's worst texels by what the photos hold there. No library offers these (they need
+the candidates' texel-space colours, which only the optimizer's photo mapping produces).
 """
 
 from __future__ import annotations
