@@ -5,6 +5,7 @@ optimization-only change reruns only optimization and what follows)."""
 from __future__ import annotations
 
 import importlib.util
+import math
 import os
 import re
 import subprocess
@@ -376,6 +377,28 @@ def test_small_polygons_share_texture_jobs_and_large_ones_keep_their_own():
     est = {name: sum(work[p] for p in pids) for name, pids in plan.items()}
     assert max(prio, key=prio.get) == max(est, key=est.get)
     assert all(abs(prio[n] - est[n]) <= 1 for n in plan)
+
+
+def test_a_shared_jobs_decode_cache_is_counted_at_the_photos_stored_bit_depth(tmp_path):
+    import numpy as np
+
+    from difftex.scene.files import write_image
+
+    cfg = wf.resolve_config(REPO, {"run": {"decode_cache_mb": 100000}})
+    (tmp_path / "images").mkdir()
+    img = np.random.default_rng(0).random((300, 400, 3))
+    write_image(tmp_path / "images" / "p8.png", img, bits=8)
+    write_image(tmp_path / "images" / "p16.png", img, bits=16)
+    for name, per_value in (("p8.png", 1), ("p16.png", 2)):
+        rows = [{"id": f"s{i}", "width": 50, "height": 40, "photos": [name] + [f"{name}.{i}.{j}" for j in range(9)]}
+                for i in range(2)]
+        alone = max(jobs.polygon_mem_mb(tmp_path, r, cfg["run"], cfg["optimize"]["top_k"]) for r in rows)
+        # 19 distinct photos of the first one's size, kept as stored: RGB at 1 or 2 bytes a value
+        cache = 19 * 400 * 300 * 3 * per_value / 2**20
+        assert jobs.job_mem_mb(tmp_path, rows, cfg) == math.ceil(alone + cache)
+    # the cache never asks for more than its budget
+    small = wf.deep_merge(cfg, {"run": {"decode_cache_mb": 1}})
+    assert jobs.job_mem_mb(tmp_path, rows, small) <= alone + 1
 
 
 def test_polygons_that_share_photos_share_a_job_when_it_fits():

@@ -208,6 +208,20 @@ def image_size(path: str | os.PathLike) -> tuple[int, int]:
     return spec.width, spec.height
 
 
+def image_stored_bytes(path: str | os.PathLike) -> int:
+    """Bytes of the image decoded as ``read_image(..., as_stored=True)`` keeps it, from the header:
+    RGB at 1 byte per value (8-bit), 2 (16-bit) or 4 (anything else, as float32)."""
+    import OpenImageIO as oiio
+
+    inp = oiio.ImageInput.open(str(path))
+    if inp is None:
+        raise DifftexError(f"{path}: cannot open image ({_first_line(oiio.geterror()) or 'unknown format'})")
+    spec = inp.spec()
+    inp.close()
+    per_value = {oiio.UINT8: 1, oiio.UINT16: 2}.get(spec.format.basetype, 4)
+    return spec.width * spec.height * 3 * per_value
+
+
 def write_image(path: str | os.PathLike, pixels: np.ndarray, bits: int = 8) -> None:
     """Write float RGB(A) in [0, 1] as 8/16-bit PNG/JPEG/TIFF or float EXR, atomically."""
     import OpenImageIO as oiio

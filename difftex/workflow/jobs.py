@@ -36,6 +36,19 @@ def _photo_pixels(scene: str | Path, row: dict) -> int:
     return 4000 * 3000
 
 
+def _photo_stored_bytes(scene: str | Path, row: dict) -> int:
+    """Bytes of one of the row's photos as a shared job's decode cache keeps it (8/16-bit RGB, at
+    full size: a job may decode at full size)."""
+    from difftex.scene.files import image_stored_bytes
+
+    for name in row.get("photos", [])[:1]:
+        try:
+            return image_stored_bytes(Path(scene) / "images" / name)
+        except Exception:  # noqa: BLE001 -- an estimate only; the stage reports a bad photo itself
+            break
+    return 4000 * 3000 * 3
+
+
 def polygon_mem_mb(scene: str | Path, row: dict, run: dict, top_k: int | None = None) -> int:
     """Memory of one polygon's optimization: texels x slots x bytes per slot (parameters, Adam
     state, mapped colours, masks, autograd temporaries), plus the candidate photos as float32 RGB,
@@ -108,11 +121,13 @@ def priority(rows: list[dict], cfg: dict) -> int:
 
 def job_mem_mb(scene: str | Path, rows: list[dict], cfg: dict) -> int:
     """A job holds one polygon's data at a time (the largest of its polygons' estimates) and,
-    with several polygons, up to ``run.decode_cache_mb`` of decoded photos."""
+    with several polygons, up to ``run.decode_cache_mb`` of decoded photos (difftex.scene.files.
+    DecodeCache, which keeps them as stored: 3 bytes a pixel for 8-bit photos, not float32's 12)."""
     mem = max(polygon_mem_mb(scene, r, cfg["run"], cfg["optimize"]["top_k"]) for r in rows)
     if len(rows) > 1:
         photos = {name for r in rows for name in r.get("photos", [])}
-        mem += min(float(cfg["run"]["decode_cache_mb"]), len(photos) * _photo_pixels(scene, rows[0]) * 12 / 2**20)
+        cache = len(photos) * _photo_stored_bytes(scene, rows[0]) / 2**20
+        mem += min(float(cfg["run"]["decode_cache_mb"]), cache)
     return int(math.ceil(mem))
 
 
