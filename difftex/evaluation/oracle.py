@@ -21,6 +21,20 @@ import torch.nn.functional as F
 from difftex.errors import DifftexError
 
 
+def _check_candidates(fn: str, colours: torch.Tensor, visible: torch.Tensor, ref: torch.Tensor) -> tuple[int, int, int]:
+    """(K, H, W) of candidates (K, 3, H, W) with their visibility (K, H, W) and the truth (3, H, W);
+    DifftexError naming ``fn`` otherwise."""
+    if colours.ndim != 4 or colours.shape[1] != 3:
+        raise DifftexError(f"{fn}: colours must be (K, 3, H, W), got {tuple(colours.shape)}")
+    K, _, H, W = colours.shape
+    if visible.shape != (K, H, W) or ref.shape != (3, H, W):
+        raise DifftexError(
+            f"{fn}: visible {tuple(visible.shape)} / ref {tuple(ref.shape)} do not match colours "
+            f"{tuple(colours.shape)}"
+        )
+    return K, H, W
+
+
 def patch_oracle(
     colours: torch.Tensor, visible: torch.Tensor, ref: torch.Tensor, patch: int
 ) -> tuple[torch.Tensor, torch.Tensor]:
@@ -41,14 +55,7 @@ def patch_oracle(
         texture (3, H, W): the chosen candidate's colour (zero where no candidate sees the texel);
         choice (H, W) long: the chosen candidate, -1 where none sees the texel.
     """
-    if colours.ndim != 4 or colours.shape[1] != 3:
-        raise DifftexError(f"patch_oracle: colours must be (K, 3, H, W), got {tuple(colours.shape)}")
-    K, _, H, W = colours.shape
-    if visible.shape != (K, H, W) or ref.shape != (3, H, W):
-        raise DifftexError(
-            f"patch_oracle: visible {tuple(visible.shape)} / ref {tuple(ref.shape)} do not match colours "
-            f"{tuple(colours.shape)}"
-        )
+    K, H, W = _check_candidates("patch_oracle", colours, visible, ref)
     if patch < 1 or patch % 2 == 0:
         raise DifftexError(f"patch_oracle: patch must be an odd number >= 1, got {patch}")
     vis = visible.float()
@@ -102,14 +109,7 @@ def blend_oracle(
         weights (K, H, W): each candidate's share of each texel, w_k v_k(x) / sum_j w_j v_j(x)
         (zero where no candidate sees the texel), for :func:`blend_summary`.
     """
-    if colours.ndim != 4 or colours.shape[1] != 3:
-        raise DifftexError(f"blend_oracle: colours must be (K, 3, H, W), got {tuple(colours.shape)}")
-    K, _, H, W = colours.shape
-    if visible.shape != (K, H, W) or ref.shape != (3, H, W):
-        raise DifftexError(
-            f"blend_oracle: visible {tuple(visible.shape)} / ref {tuple(ref.shape)} do not match colours "
-            f"{tuple(colours.shape)}"
-        )
+    K, H, W = _check_candidates("blend_oracle", colours, visible, ref)
     if tile < 1 or iters < 0:
         raise DifftexError(f"blend_oracle: tile must be >= 1 and iters >= 0, got {tile}, {iters}")
     ny, nx = -(-H // tile), -(-W // tile)
@@ -215,14 +215,11 @@ def tail_causes(
         ``error95``, ``no_photo_right`` no candidate is right, ``frontal_right`` one of the
         ``frontal`` most frontal candidates is right; ``tail_texels``.
     """
-    if colours.ndim != 4 or colours.shape[1] != 3:
-        raise DifftexError(f"tail_causes: colours must be (K, 3, H, W), got {tuple(colours.shape)}")
-    K, _, H, W = colours.shape
-    if any(t.shape != s for t, s in ((visible, (K, H, W)), (cos, (K, H, W)), (ref, (3, H, W)),
-                                     (texture, (3, H, W)), (mask, (H, W)))):
+    K, H, W = _check_candidates("tail_causes", colours, visible, ref)
+    if cos.shape != (K, H, W) or texture.shape != (3, H, W) or mask.shape != (H, W):
         raise DifftexError(
-            f"tail_causes: visible {tuple(visible.shape)}, cos {tuple(cos.shape)}, ref {tuple(ref.shape)}, texture "
-            f"{tuple(texture.shape)}, mask {tuple(mask.shape)} do not match colours {tuple(colours.shape)}"
+            f"tail_causes: cos {tuple(cos.shape)}, texture {tuple(texture.shape)}, mask {tuple(mask.shape)} "
+            f"do not match colours {tuple(colours.shape)}"
         )
     seen = visible.any(0) & mask
     err = ((texture - ref) ** 2).sum(0).sqrt()
