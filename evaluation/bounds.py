@@ -61,15 +61,6 @@ def candidates(photos, cfg):
     return torch.stack(cols), torch.stack(vis), torch.stack(cos), torch.stack(fp), ids
 
 
-def photo_weights(idx: np.ndarray, W: np.ndarray, ids: list[int]):
-    """(len(ids), H, W) each photo's weight per texel from difftex's slots (idx, W: (K, H, W))."""
-    import torch
-
-    w = torch.zeros((len(ids), *W.shape[1:]))
-    for j, n in enumerate(ids):
-        w[j] = torch.from_numpy(np.where(idx == n, W, 0.0).sum(0))
-    return w
-
 
 def run(scene: Path, density_scale: float, max_long_side: int, preset: str, patches: list[int],
         polygons: list[str] | None, tiles: tuple[int, ...] = ()) -> dict:
@@ -84,6 +75,7 @@ def run(scene: Path, density_scale: float, max_long_side: int, preset: str, patc
     from difftex.geometry.frames import UVFrame
     from difftex.geometry.visibility import scene_visibility
     from difftex.method.config import ComputeConfig, OptimizeConfig
+    from difftex.method.loop import photo_weight
     from difftex.sampling.photos import PhotoSet, polygon_input_from_visibility
     from difftex.scene.files import read_image, read_json
     from difftex.scene.loading import load_scene
@@ -124,7 +116,7 @@ def run(scene: Path, density_scale: float, max_long_side: int, preset: str, patc
             made_of.setdefault(name, []).append((s, int((mask_t & (weights.sum(0) > 0)).sum())))
 
         if preset != "none":
-            made(f"difftex ({preset})", photo_weights(tp.idx, tp.W, ids))
+            made(f"difftex ({preset})", torch.from_numpy(np.stack([photo_weight(tp.idx, tp.W, n) for n in ids])))
             del tp
         wsum = seen.sum(0).float()
         avg = (cols * seen[:, None]).sum(0) / wsum.clamp_min(1)
