@@ -196,8 +196,8 @@ def to_float(pixels: np.ndarray) -> np.ndarray:
     return out
 
 
-def image_size(path: str | os.PathLike) -> tuple[int, int]:
-    """(width, height) from the header alone."""
+def _header(path: str | os.PathLike):
+    """The image's OpenImageIO ImageSpec, from its header alone."""
     import OpenImageIO as oiio
 
     inp = oiio.ImageInput.open(str(path))
@@ -205,6 +205,12 @@ def image_size(path: str | os.PathLike) -> tuple[int, int]:
         raise DifftexError(f"{path}: cannot open image ({_first_line(oiio.geterror()) or 'unknown format'})")
     spec = inp.spec()
     inp.close()
+    return spec
+
+
+def image_size(path: str | os.PathLike) -> tuple[int, int]:
+    """(width, height) from the header alone."""
+    spec = _header(path)
     return spec.width, spec.height
 
 
@@ -213,11 +219,7 @@ def image_stored_bytes(path: str | os.PathLike) -> int:
     RGB at 1 byte per value (8-bit), 2 (16-bit) or 4 (anything else, as float32)."""
     import OpenImageIO as oiio
 
-    inp = oiio.ImageInput.open(str(path))
-    if inp is None:
-        raise DifftexError(f"{path}: cannot open image ({_first_line(oiio.geterror()) or 'unknown format'})")
-    spec = inp.spec()
-    inp.close()
+    spec = _header(path)
     per_value = {oiio.UINT8: 1, oiio.UINT16: 2}.get(spec.format.basetype, 4)
     return spec.width * spec.height * 3 * per_value
 

@@ -24,16 +24,21 @@ from difftex.geometry.frames import level_sides
 from difftex.scene.camera import IMAGE_SUFFIXES
 
 
+def _first_photo(scene: str | Path, row: dict, measure, fallback: int) -> int:
+    """``measure`` (a header reader) of the row's first photo, or ``fallback`` (a 12-Mpixel 8-bit
+    photo's figure) when it has none or its header cannot be read."""
+    for name in row.get("photos", [])[:1]:
+        try:
+            return int(measure(Path(scene) / "images" / name))
+        except Exception:  # noqa: BLE001 -- an estimate only; the stage reports a bad photo itself
+            break
+    return fallback
+
+
 def _photo_pixels(scene: str | Path, row: dict) -> int:
     from difftex.scene.files import image_size
 
-    for name in row.get("photos", [])[:1]:
-        try:
-            w, h = image_size(Path(scene) / "images" / name)
-            return w * h
-        except Exception:  # noqa: BLE001 -- an estimate only; the stage reports a bad photo itself
-            break
-    return 4000 * 3000
+    return _first_photo(scene, row, lambda path: math.prod(image_size(path)), 4000 * 3000)
 
 
 def _photo_stored_bytes(scene: str | Path, row: dict) -> int:
@@ -41,12 +46,7 @@ def _photo_stored_bytes(scene: str | Path, row: dict) -> int:
     full size: a job may decode at full size)."""
     from difftex.scene.files import image_stored_bytes
 
-    for name in row.get("photos", [])[:1]:
-        try:
-            return image_stored_bytes(Path(scene) / "images" / name)
-        except Exception:  # noqa: BLE001 -- an estimate only; the stage reports a bad photo itself
-            break
-    return 4000 * 3000 * 3
+    return _first_photo(scene, row, image_stored_bytes, 4000 * 3000 * 3)
 
 
 def polygon_mem_mb(scene: str | Path, row: dict, run: dict, top_k: int | None = None) -> int:
