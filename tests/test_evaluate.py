@@ -23,6 +23,7 @@ from difftex.geometry.frames import UVFrame, texel_mask, uv_frame
 from difftex.scene.files import write_image, write_json
 from difftex.scene.proxy import Polygon
 
+from tests import piq_weights as W
 from tests.scenes import make_scene, wall
 
 UP = np.array([0.0, 0.0, 1.0])
@@ -148,17 +149,54 @@ def test_map_metrics_lpips_column_says_what_made_it(tmp_path, monkeypatch, caplo
         "front", np.clip(gt + 0.05 * np.sin(np.arange(gt.shape[1]))[None, :, None], 0, 1), frame, mask, {}, tmp_path
     )
     textures = {"front": tex, "back": tex}
-    monkeypatch.setenv("TORCH_HOME", str(tmp_path / "torch"))  # no torchvision AlexNet weights here
+    monkeypatch.setenv("TORCH_HOME", str(tmp_path / "torch"))  # no classic LPIPS weights here
     o = evaluate_maps(tmp_path, textures, EvaluateConfig(lpips="lpips"))["overall"]
     assert o["lpips"] is None and o["lpips_variant"].startswith(
-        "unavailable: classic LPIPS needs torchvision's AlexNet"
+        "unavailable: classic LPIPS (piq) needs lpips_weights.pt and vgg16-397923af.pth in "
     )
     assert caplog.text.count("unavailable") == 1  # once per evaluation, not per polygon
     o = evaluate_maps(tmp_path, textures, EvaluateConfig(lpips="none"))["overall"]
     assert (o["lpips"], o["lpips_variant"]) == (None, "none")
-    if metrics.lpips_source("stlpips")[0] is not None:  # auto falls back to ST-LPIPS and says so
+    if metrics.lpips_source("stlpips")[0] is not None:  # auto falls back to ST-LPIPS and says so, in one line
+        caplog.clear()
         o = evaluate_maps(tmp_path, textures, EvaluateConfig(lpips="auto"))["overall"]
         assert o["lpips"] > 0 and o["lpips_variant"].startswith("ST-LPIPS (stlpips-pytorch")
+        notes = [r.getMessage() for r in caplog.records if r.levelname == "WARNING"]
+        assert len(notes) == 1 and notes[0].startswith("LPIPS (auto): classic LPIPS (piq) needs"), notes
+        assert "reporting ST-LPIPS instead" in notes[0] and "\n" not in notes[0]
+    # with the two weight files in a configured folder: classic LPIPS through piq, no note
+    folder = W.write_piq_weights(tmp_path / "weights")
+    caplog.clear()
+    for variant in ("auto", "lpips"):
+        res = evaluate_maps(tmp_path, textures, EvaluateConfig(lpips=variant, lpips_weights=str(folder)))
+        o = res["overall"]
+        assert o["lpips_variant"].startswith("LPIPS (piq 0.8.0, VGG16: torchvision ImageNet weights")
+        assert math.isfinite(o["lpips"]) and o["lpips"] > 0
+        assert all(math.isfinite(r["lpips"]) for r in res["polygons"])
+    assert not [r for r in caplog.records if r.levelname == "WARNING"]
+    assert not (tmp_path / "torch").exists()  # nothing was downloaded
+
+
+def test_evaluate_command_passes_the_lpips_weights_folder(tmp_path, monkeypatch, capsys):
+    import difftex.evaluation.evaluate as ev
+    from difftex.cli import main
+
+    seen = {}
+
+    def fake_evaluate(scene, results, cfg, out_dir=None, progress=True):
+        seen["cfg"] = cfg
+        return {"time_s": 0.0}
+
+    monkeypatch.setattr(ev, "evaluate_results", fake_evaluate)
+    monkeypatch.setattr(ev, "summary_line", lambda res: "")
+    monkeypatch.setattr(ev, "to_json", lambda res: res)
+    cfg = tmp_path / "c.yaml"
+    cfg.write_text("evaluate: {lpips: lpips, lpips_weights: /from/config}\n")
+    argv = ["evaluate", "--scene", str(tmp_path), "--results", str(tmp_path), "--out", str(tmp_path / "m.json")]
+    assert main([*argv, "--config", str(cfg)]) == 0
+    assert (seen["cfg"].lpips, seen["cfg"].lpips_weights) == ("lpips", "/from/config")
+    assert main([*argv, "--config", str(cfg), "--lpips-weights", str(tmp_path / "w")]) == 0
+    assert seen["cfg"].lpips_weights == str(tmp_path / "w")
 
 
 def test_map_metrics_at_another_resolution_resample_first(tmp_path):

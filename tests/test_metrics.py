@@ -1,10 +1,11 @@
-"""Known-answer tests for difftex.evaluation.metrics, and its metrics against piq / scikit-image / the reference
-LPIPS packages on the same image pairs."""
+"""Known-answer tests for difftex.evaluation.metrics, and its metrics against piq / scikit-image /
+stlpips-pytorch on the same image pairs (classic LPIPS against piq.LPIPS, with stand-in weight files)."""
 
 from __future__ import annotations
 
 import math
 import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -13,6 +14,8 @@ from scipy import ndimage
 
 from difftex.errors import DifftexError
 from difftex.evaluation import metrics
+
+from tests import piq_weights as W
 
 
 def texture(size=64, smooth=1.5, seed=0):
@@ -346,20 +349,6 @@ def as_tensor(img):
     return torch.from_numpy(np.ascontiguousarray(img, np.float32)).permute(2, 0, 1)[None]
 
 
-@pytest.fixture
-def hub_alexnet(tmp_path, monkeypatch):
-    """torchvision's AlexNet checkpoint (seeded random weights) in a fresh torch hub cache."""
-    from torchvision.models import alexnet
-
-    monkeypatch.setenv("TORCH_HOME", str(tmp_path))
-    torch.manual_seed(0)
-    path = metrics.alexnet_checkpoint()
-    assert path.is_relative_to(tmp_path) and path.name == "alexnet-owt-7be5be79.pth"
-    path.parent.mkdir(parents=True)
-    torch.save(alexnet(weights=None).state_dict(), path)
-    return path
-
-
 @needs_stlpips
 def test_stlpips_equals_reference_package():
     from stlpips_pytorch import stlpips
@@ -381,38 +370,115 @@ def test_stlpips_equals_reference_package():
     assert label == "ST-LPIPS (stlpips-pytorch 0.0.2, alex shift-tolerant weights vST0.0)"
 
 
-@pytest.mark.filterwarnings("ignore:.*(pretrained|weight enum).*:UserWarning")  # lpips' call into torchvision
-def test_classic_lpips_equals_reference_package(hub_alexnet):
-    import lpips as lpips_pkg
+@pytest.fixture(scope="module")
+def torch_home(tmp_path_factory):
+    """A torch hub cache holding classic LPIPS's two weight files (random stand-ins, tests/piq_weights.py)."""
+    home = tmp_path_factory.mktemp("torch_home")
+    W.write_piq_weights(home / "hub" / "checkpoints")
+    return home
 
+
+@pytest.fixture
+def hub_weights(torch_home, monkeypatch):
+    monkeypatch.setenv("TORCH_HOME", str(torch_home))
+    return torch_home / "hub" / "checkpoints"
+
+
+def piq_lpips_from(folder):
+    """``piq.LPIPS`` built by piq itself: it reads lpips_weights.pt from the hub cache (the file is
+    there, so nothing is downloaded). Its VGG16 comes from the stand-in's ``features`` tensors:
+    torchvision would load the real file strictly, classifier included (528 MB)."""
+    import piq
+    import piq.perceptual
+    from torchvision.models import vgg16
+
+    def vgg16_from_file(pretrained, progress):
+        assert pretrained
+        model = vgg16(weights=None)
+        sd = torch.load(folder / W.VGG16_FILE, weights_only=True)
+        model.features.load_state_dict({k.removeprefix("features."): v for k, v in sd.items()})
+        return model
+
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(piq.perceptual, "vgg16", vgg16_from_file)
+        return piq.LPIPS(reduction="none")
+
+
+def test_weight_files_are_named_as_piq_and_torchvision_name_them(hub_weights):
+    files = metrics.lpips_weight_files()
+    assert files == {"lpips": hub_weights / W.LPIPS_FILE, "vgg16": hub_weights / W.VGG16_FILE}
+    assert metrics.lpips_weight_files("/elsewhere") == {
+        "lpips": Path("/elsewhere") / W.LPIPS_FILE,
+        "vgg16": Path("/elsewhere") / W.VGG16_FILE,
+    }
+
+
+def test_classic_lpips_equals_piq(hub_weights):
     a, b = texture(64, seed=3), blur(texture(64, seed=3), 1.0)
-    # The reference's own path: lpips asks torchvision for the ImageNet AlexNet, which torchvision
-    # reads from the hub cache (the file is there, so nothing is downloaded).
     with torch.no_grad():
-        expected = float(lpips_pkg.LPIPS(net="alex", verbose=False)(as_tensor(a), as_tensor(b), normalize=True))
+        expected = float(piq_lpips_from(hub_weights)(as_tensor(a), as_tensor(b)))
+    assert expected > 0
     for variant in ("lpips", "auto"):  # auto prefers classic LPIPS when its weights are on disk
         value, label = metrics.lpips(a, b, variant=variant)
         assert value == pytest.approx(expected, rel=1e-6)
-        assert label.startswith(
-            "LPIPS v0.1 (lpips 0.1.4, AlexNet: torchvision ImageNet weights alexnet-owt-7be5be79.pth"
+        assert label == (
+            "LPIPS (piq 0.8.0, VGG16: torchvision ImageNet weights vgg16-397923af.pth + piq linear weights "
+            "lpips_weights.pt)"
         )
 
 
-def test_classic_lpips_unavailable_without_hub_weights(tmp_path, monkeypatch, caplog):
+def test_classic_lpips_from_a_configured_folder(hub_weights, tmp_path, monkeypatch):
+    monkeypatch.setenv("TORCH_HOME", str(tmp_path / "empty"))  # nothing in the hub cache now
+    a, b = texture(64, seed=3), blur(texture(64, seed=3), 1.0)
+    value, label = metrics.lpips(a, b, variant="lpips", weights_dir=hub_weights)
+    assert label.startswith("LPIPS (piq ") and math.isfinite(value) and value > 0
+    assert metrics.lpips(a, b, variant="lpips")[0] is None
+    assert not (tmp_path / "empty").exists()  # nothing was downloaded
+
+
+def test_classic_lpips_mask(hub_weights):
+    img = texture(64)
+    other = img.copy()
+    other[:, :32] = blur(img, 3.0)[:, :32]  # only the left half differs
+    left = np.zeros((64, 64), bool)
+    left[:, :32] = True
+    full = metrics.lpips(other, img, variant="lpips")[0]
+    d_left = metrics.lpips(other, img, left, variant="lpips")[0]
+    d_right = metrics.lpips(other, img, ~left, variant="lpips")[0]
+    assert d_right < full < d_left
+    # the map averaged over every pixel is the plain distance (64 is a multiple of every layer's stride)
+    net = metrics._network("lpips", str(hub_weights), True, "cpu")
+    with torch.no_grad():
+        dmap = net(as_tensor(other), as_tensor(img))
+    assert dmap.shape == (1, 1, 64, 64) and float(dmap.mean()) == pytest.approx(full, rel=1e-5)
+
+
+def test_classic_lpips_unavailable_without_weights(tmp_path, monkeypatch, caplog):
     monkeypatch.setenv("TORCH_HOME", str(tmp_path))
+    folder = tmp_path / "hub" / "checkpoints"
     value, label = metrics.lpips(texture(), texture(seed=1), variant="lpips")
     assert value is None
-    assert (
-        label.startswith("unavailable: ")
-        and str(tmp_path / "hub" / "checkpoints" / "alexnet-owt-7be5be79.pth") in label
+    assert label == (
+        f"unavailable: classic LPIPS (piq) needs lpips_weights.pt and vgg16-397923af.pth in {folder} "
+        "(missing: lpips_weights.pt, vgg16-397923af.pth; never downloaded)"
     )
     assert label in caplog.text
     with pytest.raises(DifftexError, match="unavailable"):
         metrics.lpips(texture(), texture(), variant="lpips", required=True)
-    if stlpips_available():  # auto falls back to ST-LPIPS, and its label says so
+    if stlpips_available():  # auto falls back to ST-LPIPS, and says so in one line
+        caplog.clear()
         value, label = metrics.lpips(texture(), texture(seed=1), variant="auto")
         assert value > 0 and label.startswith("ST-LPIPS")
-    assert not list(tmp_path.rglob("*.pth"))  # nothing was downloaded
+        notes = [r.getMessage() for r in caplog.records]
+        assert len(notes) == 1 and "\n" not in notes[0], notes
+        assert notes[0].startswith("LPIPS (auto): classic LPIPS (piq) needs") and "reporting ST-LPIPS" in notes[0]
+    assert not tmp_path.exists() or not list(tmp_path.rglob("*.p*"))  # nothing was downloaded
+
+
+def test_classic_lpips_names_the_one_missing_file(hub_weights, tmp_path):
+    (tmp_path / W.LPIPS_FILE).write_bytes((hub_weights / W.LPIPS_FILE).read_bytes())
+    assert metrics.classic_lpips_missing(tmp_path).endswith("(missing: vgg16-397923af.pth; never downloaded)")
+    assert metrics.classic_lpips_missing(hub_weights) is None
 
 
 def test_stlpips_unavailable_when_the_package_does_not_import(monkeypatch):
@@ -423,15 +489,38 @@ def test_stlpips_unavailable_when_the_package_does_not_import(monkeypatch):
         metrics.lpips(texture(), texture(), variant="vgg")
 
 
-def test_alexnet_weights_that_do_not_fit_are_a_clear_error(hub_alexnet):
-    sd = torch.load(hub_alexnet, weights_only=True)
+def test_weights_that_do_not_fit_are_a_clear_error(hub_weights, tmp_path):
+    for name in (W.LPIPS_FILE, W.VGG16_FILE):
+        (tmp_path / name).write_bytes((hub_weights / name).read_bytes())
+    a, b = texture(), texture(seed=1)
+    sd = torch.load(tmp_path / W.VGG16_FILE, weights_only=True)
     sd.pop("features.10.bias")
-    torch.save(sd, hub_alexnet)
-    with pytest.raises(DifftexError, match="not torchvision's AlexNet weights"):
-        metrics.lpips(texture(), texture(seed=1), variant="lpips")
-    hub_alexnet.write_bytes(b"not a checkpoint")
-    with pytest.raises(DifftexError, match="unreadable torch weight file"):
-        metrics.lpips(texture(), texture(seed=1), variant="lpips")
+    torch.save(sd, tmp_path / W.VGG16_FILE)
+    with pytest.raises(DifftexError, match="vgg16-397923af.pth: not torchvision's VGG16 weights"):
+        metrics.lpips(a, b, variant="lpips", weights_dir=tmp_path)
+    (tmp_path / W.VGG16_FILE).write_bytes(b"not a checkpoint")
+    with pytest.raises(DifftexError, match="vgg16-397923af.pth: unreadable torch weight file"):
+        metrics.lpips(a, b, variant="lpips", weights_dir=tmp_path)
+    (tmp_path / W.VGG16_FILE).write_bytes((hub_weights / W.VGG16_FILE).read_bytes())
+    torch.save([torch.zeros(1, 64, 1, 1)] * 4, tmp_path / W.LPIPS_FILE)
+    with pytest.raises(DifftexError, match="lpips_weights.pt: not piq's LPIPS weights"):
+        metrics.lpips(a, b, variant="lpips", weights_dir=tmp_path)
+
+
+def test_stlpips_needs_no_lpips_package(tmp_path):
+    """The lpips package is not installed (pyproject.toml): ST-LPIPS runs with it unimportable."""
+    import subprocess
+
+    code = (
+        "import sys; sys.modules['lpips'] = None\n"
+        "import numpy as np\n"
+        "from difftex.evaluation import metrics\n"
+        "rng = np.random.default_rng(0); a = rng.random((40, 40, 3)); b = np.clip(a + 0.1, 0, 1)\n"
+        "value, label = metrics.lpips(a, b, variant='stlpips', required=True)\n"
+        "assert value > 0 and label.startswith('ST-LPIPS'), label\n"
+    )
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=tmp_path)
+    assert r.returncode == 0, r.stderr[-2000:]
 
 
 @needs_stlpips

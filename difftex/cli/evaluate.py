@@ -12,6 +12,12 @@ def add_arguments(p) -> None:
     p.add_argument("--config", help="YAML config; section 'evaluate' is read")
     p.add_argument("--out", required=True, help="metrics JSON; error maps and renders go beside it")
     p.add_argument("--lpips", choices=["auto", "lpips", "stlpips", "none"], help="overrides evaluate.lpips")
+    p.add_argument(
+        "--lpips-weights",
+        metavar="DIR",
+        help="folder with classic LPIPS's lpips_weights.pt (piq) and vgg16-397923af.pth (torchvision); "
+        "overrides evaluate.lpips_weights (default: the torch hub cache)",
+    )
     p.add_argument("--quiet", action="store_true")
 
 
@@ -26,6 +32,8 @@ def run(args) -> int:
     cfg = section(args.config, "evaluate", EvaluateConfig)
     if args.lpips:
         cfg = dataclasses.replace(cfg, lpips=args.lpips)
+    if args.lpips_weights:
+        cfg = dataclasses.replace(cfg, lpips_weights=args.lpips_weights)
     out = Path(args.out)
     res = evaluate_results(args.scene, args.results, cfg, out_dir=out.parent, progress=not args.quiet)
     write_json(out, to_json(res))

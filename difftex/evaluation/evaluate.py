@@ -217,7 +217,9 @@ def evaluate_maps(
         # the ground truth's detail the texture reproduces (noise does not count, metrics.detail_gain)
         row["detail"] = metrics.detail_gain(img, ref, gmask) if g_ref > 0 else None
         if lp_variant and min(gmask.shape) >= metrics.LPIPS_MIN_SIDE:
-            row["lpips"], lp_label = metrics.lpips(img, ref, gmask, variant=lp_variant, device=cfg.device)
+            row["lpips"], lp_label = metrics.lpips(
+                img, ref, gmask, variant=lp_variant, weights_dir=cfg.lpips_weights, device=cfg.device
+            )
         else:
             row["lpips"] = None
         if error_dir is not None and cfg.error_maps:

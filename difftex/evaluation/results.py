@@ -25,6 +25,9 @@ class EvaluateConfig:
     """The ``evaluate:`` config section."""
 
     lpips: str = "auto"  # auto | lpips | stlpips | none
+    # folder holding classic LPIPS's weight files (piq's lpips_weights.pt, torchvision's
+    # vgg16-397923af.pth); None: the torch hub cache (metrics.lpips_weight_files)
+    lpips_weights: str | None = None
     render_long_side: int = 768  # held-out views are rendered and compared at this long side
     error_maps: bool = True  # write per-polygon error maps (PNG) beside the metrics
     views: bool = True  # also score renders into held-out views (real: holdout.json; synthetic: ground_truth/views)
@@ -90,16 +93,20 @@ def load_textures(results: str | Path) -> dict[str, PolygonTexture]:
 
 
 def _lpips_plan(cfg: EvaluateConfig) -> tuple[str | None, str | None]:
-    """(LPIPS variant to compute or None, label of the column when nothing is computed).
+    """(LPIPS network to compute, "lpips" or "stlpips", or None; label of the column when nothing
+    is computed).
 
-    Resolved once per evaluation, so that missing weights give one warning, not one per polygon.
+    Resolved once per evaluation, so that missing weights give one warning line, not one per
+    polygon or view: "auto" without classic LPIPS's weight files says once that it reports ST-LPIPS.
     """
     from difftex.evaluation import metrics
 
     if cfg.lpips == "none":
         return None, "none"
-    kind, label = metrics.lpips_source(cfg.lpips)
+    kind, label = metrics.lpips_source(cfg.lpips, cfg.lpips_weights)
     if kind is None:
         log.warning("LPIPS (%s) %s", cfg.lpips, label)
         return None, label
-    return cfg.lpips, None
+    if cfg.lpips == "auto" and kind == "stlpips":
+        log.warning("%s", metrics.lpips_fallback_note(cfg.lpips_weights))
+    return kind, None

@@ -118,7 +118,9 @@ def evaluate_views(
         row["ssim"] = metrics.ssim(ren, ref, mask)
         row["psnr"] = metrics.psnr(ren, ref, mask)
         if lp_variant:
-            row["lpips"], lp_label = metrics.lpips(ren, ref, mask, variant=lp_variant, device=cfg.device)
+            row["lpips"], lp_label = metrics.lpips(
+                ren, ref, mask, variant=lp_variant, weights_dir=cfg.lpips_weights, device=cfg.device
+            )
         else:
             row["lpips"] = None
         if out_dir is not None:
