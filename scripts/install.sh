@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
 # Set up difftex in ./.venv: the registry's standard torch + torchvision pair (pinned together in
-# constraints.txt; CUDA builds that also run on a CPU), piq, the package in editable mode, and the
-# reference LPIPS / ST-LPIPS packages with their weight files.
+# constraints.txt; CUDA builds that also run on a CPU), piq (SSIM cross-checks and classic LPIPS,
+# whose weight files are read from the torch hub cache, docs/metrics.md), the package in editable
+# mode, and ST-LPIPS (stlpips-pytorch, weights in the wheel). The lpips package is not installed.
 #
 # CPU-only torch instead (no CUDA libraries: several GB smaller): install it first, then run this script with
 #   TORCH_INDEX=https://download.pytorch.org/whl/cpu bash scripts/install.sh
@@ -30,8 +31,8 @@ if [ -n "${TORCH_INDEX:-}" ]; then
   "${PIP[@]}" --index-url "$TORCH_INDEX" torch torchvision
 fi
 "${PIP[@]}" torch torchvision piq
-# "perceptual": the reference LPIPS (lpips) and ST-LPIPS (stlpips-pytorch) packages, which
-# difftex.evaluation.metrics calls directly, with the imports stlpips-pytorch needs but does not declare.
+# "perceptual": ST-LPIPS (stlpips-pytorch), which difftex.evaluation.metrics calls directly, with the
+# imports it needs but does not declare (IPython, torchsummary).
 "${PIP[@]}" -e ".[test,perceptual]"
 # Optional: Mitsuba's fast llvm_ad_rgb variant (synthetic scenes) needs Debian's libllvm19;
 # without it difftex synth falls back to scalar_rgb, about 2x slower.
