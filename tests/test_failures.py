@@ -166,6 +166,13 @@ def _blur_all(s):
         write_image(p, gaussian_filter(read_image(p), sigma=(3, 3, 0)))
 
 
+def _blur_one(s, k=3):
+    from scipy.ndimage import gaussian_filter
+
+    p = sorted((s / "images").glob("*.png"))[k]
+    write_image(p, gaussian_filter(read_image(p), sigma=(3, 3, 0)))
+
+
 def _turn_all(s):
     for k in range(B.n_images(s)):
         B.turn_camera_around(s, k)
@@ -314,6 +321,12 @@ CASES = [
     ),
     ("every-photo-filtered-out", _turn_all, "error", ["images", "every photo was filtered out", "frame and units"]),
     ("all-photos-blurry", _blur_all, "ok", []),
+    (
+        "one-photo-blurry",
+        _blur_one,
+        "warning",
+        ["images", "1 photo dropped as blurry (sharpness below filter.blur_ratio = 0.3 x the median): img_0003.png ("],
+    ),
 ]
 
 
@@ -495,3 +508,108 @@ def test_a_float_photo_with_nan_is_an_error_naming_it(tmp_path):
     write_image(tmp_path / "bad.exr", img)
     with pytest.raises(DifftexError, match=r"bad\.exr: image holds NaN"):
         read_image(tmp_path / "bad.exr")
+
+
+def test_every_photo_under_min_pixels_names_the_setting(small_synth_scene, tmp_path, capsys):
+    """Photos that see the proxy, but no polygon of it with filter.min_pixels pixels: the error
+    names the setting and the numbers, not the proxy's frame and units."""
+    cfg = tmp_path / "c.yaml"
+    cfg.write_text("filter:\n  min_pixels: 1000000\n")
+    code, err = run_filter(capsys, small_synth_scene, tmp_path / "out", "--config", cfg)
+    n = B.n_images(small_synth_scene)
+    assert_error(
+        code,
+        err,
+        "images: every photo was filtered out (sees no polygon with filter.min_pixels = 1000000 pixels: "
+        f"{n} of {n}); nothing to texture. The photos see at most ",
+        " pixels of a polygon at the filter's analysis size (filter.analysis_long_side = 640): "
+        "set filter.min_pixels to ",
+    )
+    assert "frame and units" not in err[-1]
+    most = int(err[-1].split("see at most ")[1].split()[0])
+    assert 0 < most < 1000000 and err[-1].endswith(f"set filter.min_pixels to {most} or less.")
+    # ... and that many pixels are enough
+    cfg.write_text(f"filter:\n  min_pixels: {most}\n")
+    code, err = run_filter(capsys, small_synth_scene, tmp_path / "out", "--config", cfg)
+    assert code == 0 and not any(e.startswith("difftex: error") for e in err), err
+
+
+def test_a_photo_under_min_pixels_is_named_with_the_setting(small_synth_scene, tmp_path, capsys):
+    assert run_filter(capsys, small_synth_scene, tmp_path / "a")[0] == 0
+    largest = {r["name"]: max(v["pixels"] for v in r["polygons"].values())
+               for r in read_json(tmp_path / "a" / "photos.json")["photos"]}
+    name, least = min(largest.items(), key=lambda kv: kv[1])
+    assert sorted(largest.values())[1] > least  # one photo is below the threshold, the others above
+    cfg = tmp_path / "c.yaml"
+    cfg.write_text(f"filter:\n  min_pixels: {least + 1}\n")
+    code, err = run_filter(capsys, small_synth_scene, tmp_path / "b", "--config", cfg)
+    assert_warning(code, err, f"images: 1 photo sees no polygon with filter.min_pixels = {least + 1} pixels "
+                   f"(at most {least}), dropped ({name})")
+    rec = {r["name"]: r for r in read_json(tmp_path / "b" / "photos.json")["photos"]}
+    assert rec[name]["kept"] is False and "filter.min_pixels" in rec[name]["reason"]
+
+
+def test_a_blurry_photo_is_named_on_the_console_and_in_the_end_of_run_summary(small_synth_scene, tmp_path, capsys):
+    """photos.csv is not the only place that says it: the filter's warning line (which the
+    workflow prints again at the end of the run) and the summary after it."""
+    from difftex.scene.files import write_json
+    from difftex.workflow.glue import format_summary, run_summary
+
+    scene = B.copy_scene(small_synth_scene, tmp_path / "scene")
+    _blur_one(scene)
+    R = tmp_path / "R"
+    code, err = run_filter(capsys, scene, R)
+    assert_warning(code, err, "1 photo dropped as blurry", "img_0003.png (0.")
+    rec = {r["name"]: r for r in read_json(R / "photos.json")["photos"]}
+    write_json(R / "model" / "summary.json", {"polygons": [], "untextured": []})
+    lines = format_summary(run_summary(R)).splitlines()
+    said = [ln for ln in lines if "blurry" in ln]
+    assert said == [
+        "1 photo dropped as blurry (sharpness below filter.blur_ratio = 0.3 x the median; photos.csv): "
+        f"img_0003.png ({rec['img_0003.png']['sharpness_rel']:.2f})"
+    ], lines
+
+
+@pytest.mark.parametrize("how", ["file-size-limit", "full-disk"])
+def test_an_image_write_that_stops_midway_leaves_the_previous_file(how, tmp_path):
+    """model/model_view.png (or any PNG) whose write stops half-way: OpenImageIO's PNG writer
+    still returns success and would leave a truncated file; write_image raises instead, naming
+    the file, and the previous version stays. The writer is stopped by a file size limit
+    (RLIMIT_FSIZE, any user) or by a full 64 kB tmpfs (root only)."""
+    import resource
+    import signal
+    import subprocess
+
+    from difftex.errors import DifftexError
+
+    root = tmp_path / "disk"
+    root.mkdir()
+    mount = ["mount", "-t", "tmpfs", "-o", "size=64k", "tmpfs", str(root)]
+    if how == "full-disk" and subprocess.run(mount, capture_output=True).returncode:
+        pytest.skip("cannot mount a small tmpfs here (needs root)")
+    rng = np.random.default_rng(0)
+    target = root / "model" / "model_view.png"
+    try:
+        write_image(target, rng.random((8, 8, 3)))
+        before = target.read_bytes()
+        soft, hard = resource.getrlimit(resource.RLIMIT_FSIZE)
+        prev = signal.signal(signal.SIGXFSZ, signal.SIG_IGN)  # a write past the limit fails (EFBIG), no signal
+        if how == "file-size-limit":
+            resource.setrlimit(resource.RLIMIT_FSIZE, (20_000, hard))
+        try:
+            with pytest.raises(DifftexError) as info:
+                write_image(target, rng.random((400, 600, 3)))  # about 700 kB of PNG: noise does not compress
+        finally:
+            resource.setrlimit(resource.RLIMIT_FSIZE, (soft, hard))
+            signal.signal(signal.SIGXFSZ, prev)
+        msg = str(info.value)
+        assert "\n" not in msg
+        if how == "full-disk":
+            assert msg == f"{target}: No space left on device (free some space and run the same command again)"
+        else:
+            assert msg.startswith(f"{target}: cannot write image (Write error") and "could only write" in msg, msg
+        assert target.read_bytes() == before
+        assert B.temp_files(root) == []
+    finally:
+        if how == "full-disk":
+            subprocess.run(["umount", str(root)], check=False)

@@ -63,6 +63,8 @@ class PhotoRecord:
     polygons: dict | None = None  # polygon id -> {"pixels": int, "angle_deg": float}
     kept: bool = True
     reason: str = ""
+    # when it sees no polygon with min_pixels pixels: the most pixels it sees of one (0: none at all)
+    largest_view: int = 0
 
 
 def viewing_angles(proxy: Proxy, photo: Photo, ids: np.ndarray, dist: np.ndarray, stride: int, min_pixels: int) -> dict:
@@ -92,31 +94,73 @@ def viewing_angles(proxy: Proxy, photo: Photo, ids: np.ndarray, dist: np.ndarray
     return out
 
 
-def check_kept(records: list[PhotoRecord], proxy: Proxy, images_dir) -> None:
-    """Warn about photos that see no polygon; stop when no photo is left at all.
+def _names(names: list[str]) -> str:
+    return ", ".join(names[:3]) + (", ..." if len(names) > 3 else "")
+
+
+def check_kept(records: list[PhotoRecord], cfg: FilterConfig, images_dir) -> None:
+    """Stop when no photo is left at all, saying which test dropped them and what to change.
 
     A photo that sees nothing is normal (a view of the street); every photo seeing nothing is
     not: the proxy and the photos do not meet (wrong frame or units), and continuing would
-    write an all-grey model.
+    write an all-grey model. Photos that do see the proxy, but none of its polygons with
+    ``filter.min_pixels`` pixels, point at that setting instead.
     """
-    blind = [r.name for r in records if not r.polygons]
-    kept = [r for r in records if r.kept]
-    if not kept:
-        reasons: dict[str, int] = {}
-        for r in records:
-            key = r.reason.split(" (")[0]
-            reasons[key] = reasons.get(key, 0) + 1
-        detail = "; ".join(f"{why}: {n} of {len(records)}" for why, n in sorted(reasons.items(), key=lambda kv: -kv[1]))
-        hint = " Is the proxy in the COLMAP model's frame and units?" if len(blind) == len(records) else ""
-        raise DifftexError(f"{images_dir}: every photo was filtered out ({detail}); nothing to texture.{hint}")
+    if any(r.kept for r in records):
+        return
+    reasons: dict[str, int] = {}
+    for r in records:
+        key = r.reason.split(" (")[0]
+        reasons[key] = reasons.get(key, 0) + 1
+    detail = "; ".join(f"{why}: {n} of {len(records)}" for why, n in sorted(reasons.items(), key=lambda kv: -kv[1]))
+    largest = max((r.largest_view for r in records if not r.polygons), default=0)
+    hint = ""
+    if all(not r.polygons for r in records):
+        if largest == 0:
+            hint = " Is the proxy in the COLMAP model's frame and units?"
+        else:
+            hint = (
+                f" The photos see at most {largest} pixels of a polygon at the filter's analysis size "
+                f"(filter.analysis_long_side = {cfg.analysis_long_side}): set filter.min_pixels to {largest} "
+                "or less."
+            )
+    raise DifftexError(f"{images_dir}: every photo was filtered out ({detail}); nothing to texture.{hint}")
+
+
+def warn_dropped(records: list[PhotoRecord], cfg: FilterConfig, images_dir) -> None:
+    """One warning line per reason for the photos that stay dropped: seeing no polygon at all,
+    none with ``min_pixels`` pixels, or blurry (photos.csv has every photo's reason)."""
+    dropped = [r for r in records if not r.kept]
+    blind = [r.name for r in dropped if not r.polygons and r.largest_view == 0]
+    small = [r for r in dropped if not r.polygons and r.largest_view > 0]
+    blurry = [r for r in dropped if _blurry(r)]
     if blind:
-        shown = ", ".join(blind[:3]) + (", ..." if len(blind) > 3 else "")
         log.warning(
             "%s: %d photo%s no proxy polygon, dropped (%s)",
             images_dir,
             len(blind),
             "s see" if len(blind) > 1 else " sees",
-            shown,
+            _names(blind),
+        )
+    if small:
+        log.warning(
+            "%s: %d photo%s no polygon with filter.min_pixels = %d pixels (at most %d), dropped (%s)",
+            images_dir,
+            len(small),
+            "s see" if len(small) > 1 else " sees",
+            cfg.min_pixels,
+            max(r.largest_view for r in small),
+            _names([r.name for r in small]),
+        )
+    if blurry:
+        blurry.sort(key=lambda r: r.sharpness_rel)
+        log.warning(
+            "%s: %d photo%s dropped as blurry (sharpness below filter.blur_ratio = %g x the median): %s",
+            images_dir,
+            len(blurry),
+            "s" if len(blurry) > 1 else "",
+            cfg.blur_ratio,
+            _names([f"{r.name} ({r.sharpness_rel:.2f})" for r in blurry]),
         )
 
 
@@ -254,16 +298,25 @@ def filter_photos(proxy: Proxy, photos: list[Photo], cfg: FilterConfig, progress
             ids, dist = id_buffer(pp, ph, stride=stride)
             rec = PhotoRecord(name=ph.name)
             rec.polygons = viewing_angles(proxy, ph, ids, dist, stride, cfg.min_pixels)
+            if not rec.polygons and cfg.min_pixels > 1:  # below min_pixels, or nothing at all?
+                rec.largest_view = max(
+                    (v["pixels"] for v in viewing_angles(proxy, ph, ids, dist, stride, 1).values()), default=0
+                )
             rec.sharpness = ahead.popleft().result()  # a decode error surfaces here, in photo order
             records.append(rec)
     med = float(np.median([r.sharpness for r in records])) if records else 0.0
     for r in records:
         r.sharpness_rel = r.sharpness / med if med > 0 else 1.0
-        if not r.polygons:
+        if not r.polygons and r.largest_view > 0:
+            r.kept, r.reason = False, (
+                f"sees no polygon with filter.min_pixels = {cfg.min_pixels} pixels (at most {r.largest_view})"
+            )
+        elif not r.polygons:
             r.kept, r.reason = False, "sees no proxy polygon"
         elif r.sharpness_rel < cfg.blur_ratio:
             r.kept, r.reason = False, f"blurry (sharpness {r.sharpness_rel:.2f} x median < {cfg.blur_ratio})"
-    check_kept(records, proxy, photos[0].image_path.parent if photos else None)
+    images_dir = photos[0].image_path.parent if photos else None
+    check_kept(records, cfg, images_dir)
     per_polygon = {poly.id: polygon_photos(poly.id, records, cfg) for poly in proxy.polygons}
     by_name = {r.name: r for r in records}
     for i, poly in enumerate(proxy.polygons):
@@ -290,6 +343,7 @@ def filter_photos(proxy: Proxy, photos: list[Photo], cfg: FilterConfig, progress
                 state: sum(s["state"] == state for s in sight.values())
                 for state in ("back-facing", "outside", "hidden", "visible")
             }
+    warn_dropped(records, cfg, images_dir)  # after the glimpses, which may take a photo back
     oblique = {pid: d for pid, d in per_polygon.items() if d["textured_from_oblique"]}
     if oblique:
         log.warning(

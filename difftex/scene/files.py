@@ -243,11 +243,32 @@ def write_image(path: str | os.PathLike, pixels: np.ndarray, bits: int = 8) -> N
         if out is None:
             raise DifftexError(f"{path}: cannot write image ({oiio.geterror().strip()})")
         spec = oiio.ImageSpec(w, h, c, fmt)
-        if not out.open(str(tmp), spec) or not out.write_image(np.ascontiguousarray(arr)):
-            err = out.geterror()
-            out.close()
-            raise DifftexError(f"{path}: cannot write image ({err.strip()})")
-        out.close()
+        ok = out.open(str(tmp), spec) and out.write_image(np.ascontiguousarray(arr))
+        # A failed write does not always fail the call: on a full disk OpenImageIO's PNG writer
+        # returns True from write_image and close and only records "Write error at position ...,
+        # could only write ... bytes". The truncated file must not be renamed into place.
+        err = out.geterror() if not ok or out.has_error else ""
+        if not out.close():
+            err += "\n" + out.geterror()
+            ok = False
+        if not ok or err.strip():
+            _image_write_failed(path, tmp, err)
+
+
+def _image_write_failed(path: Path, tmp: Path, err: str) -> None:
+    """Raise for an image write that stopped: the disk-full message when the disk is (nearly)
+    full, else OpenImageIO's first error line. ``atomic_path`` then removes the temporary file."""
+    import errno
+    import shutil
+
+    try:
+        full = shutil.disk_usage(tmp.parent).free < (1 << 20)
+    except OSError:
+        full = False
+    if full:
+        raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), str(tmp))
+    first = next((ln.strip() for ln in err.splitlines() if ln.strip()), "unknown error")
+    raise DifftexError(f"{path}: cannot write image ({first})")
 
 
 JPEG_SUFFIXES = {".jpg", ".jpeg"}

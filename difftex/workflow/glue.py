@@ -310,6 +310,7 @@ def run_summary(results: str | Path) -> dict:
         "stages": stage_benchmarks(results),
         "texels": _texel_sizes(results),
         "devices": _devices(results),
+        "blurry": _blurry_photos(results),
     }
     metrics = results / "evaluation" / "metrics.json"
     if metrics.is_file():
@@ -332,6 +333,26 @@ def _texel_sizes(results: Path) -> dict:
     except (DifftexError, AttributeError):
         return {}
     return {r["id"]: (r.get("texel_size"), r.get("texel_size_bound")) for r in rows if "id" in r}
+
+
+def _blurry_photos(results: Path) -> dict:
+    """The photos the filter dropped as blurry, least sharp first, from R/photos.json:
+    {"blur_ratio": ..., "photos": {name: sharpness / median}}; {} when none or no table."""
+    from difftex.scene.files import read_json
+
+    path = results / "photos.json"
+    if not path.is_file():
+        return {}
+    try:
+        table = read_json(path)
+        rows = [r for r in table["photos"] if not r["kept"] and str(r["reason"]).startswith("blurry")]
+        ratio = table.get("config", {}).get("blur_ratio")
+    except (DifftexError, AttributeError, KeyError, TypeError):
+        return {}
+    if not rows:
+        return {}
+    rows.sort(key=lambda r: r.get("sharpness_rel", 0.0))
+    return {"blur_ratio": ratio, "photos": {r["name"]: r.get("sharpness_rel") for r in rows}}
 
 
 def _devices(results: Path) -> dict[str, int]:
@@ -395,6 +416,16 @@ def format_summary(s: dict) -> str:
         lines.append(
             "textured from oblique photos only (every photo sees them beyond filter.max_angle_deg): "
             + ", ".join(f"{pid} ({min(a.values()):.0f} deg)" if a else pid for pid, a in oblique.items())
+        )
+    blurry = s.get("blurry") or {}
+    if blurry.get("photos"):
+        shown = [f"{n} ({r:.2f})" if isinstance(r, float) else n for n, r in blurry["photos"].items()]
+        more = f", and {len(shown) - 10} more" if len(shown) > 10 else ""
+        ratio = blurry.get("blur_ratio")
+        lines.append(
+            f"{len(shown)} photo{'s' if len(shown) > 1 else ''} dropped as blurry (sharpness below "
+            f"filter.blur_ratio{f' = {ratio:g}' if isinstance(ratio, (int, float)) else ''} x the median; "
+            f"photos.csv): {', '.join(shown[:10])}{more}"
         )
     if s["untextured"]:
         reasons = s.get("untextured_reasons") or {}
