@@ -39,8 +39,8 @@ def snakemake_cmd(workdir: Path, *args: str) -> list[str]:
     return [str(BIN / "snakemake"), "-s", str(SNAKEFILE), "--directory", str(workdir), "--cores", "2", *args]
 
 
-def env() -> dict:
-    return dict(os.environ, PATH=f"{BIN}{os.pathsep}{os.environ.get('PATH', '')}", OMP_NUM_THREADS="1")
+def env(**extra: str) -> dict:
+    return dict(os.environ, PATH=f"{BIN}{os.pathsep}{os.environ.get('PATH', '')}", OMP_NUM_THREADS="1", **extra)
 
 
 def snakemake(workdir: Path, *args: str, timeout: int = 900) -> subprocess.CompletedProcess:
@@ -202,24 +202,84 @@ def n_textures(work: Path) -> int:
     return len(list((work / "results/small/textures").glob("*/texture.png")))
 
 
-def start(work: Path, log: Path, *args: str) -> subprocess.Popen:
+def start(work: Path, log: Path, *args: str, extra_env: dict | None = None) -> subprocess.Popen:
     # its own session: the signal goes to Snakemake and its jobs, as Ctrl-C or a power cut would
     # SIGINT back to its default: a shell's background job (e.g. CI under nohup ... &) starts with
     # it ignored, Python then keeps it ignored, and Ctrl-C would not reach Snakemake at all
     return subprocess.Popen(snakemake_cmd(work, *args), stdout=open(log, "w"), stderr=subprocess.STDOUT,
-                            env=env(), start_new_session=True,
+                            env=env(**(extra_env or {})), start_new_session=True,
                             preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+
+
+class FinishGate:
+    """Holds the workflow's ``difftex finish`` jobs (the step that writes a polygon's texture.png)
+    while ``limit`` or more texture.png files exist; every other command runs unchanged. The test
+    sets the limit and waits until a finish job is held with that many textures made (``held``):
+    the run then stands in the per-polygon stage with its earlier jobs complete (one job at a
+    time: the held one started after they ended), however fast or loaded the machine is. It can
+    neither finish early nor be interrupted before its first texture.
+
+    The jobs' shell (bash) finds ``difftex`` as a function exported in the run's environment
+    (``BASH_FUNC_difftex%%``) before the PATH, which the workflow's shell prefix sets to the
+    venv's bin folder: the function runs ``hold.py`` for ``finish`` and then the real command."""
+
+    def __init__(self, folder: Path, textures: Path):
+        self.folder = folder
+        folder.mkdir(parents=True)
+        self.limit(0)
+        hold = folder / "hold.py"
+        hold.write_text(
+            "import os, sys, time\n"
+            f"gate, textures = {str(folder)!r}, {str(textures)!r}\n"
+            "def made():\n"
+            "    return sum(os.path.isfile(os.path.join(textures, d, 'texture.png'))\n"
+            "               for d in (os.listdir(textures) if os.path.isdir(textures) else []))\n"
+            "t0 = time.monotonic()\n"
+            "while (n := made()) >= int(open(os.path.join(gate, 'limit')).read()):\n"
+            "    open(os.path.join(gate, f'held-at-{n}'), 'w').close()\n"
+            "    if time.monotonic() - t0 > 900:  # a test that died and left its run behind\n"
+            "        sys.exit('difftex (test gate): held for 900 s')\n"
+            "    time.sleep(0.02)\n"
+        )
+        self.env = {
+            "BASH_FUNC_difftex%%": (
+                f'() {{ if [ "${{1-}}" = finish ]; then "{sys.executable}" "{hold}" || return 1; fi; '
+                'command difftex "$@"; }'
+            )
+        }
+
+    def limit(self, n: int) -> None:
+        tmp = self.folder / "limit.tmp"
+        tmp.write_text(str(n))
+        tmp.replace(self.folder / "limit")
+
+    def held(self, n: int) -> bool:
+        """Whether a finish job is (or was) held with ``n`` textures made."""
+        return (self.folder / f"held-at-{n}").exists()
 
 
 def test_interrupted_and_killed_runs_resume_to_the_same_textures(resume_scene, reference_run, tmp_path):
     work = tmp_path / "w"
-    # one job at a time (the last --cores wins): with two side by side the remaining polygons
-    # could finish before the signal lands, and there would be nothing left to interrupt
+    # one job at a time (the last --cores wins), so that the gate's count of textures is exact
     args = ("--config", f"scene={resume_scene}", *QUICK, "--cores", "1")
     total = len(textures(reference_run)) // 3  # texture, source, coverage per polygon
+    assert total == 3
+    gate = FinishGate(tmp_path / "gate", work / "results/small/textures")
+    runs: list[subprocess.Popen] = []
+    try:
+        _interrupt_kill_and_resume(work, args, total, gate, runs, reference_run, tmp_path)
+    finally:
+        for p in runs:  # a failed assertion must not leave a held run behind
+            if p.poll() is None:
+                os.killpg(p.pid, signal.SIGKILL)
+                p.wait()
 
-    # 1. a run, and a second one started in the same folder meanwhile: refused, one line
-    first = start(work, tmp_path / "first.log", *args)
+
+def _interrupt_kill_and_resume(work, args, total, gate, runs, reference_run, tmp_path):
+    # 1. a run (held before its first texture), and a second one started in the same folder
+    # meanwhile: refused, one line
+    first = start(work, tmp_path / "first.log", *args, extra_env=gate.env)
+    runs.append(first)
     lock = work / ".snakemake/difftex/run.lock"
 
     def holds_lock():
@@ -232,20 +292,24 @@ def test_interrupted_and_killed_runs_resume_to_the_same_textures(resume_scene, r
     second = snakemake(work, *args)
     assert_console_error(second, str(work), f"pid {first.pid}", "is using this folder")
 
-    # 2. Ctrl-C (SIGINT) during the per-polygon stage
-    wait_for(lambda: n_textures(work) >= 1, first, "the first texture")
+    # 2. Ctrl-C (SIGINT) during the per-polygon stage: one texture made, the next one held
+    gate.limit(1)
+    wait_for(lambda: gate.held(1), first, "the first texture, and the next finish job held")
     os.killpg(first.pid, signal.SIGINT)
     assert first.wait(timeout=120) == 130
     said = [ln for ln in (tmp_path / "first.log").read_text().splitlines() if ln.strip()]
     assert said[-1] == "difftex: interrupted; run the same command again to resume", said[-5:]
     done = n_textures(work)
-    assert done < total, "the run ended before it could be interrupted; make the scene slower"
+    assert done == 1
 
     # 3. the same command resumes; SIGKILL (a power cut) once it has made one more texture
-    again = start(work, tmp_path / "again.log", *args)
-    wait_for(lambda: n_textures(work) > done, again, "a texture after the resume")
+    again = start(work, tmp_path / "again.log", *args, extra_env=gate.env)
+    runs.append(again)
+    gate.limit(done + 1)
+    wait_for(lambda: gate.held(done + 1), again, "a texture after the resume, and the next finish job held")
     os.killpg(again.pid, signal.SIGKILL)
     again.wait(timeout=60)
+    assert n_textures(work) == done + 1 < total
     assert (work / ".snakemake/locks").is_dir() and any((work / ".snakemake/locks").iterdir())  # stale locks
 
     # 4. the README command, unchanged: resumes by itself, same textures as without interruptions
