@@ -566,7 +566,7 @@ def test_a_blurry_photo_is_named_on_the_console_and_in_the_end_of_run_summary(sm
     said = [ln for ln in lines if "blurry" in ln]
     assert said == [
         "1 photo dropped as blurry (sharpness below filter.blur_ratio = 0.3 x the median; photos.csv): "
-        f"img_0003.png ({rec['img_0003.png']['sharpness_rel']:.2f})"
+        f"img_0003.png ({rec['img_0003.png']['sharpness_rel']:.2g})"
     ], lines
 
 

@@ -160,7 +160,7 @@ def warn_dropped(records: list[PhotoRecord], cfg: FilterConfig, images_dir) -> N
             len(blurry),
             "s" if len(blurry) > 1 else "",
             cfg.blur_ratio,
-            _names([f"{r.name} ({r.sharpness_rel:.2f})" for r in blurry]),
+            _names([f"{r.name} ({r.sharpness_rel:.2g})" for r in blurry]),
         )
 
 

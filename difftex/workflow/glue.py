@@ -299,7 +299,10 @@ def run_summary(results: str | Path) -> dict:
     summary = read_json(model / "summary.json")
     out = {
         "results": str(results),
-        "model": {k: str(model / summary[k]) for k in ("glb", "obj", "mtl") if k in summary},
+        "model": {
+            **{k: str(model / summary[k]) for k in ("glb", "obj", "mtl") if k in summary},
+            **({"tileset": str(model / summary["tileset"]["file"])} if "tileset" in summary else {}),
+        },
         "atlas_pages": [str(model / p["file"]) for p in summary.get("atlas_pages", [])],
         "polygons": summary.get("polygons", []),
         "untextured": summary.get("untextured", []),
@@ -419,7 +422,7 @@ def format_summary(s: dict) -> str:
         )
     blurry = s.get("blurry") or {}
     if blurry.get("photos"):
-        shown = [f"{n} ({r:.2f})" if isinstance(r, float) else n for n, r in blurry["photos"].items()]
+        shown = [f"{n} ({r:.2g})" if isinstance(r, float) else n for n, r in blurry["photos"].items()]
         more = f", and {len(shown) - 10} more" if len(shown) > 10 else ""
         ratio = blurry.get("blur_ratio")
         lines.append(
@@ -436,7 +439,7 @@ def format_summary(s: dict) -> str:
     if s.get("html_report"):
         lines.append(f"report: {s['html_report']}")
     lines.append(f"atlas: {', '.join(s['atlas_pages'])}")
-    for k in ("obj", "glb"):
+    for k, label in (("obj", "OBJ"), ("glb", "GLB"), ("tileset", "3D Tiles")):
         if k in s["model"]:
             lines.append(f"{k.upper()}: {s['model'][k]}")
     return "\n".join(lines)
