@@ -35,7 +35,7 @@ def run(args) -> int:
         f = uv_frame(poly, scene.up, long_side=args.long_side)
         print(
             f"  {poly.id:28s} area {poly.area:9.3f}  {len(poly.outer):3d} vertices  {f.width}x{f.height} texels at "
-            f"long side {args.long_side}"
+            f"long side {args.long_side}" + (f"  {poly.semantic}" if poly.semantic else "")
         )
     if args.overlays:
         out = Path(args.overlays)

@@ -1,4 +1,4 @@
-"""A scene folder: images/, sparse/0/ (COLMAP model), proxy.{obj,ply,off,glb,gltf}; and the check
+"""A scene folder: images/, sparse/0/ (COLMAP model), proxy.{obj,ply,off,glb,gltf,city.json,json}; and the check
 that the proxy and the COLMAP model share a frame and units."""
 
 from __future__ import annotations
@@ -16,7 +16,8 @@ from difftex.scene.proxy import Proxy, load_proxy
 
 log = logging.getLogger(__name__)
 
-PROXY_NAMES = ("proxy.obj", "proxy.ply", "proxy.off", "proxy.glb", "proxy.gltf")
+# the first one present is the proxy; proxy.city.json / proxy.json are CityJSON (difftex.scene.cityjson)
+PROXY_NAMES = ("proxy.obj", "proxy.ply", "proxy.off", "proxy.glb", "proxy.gltf", "proxy.city.json", "proxy.json")
 
 # Proxy-to-points agreement (measured on the shared scenes and the synthetic one: the median
 # distance of the COLMAP points to the proxy is 0.000-0.013 of the points' extent, and 0.22-24

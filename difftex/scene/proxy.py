@@ -1,8 +1,9 @@
-"""Proxy models as planar polygons: loading OBJ/PLY/OFF/GLB, coplanar grouping of triangle meshes.
+"""Proxy models as planar polygons: loading OBJ/PLY/OFF/GLB/CityJSON, coplanar grouping of triangle meshes.
 
 OBJ and OFF are parsed here because trimesh triangulates n-gons on load and the polygons are
 the unit of work; PLY and glTF/GLB go through trimesh and their triangles are grouped back
-into planar polygons (connected, coplanar within an angle and a distance tolerance).
+into planar polygons (connected, coplanar within an angle and a distance tolerance). CityJSON
+surfaces are polygons with holes already (difftex.scene.cityjson reads them).
 """
 
 from __future__ import annotations
@@ -33,6 +34,8 @@ class Polygon:
     id: str
     outer: np.ndarray  # (n, 3)
     holes: tuple[np.ndarray, ...] = field(default=())
+    semantic: str = ""  # CityJSON proxies: the surface's semantic type (WallSurface, RoofSurface...)
+    building: str = ""  # CityJSON proxies: the building (topmost CityObject) the polygon belongs to
 
     @property
     def normal(self) -> np.ndarray:
@@ -275,8 +278,10 @@ def load_proxy(
         verts, faces, names, lines = _read_off(path)
     elif suffix in (".ply", ".glb", ".gltf", ".stl"):
         verts, faces, names, lines = _read_trimesh(path)
+    elif suffix == ".json":
+        return _cityjson_proxy(path, dist_tol_rel)
     else:
-        raise DifftexError(f"{path}: unsupported proxy format '{suffix}' (use OBJ, PLY, OFF, GLB or glTF)")
+        raise DifftexError(f"{path}: unsupported proxy format '{suffix}' (use OBJ, PLY, OFF, GLB, glTF or CityJSON)")
     if not np.isfinite(verts).all():
         raise DifftexError(f"{path}: proxy has non-finite vertex coordinates")
     for f, ln in zip(faces, lines):
@@ -307,9 +312,34 @@ def load_proxy(
         for outer, holes, first in groups:
             raw.append((outer, holes, name, fids[first]))
     raw.sort(key=lambda r: r[3])
+    return _checked_proxy(path, [(o, h, n, {}) for o, h, n, _ in raw], dist_tol_rel)
 
+
+def _cityjson_proxy(path: Path, dist_tol_rel: float) -> Proxy:
+    """The proxy of a CityJSON file: one polygon per surface, keeping its semantic type and building."""
+    from difftex.scene.cityjson import read_cityjson
+
+    surfaces = read_cityjson(path)
+    raw = [(s.outer, s.holes, s.name, {"semantic": s.semantic, "building": s.building}) for s in surfaces]
+    proxy = _checked_proxy(path, raw, dist_tol_rel)
+    kinds: dict[str, int] = {}
+    for p in proxy.polygons:
+        kinds[p.semantic] = kinds.get(p.semantic, 0) + 1
+    log.info(
+        "%s: %d polygons of %d building(s): %s",
+        path,
+        len(proxy),
+        len({p.building for p in proxy.polygons}),
+        ", ".join(f"{n} {k}" for k, n in sorted(kinds.items())),
+    )
+    return proxy
+
+
+def _checked_proxy(path: Path, raw: list[tuple[np.ndarray, tuple, str, dict]], dist_tol_rel: float) -> Proxy:
+    """The proxy of loops (outer, holes, name, extra Polygon fields) in file order: degenerate ones
+    skipped with a warning, a non-planar one an error naming it, ids assigned (``assign_ids``)."""
     kept, thin = [], 0
-    for i, (outer, holes, name, _) in enumerate(raw):
+    for i, (outer, holes, name, extra) in enumerate(raw):
         label = name or f"face {i}"
         why = degenerate_reason(outer, holes)
         if why:
@@ -323,7 +353,7 @@ def load_proxy(
                 f"{path}: polygon '{label}' is not planar (max deviation {dev:.4g} from its plane, "
                 f"tolerance {dist_tol_rel * diam:.4g})"
             )
-        kept.append((outer, holes, name))
+        kept.append((outer, holes, name, extra))
     if not kept:
         hint = ""
         if raw and thin == len(raw):  # every polygon tiny next to its distance from the origin
@@ -334,8 +364,8 @@ def load_proxy(
             )
         raise DifftexError(f"{path}: proxy has no usable polygons{hint}")
 
-    ids = assign_ids([n for _, _, n in kept], path)
-    polys = [Polygon(id=pid, outer=o, holes=h) for pid, (o, h, _) in zip(ids, kept)]
+    ids = assign_ids([n for _, _, n, _ in kept], path)
+    polys = [Polygon(id=pid, outer=o, holes=h, **extra) for pid, (o, h, _, extra) in zip(ids, kept)]
     return Proxy(polygons=polys, path=path)
 
 
