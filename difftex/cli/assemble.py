@@ -1,4 +1,5 @@
-"""difftex assemble: per-polygon textures -> atlas pages, OBJ + MTL + PNG and GLB."""
+"""difftex assemble: per-polygon textures -> atlas pages, OBJ + MTL + PNG and GLB (and with
+``assemble.tileset`` or --tileset, a 3D Tiles 1.1 tileset in <out-dir>/tileset/)."""
 
 from __future__ import annotations
 
@@ -18,6 +19,11 @@ def add_arguments(parser) -> None:
         "--out-dir", required=True, help="output folder (model.obj/.mtl, atlas PNGs, model.glb, summary.json)"
     )
     parser.add_argument("--name", default="model", help="base name of the output files (default: model)")
+    parser.add_argument(
+        "--tileset",
+        action="store_true",
+        help="also write <out-dir>/tileset/ (3D Tiles 1.1), as assemble.tileset: true does",
+    )
 
 
 def _read_frame_and_mask(path):
@@ -93,6 +99,24 @@ def polygon_notes(summary: dict, info: dict) -> None:
             row["rescued"] = meta["rescued"]
 
 
+def _scene_up(scene_dir):
+    """The photos' up (what the texturing takes as up), or None when the scene has no photos."""
+    from difftex.scene.camera import load_photos, scene_up
+    from difftex.scene.loading import find_sparse
+
+    photos = load_photos(find_sparse(scene_dir), scene_dir / "images", check_images=False)
+    return scene_up(photos) if photos else None
+
+
+def _semantics(summary: dict, proxy) -> None:
+    """Name each polygon's CityJSON semantic type and building in the model summary (when it has them)."""
+    by_id = {p.id: p for p in proxy.polygons}
+    for row in summary["polygons"]:
+        poly = by_id[row["id"]]
+        if poly.semantic:
+            row["semantic"], row["building"] = poly.semantic, poly.building
+
+
 def run(args) -> int:
     import time
     from pathlib import Path
@@ -163,6 +187,15 @@ def run(args) -> int:
     with console.status(f"packing {len(items)} textures and writing the model"):
         summary = assemble(items, out_dir, cfg, name=args.name, bits=out_cfg.bits)
     polygon_notes(summary, info)
+    _semantics(summary, proxy)
+    if cfg.tileset or args.tileset:
+        from difftex import __version__
+        from difftex.export.tiles import write_tileset
+
+        with console.status("writing the 3D Tiles tileset"):
+            up = _scene_up(scene) if cfg.tileset_georef is None else None
+            tiles = write_tileset(items, out_dir / "tileset", cfg, generator=f"difftex {__version__}", up=up)
+        summary["tileset"] = {**tiles, "file": f"tileset/{tiles['file']}"}
     if cfg.glb and cfg.verify:
         with console.status("rendering a view of the model"):
             summary["view_check"] = _view_check(
@@ -184,6 +217,13 @@ def run(args) -> int:
         )
     for pid, why in summary["untextured_reasons"].items():
         console.print(f"untextured (grey): {pid}: {why}")
+    if "tileset" in summary:
+        ts = summary["tileset"]
+        console.print(
+            f"3D Tiles: {out_dir / ts['file']} ({len(ts['tiles'])} tile(s), "
+            + ("georeferenced" if ts["georeferenced"] else "local frame" + (", up = +z" if ts["levelled"] else ""))
+            + ")"
+        )
     chk = summary.get("check")
     if chk:
         ok = not chk["missing_polygons"] and chk["max_area_rel_error"] < 1e-4

@@ -39,6 +39,8 @@ class AssembleConfig:
     untextured_color: tuple[float, float, float] = (0.5, 0.5, 0.5)  # polygons no photo sees
     glb: bool = True  # also write model.glb (binary glTF)
     verify: bool = True  # reload the written GLB and compare its colours with the textures
+    tileset: bool = False  # also write tileset/ (3D Tiles 1.1: tileset.json, a GLB per building; export.tiles)
+    tileset_georef: dict | None = None  # the tileset's place on Earth ({lon, lat, height} or {ecef}); None: local
 
     def __post_init__(self):
         if not 64 <= int(self.max_page_size) <= 32768:
@@ -291,8 +293,16 @@ def write_obj(
     return obj, mtl
 
 
-def write_glb(path: Path, items: list[PolygonTexture], atlas: Atlas, page_paths: list[Path], pad: int) -> None:
-    """One glTF node/mesh per polygon (named by its id); one PBR material per atlas page."""
+def write_glb(
+    path: Path,
+    items: list[PolygonTexture],
+    atlas: Atlas,
+    page_paths: list[Path],
+    pad: int,
+    transform: np.ndarray | None = None,
+) -> None:
+    """One glTF node/mesh per polygon (named by its id); one PBR material per atlas page.
+    ``transform`` (4 x 4): every node's matrix (a 3D Tiles tile's z-up to glTF y-up); None: identity."""
     import trimesh
     from PIL import Image
 
@@ -322,7 +332,7 @@ def write_glb(path: Path, items: list[PolygonTexture], atlas: Atlas, page_paths:
             visual=trimesh.visual.TextureVisuals(uv=uv, material=materials[place.page]),
             process=False,
         )
-        scene.add_geometry(mesh, geom_name=poly.id, node_name=poly.id)
+        scene.add_geometry(mesh, geom_name=poly.id, node_name=poly.id, transform=transform)
     with atomic_path(path) as tmp:
         tmp.write_bytes(scene.export(file_type="glb"))
 

@@ -441,7 +441,7 @@ def format_summary(s: dict) -> str:
     lines.append(f"atlas: {', '.join(s['atlas_pages'])}")
     for k, label in (("obj", "OBJ"), ("glb", "GLB"), ("tileset", "3D Tiles")):
         if k in s["model"]:
-            lines.append(f"{k.upper()}: {s['model'][k]}")
+            lines.append(f"{label}: {s['model'][k]}")
     return "\n".join(lines)
 
 

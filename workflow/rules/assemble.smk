@@ -1,7 +1,8 @@
-# The textured model: atlas pages, OBJ + MTL + PNG and GLB; every polygon of the proxy is in it,
-# those no photo sees with a grey patch. Then the reports: report.md (summary, stage times) and
-# report/index.html (difftex report: what is untextured and why, the model view, metrics, maps with
-# their source legend, texel sizes, loss curves and per-level diagnostics, the photo filter table).
+# The textured model: atlas pages, OBJ + MTL + PNG and GLB, with assemble.tileset a 3D Tiles
+# tileset; every polygon of the proxy is in it, those no photo sees with a grey patch. Then the
+# reports: report.md (summary, stage times) and report/index.html (difftex report: what is
+# untextured and why, the model view, metrics, maps with their source legend, texel sizes, loss
+# curves and per-level diagnostics, the photo filter table).
 
 
 rule assemble:
@@ -15,6 +16,8 @@ rule assemble:
         obj=f"{R}/model/model.obj",
         mtl=f"{R}/model/model.mtl",
         **({"glb": f"{R}/model/model.glb"} if config["assemble"]["glb"] else {}),
+        # 3D Tiles 1.1 (with its tiles/<building>.glb beside it; docs/tiles.md)
+        **({"tileset": f"{R}/model/tileset/tileset.json"} if config["assemble"]["tileset"] else {}),
     params:
         stage_config=STAGE_TEXT["assemble"],
         scene=lambda wc, input: Path(input.scene[0]).parent,
