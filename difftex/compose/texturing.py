@@ -22,6 +22,7 @@ from difftex.compose.outputs import write_composite
 from difftex.geometry.frames import UVFrame, level_sides
 from difftex.method.config import ComputeConfig, OptimizeConfig
 from difftex.method.loop import optimize_polygon
+from difftex.method.relief import estimate_relief
 from difftex.sampling.photos import PhotoSet, PolygonInput, pick_device, with_transfer
 from difftex.sampling.texels import level_frame, resample_nearest
 from difftex.scene.files import decode_photo
@@ -39,6 +40,7 @@ class TexturedPolygon:
     W: np.ndarray  # (K, H, W) blend weights
     transfers: list | None  # per photo (3, 2, N_KNOTS) or None
     stats: dict  # optimization statistics (levels, losses, times)
+    heights: np.ndarray | None = None  # (H, W) relief height field at the target frame, scene units
     report: dict = field(default_factory=dict)  # fill and summary figures
 
 
@@ -73,8 +75,15 @@ def texture_polygon(
     (``decode``: ``decode_photo``, or a DecodeCache that several polygons of a job share)."""
     t0 = time.perf_counter()
     device = pick_device(compute.device)
-    photos = PhotoSet.load(inp, device, exact_decode=cfg.exact_decode, decode=decode, supersample=cfg.supersample)
+    photos = PhotoSet.load(
+        inp, device, exact_decode=cfg.exact_decode, decode=decode, supersample=cfg.supersample,
+        relief_range=cfg.relief_range if cfg.relief else (0.0, 0.0),
+    )
     t_read = time.perf_counter() - t0
+    relief_stats = None
+    if cfg.relief:
+        photos.relief, relief_stats = estimate_relief(photos, cfg.relief_settings())
+        relief_stats["time_s"] = time.perf_counter() - t0 - t_read
     sides = level_sides(max(inp.frame.shape), cfg.long_side_start, cfg.coarse_to_fine, cfg.level_step)
     match_frame, raw, transfers, ref = polygon_transfers(photos, cfg)
     first = None
@@ -83,7 +92,7 @@ def texture_polygon(
             n: (with_transfer(mp, transfers[n] if transfers else None) if mp is not None else None)
             for n, mp in raw.items()
         }
-    t_match = time.perf_counter() - t0 - t_read
+    t_match = time.perf_counter() - t0 - t_read - (relief_stats["time_s"] if relief_stats else 0.0)
     res = optimize_polygon(photos, cfg, compute, transfers, first=first, progress=progress)
     wsum = res.W.sum(0)
     U, fill = finish_texture(res.U, wsum, inp.texel_mask)
@@ -105,6 +114,7 @@ def texture_polygon(
                 for n, c in photos.corrections.items()
             },
             "time_stage_s": time.perf_counter() - t0,
+            "relief": relief_stats,
         }
     )
     report = {"polygon_id": inp.polygon_id, "method": "difftex", "histogram_matching": transfers is not None, **fill}
@@ -118,6 +128,7 @@ def texture_polygon(
         transfers=transfers,
         stats=stats,
         report=report,
+        heights=photos.relief.at(inp.frame) * inp.texel_mask if photos.relief is not None else None,
     )
 
 

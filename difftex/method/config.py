@@ -87,6 +87,16 @@ class OptimizeConfig:
     # texel (within parallax_sigma, about radians, of it; 0: off)
     parallax_sigma: float = 0.0
     parallax_gate: float = 2.0
+    # relief-compensated mapping (difftex.method.relief): a plane sweep of photo consistency along
+    # the normal gives each texel a height, and the photos are mapped through that displaced surface
+    relief: bool = False
+    relief_range: tuple[float, float] = (-0.6, 0.6)  # heights swept, scene units (< 0: into the facade)
+    relief_long_side: int = 512  # texels of the sweep's frame, at most
+    relief_window: int = 15  # ZNCC window of the sweep, texels of its frame (odd)
+    relief_photos: int = 16  # most photos compared by the sweep, most frontal first
+    relief_min_cos: float = 0.5  # ... among those seen within arccos of this of the normal
+    relief_margin: float = 0.05  # least gain in mean 1 - ZNCC over the plane for a height to be kept
+    relief_smooth: int = 9  # mode filter of the height field, texels of the sweep's frame (odd; 1: off)
     coarse_to_fine: bool = True
     histogram_matching: bool = True
     # refine each photo's mapping (affine, pixels) against the consensus texture; off by default:
@@ -144,6 +154,8 @@ class OptimizeConfig:
         if not caps or min(caps) < 0:
             raise ValueError("max_iters_per_level must be a non-empty list of counts >= 0")
         object.__setattr__(self, "max_iters_per_level", caps)
+        object.__setattr__(self, "relief_range", tuple(float(b) for b in self.relief_range))
+        self.relief_settings()  # checks the relief keys
         object.__setattr__(self, "betas", tuple(float(b) for b in self.betas))
 
     @classmethod
@@ -154,6 +166,16 @@ class OptimizeConfig:
 
     def to_dict(self) -> dict:
         return dataclasses.asdict(self)
+
+    def relief_settings(self):
+        """The relief sweep's settings (difftex.method.relief.ReliefSettings)."""
+        from difftex.method.relief import ReliefSettings
+
+        lo, hi = self.relief_range
+        return ReliefSettings(
+            lo=lo, hi=hi, long_side=self.relief_long_side, window=self.relief_window, max_photos=self.relief_photos,
+            min_cos=self.relief_min_cos, margin=self.relief_margin, smooth=self.relief_smooth,
+        )
 
     def cap(self, level: int) -> int:
         caps = self.max_iters_per_level

@@ -28,6 +28,7 @@ from difftex.errors import DifftexError
 from difftex.geometry.frames import UVFrame
 from difftex.sampling import SUPERSAMPLE
 from difftex.sampling.colour import apply_transfer_torch
+from difftex.sampling.relief import Relief, shifted_frame, texel_map_relief
 from difftex.sampling.texels import Region, level_frame, resample_nearest, texel_map
 from difftex.scene.camera import Photo
 from difftex.scene.files import decode_photo, to_float
@@ -260,6 +261,9 @@ class PhotoSet:
     # p -> p + d + M (p - c) / s, parameters (dx, dy, m11, m12, m21, m22), centre c, scale s.
     corrections: dict[int, Correction] = field(default_factory=dict)
     supersample: int = SUPERSAMPLE  # S x S samples per texel of the polygon's own frame (PhotoSampler.sample)
+    # the polygon's height field (difftex.sampling.relief): photos are mapped through the displaced
+    # surface and lose the texels it hides from them; None: the proxy's plane
+    relief: Relief | None = None
 
     @classmethod
     def load(
@@ -271,6 +275,7 @@ class PhotoSet:
         progress: Callable[[], None] | None = None,
         decode: Callable[..., np.ndarray] = decode_photo,
         supersample: int = SUPERSAMPLE,
+        relief_range: tuple[float, float] = (0.0, 0.0),
     ) -> PhotoSet:
         """Decode, crop and pyramid every candidate photo that sees a texel of ``inp``.
 
@@ -281,7 +286,9 @@ class PhotoSet:
         the full decode by about one 8-bit step). ``decode``: ``decode_photo`` or a cache around
         it (difftex.scene.files.DecodeCache) shared by the polygons of one job. ``supersample``:
         S x S samples per texel of ``inp.frame`` (the texture's own resolution), each at 1/S of
-        the texel's footprint (so decoded at up to S times finer).
+        the texel's footprint (so decoded at up to S times finer). ``relief_range``: the lowest
+        and highest heights along the normal that the photos may be mapped through (a relief
+        sweep's range): each crop also holds the polygon's rectangle shifted to both.
         """
         device = pick_device(device)
         finest = finest or inp.frame
@@ -297,10 +304,16 @@ class PhotoSet:
                 continue
             scale = probe.texel_size / finest.texel_size  # probe texel -> finest texels
             fp_fine = tm.footprint.numpy()[ok] / scale
+            pix, fp = [tm.pix.numpy()[ok]], [tm.footprint.numpy()[ok]]
+            for h in {float(x) for x in relief_range} - {0.0}:
+                th = texel_map(shifted_frame(probe, h), ph, "cpu")
+                okh = vis_probe[n] & th.valid.numpy()
+                pix.append(th.pix.numpy()[okh])
+                fp.append(th.footprint.numpy()[okh])
             box = _crop_box(
                 ph,
-                tm.pix.numpy()[ok],
-                tm.footprint.numpy()[ok],
+                np.concatenate(pix),
+                np.concatenate(fp),
                 inp.a_bbox[n] if inp.a_bbox is not None and len(inp.a_bbox) > n else None,
             )
             if box is None:
@@ -345,7 +358,14 @@ class PhotoSet:
         if region is not None:
             y0, y1, x0, x1 = region
             mask = mask[y0:y1, x0:x1]
-        tm = texel_map(frame, ph, self.device, region)
+        relief = self.relief if self.relief is not None and not self.relief.flat else None
+        if relief is not None:
+            tm = texel_map_relief(frame, ph, relief.at(frame, region), self.device, region)
+            seen = relief.seen(n, frame, region)
+            if seen is not None:
+                visible = visible & seen
+        else:
+            tm = texel_map(frame, ph, self.device, region)
         if n in self.corrections:
             tm.pix = self.corrections[n].apply(tm.pix)
         vis = tm.valid & torch.from_numpy(np.ascontiguousarray(visible & mask)).to(self.device)

@@ -1,0 +1,305 @@
+"""Relief of a polygon from its photos: a plane sweep of photo consistency along the normal.
+
+The proxy is a plane; the facade has recessed windows and balconies that the photos see from
+different directions, so at the plane they disagree and any blend of them smears (the relief
+issue; the paper's L_Persp only chooses which photos to trust). Mapped through the right height
+h(t) along the normal (difftex.sampling.relief), they agree. h(t) is found by sweeping planes:
+
+1. candidate photos: the polygon's photos seen within ``min_cos`` of the normal (oblique photos
+   hide the recesses behind their reveals and see glass at grazing angles), the most frontal
+   ``max_photos`` of them;
+2. for each height h_d of the sweep (the proxy plane h = 0 among them), every photo is mapped
+   through the plane shifted by h_d; their per-texel median M_d is the consensus, and each photo's
+   zero-normalised cross-correlation with M_d over a window of ``window`` texels (grey values)
+   scores how well it agrees there: ZNCC ignores each photo's gain and offset, and a window
+   wider than a mullion's displacement sees the structure, not one texel's noise;
+3. the cost of h_d at a texel is the mean over photos of 1 - ZNCC (:func:`sweep_cost`);
+4. the height field (:func:`height_field`) takes per texel the height of least cost, keeps it
+   only where it beats the plane by ``margin`` (where the photos agree at h = 0, or the wall is
+   featureless, the plane stays), and flattens it with a mode filter of ``smooth`` texels, so
+   recesses and balconies come out as flat steps (the facade's relief is made of planes).
+
+The field is estimated at a frame of at most ``long_side`` texels and used at every level of
+the polygon (its steps are resampled nearest). Where the sweep finds nothing (too few photos,
+a flat wall), the field is 0 and texturing is exactly as without relief.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from difftex.geometry.frames import UVFrame
+from difftex.sampling.photos import PhotoSet
+from difftex.sampling.relief import Relief, relief_visibility, shifted_frame
+from difftex.sampling.texels import level_frame, resample_nearest, texel_map
+
+GREY = (0.299, 0.587, 0.114)  # Rec. 601 luma: ZNCC compares structure, not colour
+
+
+@dataclass(frozen=True)
+class ReliefSettings:
+    """How the sweep runs (the ``optimize.relief_*`` keys)."""
+
+    lo: float  # lowest height (scene units, < 0: into the facade)
+    hi: float  # highest height (> 0: out of it)
+    long_side: int = 512  # texels of the sweep's frame, at most
+    window: int = 15  # ZNCC window, texels of that frame (odd)
+    max_photos: int = 16
+    min_cos: float = 0.5  # photos seen within arccos(min_cos) of the normal
+    margin: float = 0.05  # least cost gain over the plane for a height to be kept
+    smooth: int = 9  # mode filter, texels (odd; 1: off)
+    max_heights: int = 49  # most planes swept
+
+    def __post_init__(self):
+        if not self.lo <= 0 <= self.hi or self.lo == self.hi:
+            raise ValueError(f"relief range must hold 0 and not be empty, got [{self.lo}, {self.hi}]")
+        if self.window < 3 or self.window % 2 == 0 or self.smooth < 1 or self.smooth % 2 == 0:
+            raise ValueError("relief window must be odd and >= 3, smooth odd and >= 1")
+        if self.max_photos < 2 or not 0 <= self.min_cos < 1 or self.margin < 0 or self.max_heights < 3:
+            raise ValueError("relief max_photos >= 2, min_cos in [0, 1), margin >= 0, max_heights >= 3")
+
+
+def sweep_photos(photos: PhotoSet, frame: UVFrame, mask: np.ndarray, min_cos: float, max_photos: int) -> list[int]:
+    """The photos the sweep compares: seen within arccos(``min_cos``) of the normal on at least a
+    quarter of the polygon's texels, the most frontal ``max_photos`` of them (median cos).
+
+    Returns:
+        Photo indices, most frontal first; at least the 3 most frontal that see the polygon when
+        fewer pass the angle test (a sweep needs three to have a median).
+    """
+    scored = []
+    n_mask = max(int(mask.sum()), 1)
+    for n in sorted(photos.samplers):
+        tm = texel_map(frame, photos.inp.photos[n], "cpu")  # the plane's: which photos see the polygon
+        vis = resample_nearest(photos.inp.texel_visible[n], photos.inp.frame, frame) & mask & tm.valid.numpy()
+        if vis.sum() < 0.25 * n_mask:
+            continue
+        scored.append((float(np.median(tm.cos.numpy()[vis])), n))
+    scored.sort(reverse=True)
+    keep = [n for c, n in scored if c >= min_cos][:max_photos]
+    return keep if len(keep) >= 3 else [n for _, n in scored[:3]]
+
+
+def sweep_heights(photos: PhotoSet, which: list[int], frame: UVFrame, s: ReliefSettings) -> np.ndarray:
+    """The swept heights: from ``lo`` to ``hi`` in steps that move the photos' parallax relative to
+    each other by about one texel (finer steps tell nothing new), at most ``max_heights``, 0 among them.
+
+    A point at height h appears on the plane displaced by h (v_u / v_n, v_v / v_n) texel units for a
+    photo seen along v; the largest difference of that between two photos sets the step.
+    """
+    cu, cv = frame.width / 2, frame.height / 2
+    centre = frame.texel_to_world(np.array(cu), np.array(cv))
+    slants = []
+    for n in which:
+        v = photos.inp.photos[n].center - centre
+        vn = max(float(v @ frame.normal), 1e-6)
+        slants.append([float(v @ frame.e_u) / vn, float(v @ frame.e_v) / vn])
+    d = np.asarray(slants)
+    spread = float(np.max(np.linalg.norm(d[:, None] - d[None], axis=-1))) if len(d) > 1 else 0.0
+    step = frame.texel_size / max(spread, 1e-6)
+    step = max(step, (s.hi - s.lo) / (s.max_heights - 1))
+    below = -np.arange(0.0, -s.lo + 1e-9, step)[::-1]
+    above = np.arange(step, s.hi + 1e-9, step)
+    return np.concatenate([below, above]).astype(np.float64)
+
+
+def box_filter(x: torch.Tensor, window: int) -> torch.Tensor:
+    """Mean over ``window`` x ``window`` texels (zero padded), from running sums along each axis:
+    O(1) per texel whatever the window, which the sweep's dozens of windowed moments per height
+    need (torch's avg_pool2d costs O(window) per texel and pass on a CPU).
+
+    Args:
+        x: (B, h, w).
+
+    Returns:
+        (B, h, w).
+    """
+    r = window // 2
+    y = x.double()  # running sums over a whole row lose float32's precision
+    for dim in (-1, -2):
+        pad = [0, 0, 0, 0]
+        pad[0 if dim == -1 else 2], pad[1 if dim == -1 else 3] = r + 1, r
+        c = torch.cumsum(F.pad(y, pad), dim)
+        n = c.shape[dim]
+        y = (c.narrow(dim, window, n - window) - c.narrow(dim, 0, n - window)) / window
+    return y.to(x.dtype)
+
+
+def box_mean(x: torch.Tensor, weight: torch.Tensor, window: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """Weighted window means: sum(w x) / sum(w) over ``window`` x ``window`` texels, and sum(w)'s share.
+
+    Args:
+        x: (B, h, w) values; weight: (B, h, w) weights (0 where undefined).
+
+    Returns:
+        ((B, h, w) means, 0 where no weight; (B, h, w) the window's mean weight).
+    """
+    wsum = box_filter(weight, window)
+    return box_filter(weight * x, window) / wsum.clamp_min(1e-12), wsum
+
+
+def zncc(a: torch.Tensor, b: torch.Tensor, valid: torch.Tensor, window: int, eps: float = 1e-4) -> torch.Tensor:
+    """Zero-normalised cross-correlation of ``a`` with ``b`` over windows, counting valid texels only.
+
+    Args:
+        a: (B, h, w) grey values; b: (h, w) or (B, h, w) the reference; valid: (B, h, w) bool.
+        eps: variance floor, so flat windows (noise only) correlate to about 0, not to +-1.
+
+    Returns:
+        (B, h, w) ZNCC in [-1, 1]; 0 where fewer than half a window's texels are valid.
+    """
+    w = valid.float()
+    b = b.expand_as(a)
+    ma, share = box_mean(a, w, window)
+    mb, _ = box_mean(b, w, window)
+    caa, _ = box_mean(a * a, w, window)
+    cbb, _ = box_mean(b * b, w, window)
+    cab, _ = box_mean(a * b, w, window)
+    va, vb = (caa - ma * ma).clamp_min(0), (cbb - mb * mb).clamp_min(0)
+    r = (cab - ma * mb) / torch.sqrt((va + eps) * (vb + eps))
+    return torch.where(share >= 0.5, r.clamp(-1, 1), torch.zeros_like(r))
+
+
+def sweep_cost(
+    photos: PhotoSet, which: list[int], frame: UVFrame, mask: np.ndarray, heights: np.ndarray, window: int
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """The plane sweep's cost volume: per height and texel, the mean of 1 - ZNCC(photo, median).
+
+    Each photo is sampled once per height (one trilinear sample per texel: the sweep compares
+    structure at its own frame's scale), grey, where it saw the plane at h = 0.
+
+    Returns:
+        ((D, h, w) cost, inf where fewer than 3 photos compare; (D, h, w) how many photos do).
+    """
+    dev = photos.device
+    grey = torch.tensor(GREY, device=dev).view(3, 1, 1)
+    seen = {
+        n: torch.from_numpy(resample_nearest(photos.inp.texel_visible[n], photos.inp.frame, frame) & mask).to(dev)
+        for n in which
+    }
+    costs, counts = [], []
+    for h in heights:
+        f = shifted_frame(frame, float(h))
+        cols, vis = [], []
+        for n in which:
+            tm = texel_map(f, photos.inp.photos[n], dev)
+            if n in photos.corrections:
+                tm.pix = photos.corrections[n].apply(tm.pix)
+            cols.append((photos.samplers[n].sample(tm.pix, tm.footprint, 1) * grey).sum(0))
+            vis.append(seen[n] & tm.valid)
+        g, v = torch.stack(cols), torch.stack(vis)
+        med = torch.nanmedian(torch.where(v, g, torch.full_like(g, math.nan)), 0).values.nan_to_num(0.0)
+        r = zncc(g, med, v, window)
+        both = v & (r != 0)
+        cnt = both.sum(0).float()
+        c = ((1.0 - r) * both).sum(0) / cnt.clamp_min(1)
+        costs.append(torch.where(cnt >= 3, c, torch.full_like(c, math.inf)))
+        counts.append(cnt)
+    return torch.stack(costs), torch.stack(counts)
+
+
+def mode_filter(labels: torch.Tensor, n_labels: int, size: int, keep: torch.Tensor) -> torch.Tensor:
+    """The most frequent label of each ``size`` x ``size`` window among the texels of ``keep``.
+
+    Args:
+        labels: (h, w) long in [0, n_labels); keep: (h, w) bool texels that vote.
+
+    Returns:
+        (h, w) long; a texel with no voter around keeps its label.
+    """
+    if size <= 1:
+        return labels
+    votes = torch.stack([((labels == k) & keep).float() for k in range(n_labels)])
+    votes = F.avg_pool2d(votes[:, None], size, 1, size // 2)[:, 0]
+    best = votes.argmax(0)
+    return torch.where(votes.amax(0) > 0, best, labels)
+
+
+def merge_steps(h: np.ndarray, mask: np.ndarray, tol: float, min_share: float) -> np.ndarray:
+    """Snap a height field to a few flat steps: heights within ``tol`` of a more frequent one, or held
+    by less than ``min_share`` of the texels, take the nearest kept height (0 is always kept).
+
+    Args:
+        h: (h, w) heights; mask: (h, w) bool texels counted; tol: scene units; min_share: in [0, 1).
+
+    Returns:
+        (h, w) float32 heights holding only the kept values.
+    """
+    vals, counts = np.unique(h[mask], return_counts=True)
+    if vals.size <= 1:
+        return h.astype(np.float32)
+    share = counts / counts.sum()
+    kept = [0.0]
+    for i in np.argsort(-counts, kind="stable"):
+        v = float(vals[i])
+        if share[i] >= min_share and all(abs(v - k) > tol for k in kept):
+            kept.append(v)
+    k = np.asarray(kept)
+    snapped = k[np.abs(h[..., None] - k).argmin(-1)]
+    return np.where(mask, snapped, 0.0).astype(np.float32)
+
+
+def height_field(cost: torch.Tensor, heights: np.ndarray, mask: np.ndarray, margin: float, smooth: int) -> np.ndarray:
+    """Per texel the swept height of least cost, where it beats the plane by ``margin``, mode-filtered
+    and merged into flat steps (:func:`merge_steps`, within 2 sweep steps, at least 0.5 % of texels).
+
+    Args:
+        cost: (D, h, w) the sweep's cost; heights: (D,) its heights, 0 among them; mask: (h, w) bool.
+
+    Returns:
+        (h, w) float32 heights, 0 outside ``mask`` and where no height beats the plane.
+    """
+    zero = int(np.argmin(np.abs(heights)))
+    if abs(heights[zero]) > 1e-12:
+        raise ValueError("the swept heights must include 0")
+    m = torch.from_numpy(mask).to(cost.device)
+    best_cost, label = cost.min(0)
+    plane = cost[zero]
+    gain = torch.where(torch.isfinite(plane), plane - best_cost, torch.zeros_like(plane))
+    label = torch.where((gain > margin) & m, label, torch.full_like(label, zero))
+    label = mode_filter(label, len(heights), smooth, m)
+    out_t = torch.from_numpy(heights.astype(np.float32)).to(cost.device)[label]
+    out = torch.where(m, out_t, torch.zeros_like(out_t)).cpu().numpy()
+    step = float(np.min(np.diff(np.sort(heights)))) if len(heights) > 1 else 0.0
+    return merge_steps(out, mask, 2.0 * step + 1e-9, 0.005)
+
+
+def estimate_relief(photos: PhotoSet, s: ReliefSettings) -> tuple[Relief, dict]:
+    """The polygon's height field and each candidate photo's self-occlusion through it.
+
+    Returns:
+        (the Relief at the sweep's frame, statistics for stats.json).
+    """
+    inp = photos.inp
+    frame = level_frame(inp.frame, min(s.long_side, max(inp.frame.shape)))
+    mask = resample_nearest(inp.texel_mask, inp.frame, frame)
+    which = sweep_photos(photos, frame, mask, s.min_cos, s.max_photos)
+    stats: dict = {"photos": [inp.photos[n].name for n in which], "long_side": max(frame.shape)}
+    flat = Relief(frame, np.zeros(frame.shape, np.float32))
+    if len(which) < 3:
+        return flat, {**stats, "heights": [], "relief_share": 0.0, "reason": "fewer than 3 photos"}
+    heights = sweep_heights(photos, which, frame, s)
+    with torch.no_grad():
+        cost, _ = sweep_cost(photos, which, frame, mask, heights, s.window)
+    h = height_field(cost, heights, mask, s.margin, s.smooth)
+    stats.update(
+        {
+            "heights": [float(x) for x in heights],
+            "relief_share": float((h[mask] != 0).mean()) if mask.any() else 0.0,
+            "levels": {f"{v:.4g}": float((h[mask] == v).mean()) for v in np.unique(h[mask])},
+        }
+    )
+    relief = Relief(frame, h)
+    if not relief.flat:
+        relief.hidden = np.stack(
+            [
+                ~relief_visibility(frame, ph, h, mask) & mask if n in photos.samplers else np.zeros(frame.shape, bool)
+                for n, ph in enumerate(inp.photos)
+            ]
+        )
+    return relief, stats

@@ -1,0 +1,269 @@
+"""Relief-compensated mapping (difftex.method.relief, difftex.sampling.relief) on the analytic
+relief scene (tests/analytic_relief.py): a wall with a window recessed 0.3 m and a balcony
+standing 0.4 m out, photographed from 15 directions, that the proxy (one plane) lacks."""
+
+from __future__ import annotations
+
+import analytic_relief as ar
+import numpy as np
+import pytest
+import torch
+import torch.nn.functional as F
+
+from difftex.compose.texturing import texture_polygon
+from difftex.method.config import ComputeConfig, OptimizeConfig
+from difftex.method.relief import (
+    ReliefSettings,
+    box_filter,
+    estimate_relief,
+    height_field,
+    merge_steps,
+    sweep_heights,
+    sweep_photos,
+    zncc,
+)
+from difftex.sampling.photos import PhotoSet
+from difftex.sampling.relief import Relief, quantise_heights, relief_visibility, shifted_frame, texel_map_relief
+from difftex.sampling.texels import texel_map
+
+from analytic import make_photo
+
+LONG = 128  # texels of the wall's frame: 3.1 cm texels on the 4 m wall
+SWEEP = ReliefSettings(lo=-0.5, hi=0.5, long_side=LONG, window=9, smooth=5)
+# the heights are recovered to within this (scene units): 1.5 steps of the sweep (its step is set
+# by the photos' parallax; 0.021 m here)
+HEIGHT_TOL = 0.032
+
+
+@pytest.fixture(scope="module")
+def scene():
+    torch.set_num_threads(1)
+    phs = ar.photos()
+    imgs = [ar.render(p) for p in phs]
+    inp = ar.make_input(phs, imgs, long_side=LONG)
+    ps = PhotoSet.load(inp, "cpu", relief_range=(SWEEP.lo, SWEEP.hi))
+    relief, stats = estimate_relief(ps, SWEEP)
+    return inp, ps, relief, stats
+
+
+def _interior(region: np.ndarray, r: int = 3) -> np.ndarray:
+    """``region`` eroded by r texels (the field's edges are a window's half-width wide)."""
+    t = torch.from_numpy(~region).float()[None, None]
+    return ~(F.max_pool2d(t, 2 * r + 1, 1, r)[0, 0].numpy() > 0)
+
+
+def test_height_field_recovers_the_recess_and_the_balcony(scene):
+    inp, _, relief, stats = scene
+    _, h = ar.truth(relief.frame)
+    got = relief.heights
+    recess, balcony = _interior(h < 0), _interior(h > 0)
+    wall = _interior(h == 0) & _interior(inp.texel_mask)
+    assert abs(np.median(got[recess]) + ar.RECESS) <= HEIGHT_TOL
+    assert abs(np.median(got[balcony]) - ar.BALCONY) <= HEIGHT_TOL
+    assert np.mean(np.abs(got[recess] + ar.RECESS) <= HEIGHT_TOL) >= 0.9
+    assert np.mean(np.abs(got[balcony] - ar.BALCONY) <= HEIGHT_TOL) >= 0.9
+    assert np.mean(got[wall] == 0) >= 0.95
+    # flat steps: a handful of heights, not one per texel
+    assert len(np.unique(got)) <= 6
+    assert 0.15 <= stats["relief_share"] <= 0.4
+
+
+def _mapped(ps: PhotoSet, n: int, frame, heights: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+    ph = ps.inp.photos[n]
+    tm = texel_map_relief(frame, ph, heights, "cpu") if heights is not None else texel_map(frame, ph, "cpu")
+    col = ps.samplers[n].sample(tm.pix, tm.footprint, 1).permute(1, 2, 0).numpy()
+    return col, tm.valid.numpy()
+
+
+def test_mapping_through_the_relief_makes_two_oblique_photos_of_the_window_agree(scene):
+    inp, ps, _, _ = scene
+    frame = inp.frame
+    _, h = ar.truth(frame)
+    names = [p.name for p in inp.photos]
+    a, b = names.index("p02.png"), names.index("p12.png")  # yaw -35 pitch 30, yaw +35 pitch -15
+    window = _interior(h < 0, 6)  # the pane away from the reveals (which one of them hides)
+    hf = h.astype(np.float32)
+    # where both photos see the pane past the reveals (checked against the geometry above)
+    both = window & relief_visibility(frame, inp.photos[a], hf, inp.texel_mask)
+    both &= relief_visibility(frame, inp.photos[b], hf, inp.texel_mask)
+    assert both.sum() > 0.3 * window.sum()
+    flat = [_mapped(ps, n, frame, None) for n in (a, b)]
+    relief = [_mapped(ps, n, frame, hf) for n in (a, b)]
+
+    truth, _ = ar.truth(frame)
+
+    def rms(pair):
+        (ca, va), (cb, vb) = pair
+        m = both & va & vb
+        return float(np.sqrt(((ca - cb)[m] ** 2).mean()))
+
+    assert rms(relief) < 0.2 * rms(flat)
+    # each photo through the relief shows the pane where the truth has it: what is left is its
+    # resampling of the sharp mullions (at 3 cm texels, the photos hold 2-3 pixels per texel)
+    for (c, v), (c0, _) in zip(relief, flat):
+        err = float(np.sqrt(((c - truth)[both & v] ** 2).mean()))
+        err_flat = float(np.sqrt(((c0 - truth)[both & v] ** 2).mean()))
+        assert err < 0.3 * err_flat, (err, err_flat)
+
+
+def test_relief_visibility_hides_the_top_of_the_recess_from_a_photo_above(scene):
+    inp, _, _, _ = scene
+    frame = inp.frame
+    _, h = ar.truth(frame)
+    ph = make_photo("above", 0.0, dist=6.0, pitch_deg=30.0, f=300.0, size=(320, 240))
+    seen = relief_visibility(frame, ph, h.astype(np.float32), inp.texel_mask)
+    hidden = inp.texel_mask & ~seen
+    tx, ty = frame.centres()
+    X = frame.texel_to_world(tx, ty)
+    assert not hidden[h > 0].any()
+    # on the wall, only what the balcony hides below and beside itself from a camera above its left
+    # (0.4 m deep: up to 0.33 m below it, 0.11 m to its right, by the rays through its edges)
+    x, z = X[..., 0][hidden & (h == 0)], X[..., 2][hidden & (h == 0)]
+    assert len(x) > 0
+    assert (x > ar.BOX[0] - 0.05).all() and (x < ar.BOX[1] + 0.15).all()  # + perspective: the camera is at x = 2
+    assert (z < ar.BOX[3] + 1e-6).all() and (z > ar.BOX[2] - 0.35).all()
+    # the wall above the window hides a band of depth x tan(elevation) of the pane's top, the
+    # elevation of the ray over the window's top edge (0.3 m x 0.40 = 0.12 m)
+    # (away from the pane's left edge, which its left reveal hides from a camera right of it)
+    middle = (h < 0) & (np.abs(X[..., 0] - (ar.WINDOW[0] + ar.WINDOW[1]) / 2) < 0.3)
+    rows = np.nonzero((hidden & middle).any(1))[0]
+    band = X[..., 2][rows, 0]
+    assert band.min() >= ar.WINDOW[3] - 0.3 and band.max() <= ar.WINDOW[3] + 1e-6
+    frac = hidden[middle].mean()
+    tan_elev = (ph.center[2] - ar.WINDOW[3]) / -ph.center[1]
+    expect = ar.RECESS * tan_elev / (ar.WINDOW[3] - ar.WINDOW[2])
+    assert abs(frac - expect) < 0.35 * expect
+
+
+def test_texturing_with_relief_keeps_the_mullions(scene):
+    inp, _, _, _ = scene
+    col, h = ar.truth(inp.frame)
+    base = dict(long_side_start=32, level_step=2.0, histogram_matching=False)
+    relief_keys = dict(relief=True, relief_range=(SWEEP.lo, SWEEP.hi), relief_long_side=LONG, relief_window=9,
+                       relief_smooth=5)
+    plain = texture_polygon(inp, OptimizeConfig(**base), ComputeConfig(device="cpu"))
+    comp = texture_polygon(inp, OptimizeConfig(**base, **relief_keys), ComputeConfig(device="cpu"))
+    pane = _interior(h < 0, 2)
+    err_plain = np.abs(plain.texture - col).mean(-1)[pane].mean()
+    err_relief = np.abs(comp.texture - col).mean(-1)[pane].mean()
+    assert err_relief < 0.5 * err_plain
+    assert comp.heights is not None and comp.heights.shape == inp.frame.shape
+    assert comp.stats["relief"]["relief_share"] > 0.1
+    # the mullion's column in the texture: bright (0.95) in the truth and with relief, smeared without
+    tx, _ = inp.frame.centres()
+    x = inp.frame.texel_to_world(tx, np.zeros_like(tx))[..., 0]
+    mull = pane & (np.abs(x - (ar.WINDOW[0] + ar.WINDOW[1]) / 2) < 0.02)
+    assert comp.texture[mull].mean() > 0.7 > plain.texture[mull].mean()
+
+
+def test_a_flat_wall_gets_no_relief():
+    torch.set_num_threads(1)
+    phs = ar.photos(n_yaw=(-30, 0, 30), pitches=(-10, 20))
+    saved = ar.RECESS, ar.BALCONY
+    ar.RECESS, ar.BALCONY = 1e-9, 1e-9  # boxes of no depth: the wall is its plane
+    try:
+        imgs = [ar.render(p) for p in phs]
+    finally:
+        ar.RECESS, ar.BALCONY = saved
+    rng = np.random.default_rng(0)
+    imgs = [np.clip(im + rng.normal(0, 0.01, im.shape).astype(np.float32), 0, 1) for im in imgs]
+    inp = ar.make_input(phs, imgs, long_side=96)
+    ps = PhotoSet.load(inp, "cpu", relief_range=(SWEEP.lo, SWEEP.hi))
+    relief, stats = estimate_relief(ps, ReliefSettings(lo=-0.5, hi=0.5, long_side=96, window=9, smooth=5))
+    assert np.mean(relief.heights[inp.texel_mask] == 0) >= 0.98
+    assert relief.hidden is None or relief.flat or stats["relief_share"] < 0.02
+
+
+def test_fewer_than_three_photos_give_a_flat_field():
+    phs = ar.photos(n_yaw=(0,), pitches=(-10, 20))
+    inp = ar.make_input(phs, [ar.render(p) for p in phs], long_side=48)
+    ps = PhotoSet.load(inp, "cpu")
+    relief, stats = estimate_relief(ps, ReliefSettings(lo=-0.5, hi=0.5, long_side=48))
+    assert relief.flat and stats["reason"] == "fewer than 3 photos"
+
+
+def test_sweep_heights_hold_zero_and_step_with_the_parallax(scene):
+    inp, ps, _, _ = scene
+    which = sweep_photos(ps, inp.frame, inp.texel_mask, SWEEP.min_cos, SWEEP.max_photos)
+    assert len(which) >= 3
+    hs = sweep_heights(ps, which, inp.frame, SWEEP)
+    assert np.any(hs == 0) and hs.min() >= SWEEP.lo - 1e-9 and hs.max() <= SWEEP.hi + 1e-9
+    assert np.all(np.diff(hs) > 0) and len(hs) <= SWEEP.max_heights
+    # a coarser frame (texels 4x larger) needs no finer steps than 4x these
+    coarse = inp.frame.resized(LONG // 4)
+    assert np.min(np.diff(sweep_heights(ps, which, coarse, SWEEP))) >= np.min(np.diff(hs)) - 1e-12
+
+
+def test_box_filter_is_the_zero_padded_window_mean():
+    x = torch.rand(2, 37, 53)
+    for w in (3, 9, 31):
+        ref = F.avg_pool2d(x[:, None], w, 1, w // 2, count_include_pad=True)[:, 0]
+        assert torch.allclose(box_filter(x, w), ref, atol=1e-6)
+    big = torch.full((1, 4, 2000), 1000.0) + torch.rand(1, 4, 2000)  # long rows of large values
+    ref = F.avg_pool2d(big[:, None], 3, 1, 1, count_include_pad=True)[:, 0]
+    assert torch.allclose(box_filter(big, 3), ref, rtol=1e-6)
+
+
+def test_zncc_ignores_gain_and_offset_and_flat_windows_score_zero():
+    g = torch.rand(1, 30, 30)
+    v = torch.ones_like(g, dtype=torch.bool)
+    r = zncc(2.5 * g + 0.3, g[0], v, 7)
+    assert torch.allclose(r[:, 3:-3, 3:-3], torch.ones(1, 24, 24), atol=1e-3)
+    assert (zncc(-g, g[0], v, 7)[:, 3:-3, 3:-3] < -0.99).all()
+    flat = torch.full((1, 30, 30), 0.5)
+    assert zncc(flat, flat[0], v, 7).abs().max() < 1e-3
+    none = torch.zeros_like(v)
+    assert (zncc(g, g[0], none, 7) == 0).all()
+
+
+def test_height_field_keeps_the_plane_without_a_clear_gain():
+    heights = np.array([-0.2, -0.1, 0.0, 0.1])
+    cost = torch.full((4, 8, 8), 0.5)
+    cost[0, :4] = 0.3  # a clear minimum at -0.2 over the top half
+    cost[3, 4:] = 0.48  # a gain below the margin over the bottom half
+    mask = np.ones((8, 8), bool)
+    h = height_field(cost, heights, mask, margin=0.05, smooth=1)
+    assert (h[:4] == -0.2).all() and (h[4:] == 0).all()
+    assert (height_field(cost, heights, np.zeros((8, 8), bool), 0.05, 1) == 0).all()
+    with pytest.raises(ValueError, match="include 0"):
+        height_field(cost, heights + 0.05, mask, 0.05, 1)
+
+
+def test_merge_steps_snaps_near_heights_and_rare_ones():
+    h = np.zeros((10, 10), np.float32)
+    h[:5, :5] = -0.3
+    h[0, :3] = -0.28  # within tol of -0.3
+    h[9, 9] = 0.5  # one texel: under min_share
+    out = merge_steps(h, np.ones_like(h, bool), tol=0.05, min_share=0.02)
+    assert set(np.unique(out)) == {np.float32(-0.3), np.float32(0.0)}
+    assert out[9, 9] == 0.0 and out[0, 0] == np.float32(-0.3)
+
+
+def test_quantise_heights_and_texel_map_relief_of_a_constant_field():
+    h = np.linspace(-0.5, 0.5, 400, dtype=np.float32).reshape(20, 20)
+    q = quantise_heights(h, 8)
+    assert len(np.unique(q)) <= 8 and np.abs(q - h).max() <= 1.0 / 6 / 2 + 1e-6
+    with pytest.raises(ValueError):
+        quantise_heights(h, 1)
+    inp = ar.make_input(ar.photos(n_yaw=(20,), pitches=(10,)), [np.zeros((240, 320, 3), np.float32)], long_side=32)
+    ph = inp.photos[0]
+    const = np.full(inp.frame.shape, -0.25, np.float32)
+    a = texel_map_relief(inp.frame, ph, const)
+    b = texel_map(shifted_frame(inp.frame, -0.25), ph)
+    assert torch.allclose(a.pix, b.pix) and torch.equal(a.valid, b.valid)
+    with pytest.raises(ValueError, match="do not match"):
+        texel_map_relief(inp.frame, ph, const[:-1])
+
+
+def test_relief_and_settings_check_their_input():
+    frame = ar.make_input(ar.photos(n_yaw=(0,), pitches=(0,)), [np.zeros((240, 320, 3), np.float32)], 16).frame
+    with pytest.raises(ValueError, match="match"):
+        Relief(frame, np.zeros((3, 3), np.float32))
+    with pytest.raises(ValueError, match="finite"):
+        Relief(frame, np.full(frame.shape, np.nan, np.float32))
+    for bad in (dict(lo=0.1, hi=0.5), dict(lo=0.0, hi=0.0), dict(lo=-1, hi=1, window=4), dict(lo=-1, hi=1, smooth=0)):
+        with pytest.raises(ValueError):
+            ReliefSettings(**bad)
+    with pytest.raises(ValueError):
+        OptimizeConfig(relief=True, relief_range=(0.2, 0.4))
+    assert OptimizeConfig(relief_range=[-0.3, 0.2]).relief_range == (-0.3, 0.2)
