@@ -13,7 +13,7 @@ import torch
 from scipy import ndimage
 
 from difftex.errors import DifftexError
-from difftex.evaluation import metrics
+from difftex.evaluation import metrics, perceptual
 
 from tests import piq_weights as W
 
@@ -405,9 +405,9 @@ def piq_lpips_from(folder):
 
 
 def test_weight_files_are_named_as_piq_and_torchvision_name_them(hub_weights):
-    files = metrics.lpips_weight_files()
+    files = perceptual.lpips_weight_files()
     assert files == {"lpips": hub_weights / W.LPIPS_FILE, "vgg16": hub_weights / W.VGG16_FILE}
-    assert metrics.lpips_weight_files("/elsewhere") == {
+    assert perceptual.lpips_weight_files("/elsewhere") == {
         "lpips": Path("/elsewhere") / W.LPIPS_FILE,
         "vgg16": Path("/elsewhere") / W.VGG16_FILE,
     }
@@ -447,7 +447,7 @@ def test_classic_lpips_mask(hub_weights):
     d_right = metrics.lpips(other, img, ~left, variant="lpips")[0]
     assert d_right < full < d_left
     # the map averaged over every pixel is the plain distance (64 is a multiple of every layer's stride)
-    net = metrics._network("lpips", str(hub_weights), True, "cpu")
+    net = perceptual.network("lpips", str(hub_weights), True, "cpu")
     with torch.no_grad():
         dmap = net(as_tensor(other), as_tensor(img))
     assert dmap.shape == (1, 1, 64, 64) and float(dmap.mean()) == pytest.approx(full, rel=1e-5)
@@ -477,8 +477,8 @@ def test_classic_lpips_unavailable_without_weights(tmp_path, monkeypatch, caplog
 
 def test_classic_lpips_names_the_one_missing_file(hub_weights, tmp_path):
     (tmp_path / W.LPIPS_FILE).write_bytes((hub_weights / W.LPIPS_FILE).read_bytes())
-    assert metrics.classic_lpips_missing(tmp_path).endswith("(missing: vgg16-397923af.pth; never downloaded)")
-    assert metrics.classic_lpips_missing(hub_weights) is None
+    assert perceptual.classic_lpips_missing(tmp_path).endswith("(missing: vgg16-397923af.pth; never downloaded)")
+    assert perceptual.classic_lpips_missing(hub_weights) is None
 
 
 def test_stlpips_unavailable_when_the_package_does_not_import(monkeypatch):
@@ -525,11 +525,11 @@ def test_stlpips_needs_no_lpips_package(tmp_path):
 
 @needs_stlpips
 def test_network_is_built_once_and_silently(capfd):
-    metrics._network.cache_clear()
+    perceptual.network.cache_clear()
     a, b = texture(seed=1), texture(seed=2)
     first = metrics.lpips(a, b, variant="stlpips")
     assert metrics.lpips(a, b, variant="stlpips") == first
-    info = metrics._network.cache_info()
+    info = perceptual.network.cache_info()
     assert (info.misses, info.hits) == (1, 1)
     out = capfd.readouterr()
     assert out.out == "" and "Warning" not in out.err  # the packages print on construction unless told not to

@@ -26,7 +26,7 @@ class EvaluateConfig:
 
     lpips: str = "auto"  # auto | lpips | stlpips | none
     # folder holding classic LPIPS's weight files (piq's lpips_weights.pt, torchvision's
-    # vgg16-397923af.pth); None: the torch hub cache (metrics.lpips_weight_files)
+    # vgg16-397923af.pth); None: the torch hub cache (perceptual.lpips_weight_files)
     lpips_weights: str | None = None
     render_long_side: int = 768  # held-out views are rendered and compared at this long side
     error_maps: bool = True  # write per-polygon error maps (PNG) beside the metrics
@@ -99,14 +99,14 @@ def _lpips_plan(cfg: EvaluateConfig) -> tuple[str | None, str | None]:
     Resolved once per evaluation, so that missing weights give one warning line, not one per
     polygon or view: "auto" without classic LPIPS's weight files says once that it reports ST-LPIPS.
     """
-    from difftex.evaluation import metrics
+    from difftex.evaluation import perceptual
 
     if cfg.lpips == "none":
         return None, "none"
-    kind, label = metrics.lpips_source(cfg.lpips, cfg.lpips_weights)
+    kind, label = perceptual.lpips_source(cfg.lpips, cfg.lpips_weights)
     if kind is None:
         log.warning("LPIPS (%s) %s", cfg.lpips, label)
         return None, label
     if cfg.lpips == "auto" and kind == "stlpips":
-        log.warning("%s", metrics.lpips_fallback_note(cfg.lpips_weights))
+        log.warning("%s", perceptual.lpips_fallback_note(cfg.lpips_weights))
     return kind, None
