@@ -154,9 +154,10 @@ def test_bad_georef_is_one_line(georef, needle):
     assert str(exc.value).startswith("assemble.tileset_georef: ") and needle in str(exc.value)
 
 
-def _textured_city_scene(root: Path) -> tuple[Path, Path]:
+def _textured_city_scene(root: Path) -> tuple[Path, Path, dict[str, np.ndarray]]:
     """A scene folder whose proxy is two CityJSON houses, and beside it the visibility and
-    texture files that `difftex assemble` reads (constant colours), without the optimizer."""
+    texture files that `difftex assemble` reads (a constant colour per polygon, returned), without
+    the optimizer."""
     scene = make_scene(root / "scene")
     (scene / "proxy.obj").unlink()
     doc = city({"house1": house(lods=False), "house2": house(offset=(16.0, 0, 0), base=14, lods=False)})
@@ -164,6 +165,7 @@ def _textured_city_scene(root: Path) -> tuple[Path, Path]:
     R = root / "results"
     rows = []
     rng = np.random.default_rng(1)
+    colours: dict[str, np.ndarray] = {}
     for poly in load_proxy(scene / "proxy.city.json").polygons:
         frame = uv_frame(poly, UP, long_side=32)
         mask = texel_mask(poly, frame)
@@ -173,10 +175,12 @@ def _textured_city_scene(root: Path) -> tuple[Path, Path]:
             texel_mask=np.packbits(mask.ravel()),
             shape=np.array(frame.shape),
         )
-        write_image(R / "textures" / poly.id / "texture.png", np.broadcast_to(rng.random(3), (*frame.shape, 3)))
+        colour = np.round(rng.uniform(0.15, 0.95, 3) * 255) / 255  # exact in 8 bits
+        write_image(R / "textures" / poly.id / "texture.png", np.broadcast_to(colour, (*frame.shape, 3)))
+        colours[poly.id] = colour
         rows.append({"id": poly.id, "coverage": 1.0, "photos": []})
     write_json(R / "visibility" / "summary.json", {"polygons": rows})
-    return scene, R
+    return scene, R, colours
 
 
 def _assemble(scene: Path, R: Path, assemble_cfg: dict, *extra: str) -> dict:
@@ -188,7 +192,7 @@ def _assemble(scene: Path, R: Path, assemble_cfg: dict, *extra: str) -> dict:
 
 
 def test_assemble_writes_a_georeferenced_tileset_of_a_cityjson_scene(tmp_path):
-    scene, R = _textured_city_scene(tmp_path)
+    scene, R, _ = _textured_city_scene(tmp_path)
     summary = _assemble(scene, R, {"tileset": True, "tileset_georef": {"lon": 7.1, "lat": 50.7, "height": 60.0}})
     assert summary["tileset"]["file"] == "tileset/tileset.json" and summary["tileset"]["georeferenced"]
     assert [t["name"] for t in summary["tileset"]["tiles"]] == ["house1", "house2"]
@@ -240,7 +244,7 @@ def test_3d_tiles_validator_finds_no_error(tmp_path):
             "3d-tiles-validator is not installed (.ci/run installs it into .cache/npm: "
             "npm install --prefix .cache/npm 3d-tiles-validator)"
         )
-    scene, R = _textured_city_scene(tmp_path)
+    scene, R, _ = _textured_city_scene(tmp_path)
     _assemble(scene, R, {"tileset": True, "tileset_georef": {"lon": 7.1, "lat": 50.7, "height": 60.0}})
     report = tmp_path / "report.json"
     tileset = R / "model" / "tileset" / "tileset.json"
@@ -292,3 +296,124 @@ def test_gltf_validator_finds_no_error_in_the_tiles(tmp_path):
     result = json.loads(p.stdout)
     for f, r in result.items():
         assert r["errors"] == 0 and r["warnings"] == 0, (f, r)
+
+
+# ---------------------------------------------------------------------------------------------
+# CesiumJS in headless Chromium (npm cesium in .cache/npm, Debian's chromium)
+
+CESIUM = REPO / ".cache" / "npm" / "node_modules" / "cesium" / "Build" / "Cesium"
+CHROMIUM = Path("/usr/bin/chromium")
+# The page loads the tileset with unlit shading (the texture colours reach the screen unchanged),
+# looks at it from the south-south-west and above, and posts the canvas back once every tile is in.
+CESIUM_PAGE = """<!doctype html><html><head><meta charset="utf-8"><script src="cesium/Cesium.js"></script>
+<link href="cesium/Widgets/widgets.css" rel="stylesheet">
+<style>html,body{margin:0;background:#000} #c{width:800px;height:600px}</style></head>
+<body><div id="c"></div><script>
+const post = (kind, body) => fetch("/" + kind, {method: "POST", body: body});
+window.onerror = (m) => post("log", "error: " + m);
+(async () => {
+  try {
+    const viewer = new Cesium.Viewer("c", {baseLayer: false, baseLayerPicker: false, geocoder: false,
+      timeline: false, animation: false, homeButton: false, sceneModePicker: false, infoBox: false,
+      navigationHelpButton: false, selectionIndicator: false, fullscreenButton: false, skyBox: false,
+      skyAtmosphere: false, terrainProvider: new Cesium.EllipsoidTerrainProvider(),
+      contextOptions: {webgl: {preserveDrawingBuffer: true}}});
+    viewer.scene.globe.show = false;
+    viewer.scene.backgroundColor = Cesium.Color.BLACK;
+    const tileset = await Cesium.Cesium3DTileset.fromUrl("tileset/tileset.json",
+      {customShader: new Cesium.CustomShader({lightingModel: Cesium.LightingModel.UNLIT})});
+    viewer.scene.primitives.add(tileset);
+    await viewer.zoomTo(tileset, new Cesium.HeadingPitchRange(0.3, -0.4, 0));
+    tileset.allTilesLoaded.addEventListener(async () => {
+      for (let i = 0; i < 10; i++) { viewer.render(); await new Promise((r) => setTimeout(r, 100)); }
+      post("shot", viewer.canvas.toDataURL("image/png"));
+    });
+  } catch (e) { post("log", "error: " + e + " " + (e.stack || "")); }
+})();
+</script></body></html>
+"""
+
+
+def _cesium_screenshot(site: Path, timeout: float = 150.0) -> tuple[np.ndarray | None, list[str]]:
+    """Serve ``site`` on a loopback port, open its index.html in headless Chromium (software
+    WebGL) and return the canvas the page posts back (float RGB), with the page's log lines."""
+    import base64
+    import http.server
+    import io
+    import threading
+
+    from PIL import Image
+
+    shot: list[bytes] = []
+    logs: list[str] = []
+    done = threading.Event()
+
+    class Handler(http.server.SimpleHTTPRequestHandler):
+        def __init__(self, *a, **k):
+            super().__init__(*a, directory=str(site), **k)
+
+        def log_message(self, *a):
+            pass
+
+        def do_POST(self):
+            body = self.rfile.read(int(self.headers["Content-Length"])).decode()
+            if self.path == "/shot":
+                shot.append(base64.b64decode(body.split(",", 1)[1]))
+            else:
+                logs.append(body)
+            self.send_response(204)
+            self.end_headers()
+            if shot or body.startswith("error"):
+                done.set()
+
+    server = http.server.ThreadingHTTPServer(("127.0.0.1", 0), Handler)
+    threading.Thread(target=server.serve_forever, daemon=True).start()
+    flags = ["--headless", "--no-sandbox", "--use-angle=swiftshader", "--enable-unsafe-swiftshader"]
+    browser = subprocess.Popen(
+        [str(CHROMIUM), *flags, "--remote-debugging-port=0", f"--user-data-dir={site / 'profile'}",
+         f"http://127.0.0.1:{server.server_address[1]}/index.html"],
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+    )  # fmt: skip
+    try:
+        done.wait(timeout)
+    finally:
+        browser.terminate()
+        browser.wait(30)
+        server.shutdown()
+    if not shot:
+        return None, logs
+    return np.asarray(Image.open(io.BytesIO(shot[0])).convert("RGB"), np.float32) / 255, logs
+
+
+@pytest.mark.skipif(
+    not (CHROMIUM.is_file() and CESIUM.is_dir()),
+    reason="needs Debian's chromium and npm cesium in .cache/npm (.ci/run installs both when root)",
+)
+def test_cesium_draws_the_tileset_upright_with_its_textures(tmp_path):
+    """CesiumJS, the reference 3D Tiles runtime, draws the georeferenced tileset of two houses:
+    the polygons' texture colours reach the screen, each house's roof above its front wall (the
+    y-up/z-up turn is right: a wrong one lays the houses on their side), the window a hole."""
+    scene, R, colours = _textured_city_scene(tmp_path)
+    _assemble(scene, R, {"tileset": True, "tileset_georef": {"lon": 7.1, "lat": 50.7, "height": 60.0}})
+    site = tmp_path / "site"
+    site.mkdir()
+    (site / "index.html").write_text(CESIUM_PAGE)
+    (site / "cesium").symlink_to(CESIUM)
+    (site / "tileset").symlink_to(R / "model" / "tileset")
+    img, logs = _cesium_screenshot(site)
+    assert img is not None, f"no screenshot; page said: {logs}"
+    write_image(tmp_path / "cesium.png", img)  # for a person to look at
+    assert img.shape == (600, 800, 3)
+
+    def where(pid: str, tol: float = 6 / 255) -> np.ndarray:
+        return np.argwhere(np.abs(img - colours[pid]).max(-1) <= tol)
+
+    for building in ("house1", "house2"):
+        wall, roof = where(f"{building}_WallSurface_0"), where(f"{building}_RoofSurface_0")
+        assert len(wall) > 500 and len(roof) > 500, (building, len(wall), len(roof))
+        assert roof[:, 0].mean() < wall[:, 0].mean()  # rows grow downwards: the roof is above
+        # the window: a hole of background inside the front wall's outline on screen
+        (r0, c0), (r1, c1) = wall.min(0), wall.max(0)
+        inner = img[r0 + (r1 - r0) // 3 : r1 - (r1 - r0) // 5, c0 + (c1 - c0) // 3 : c1 - (c1 - c0) // 3]
+        assert (inner.max(-1) < 0.05).sum() > 50, building
