@@ -116,11 +116,27 @@ def test_parts_belong_to_their_building_and_versions_and_hole_order(tmp_path):
     """A BuildingPart's polygons carry its parent's id; CityJSON 1.0 without a transform reads
     too; a hole given counter-clockwise is turned clockwise."""
     obj, verts = house(lods=False)
-    doc = city({"b": ({"type": "Building", "children": ["b-part"]}, []), "b-part": (obj, verts)}, version="1.1")
+    # as in the 3D BAG: the building has an LOD0 footprint and an LOD1 block, its part the LOD2.2
+    # solid; the part's surfaces are the proxy, the building's geometries would duplicate them
+    block = [[[0, 1, 5, 4]]]
+    building = {
+        "type": "Building",
+        "children": ["b-part"],
+        "geometry": [
+            {"type": "MultiSurface", "lod": "0", "boundaries": [[[0, 3, 2, 1]]]},
+            {"type": "MultiSurface", "lod": "1.2", "boundaries": block},
+        ],
+    }
+    doc = city({"b": (building, []), "b-part": (obj, verts)}, version="1.1")
     doc["CityObjects"]["b-part"] = {**obj, "type": "BuildingPart", "parents": ["b"]}
     proxy = load_proxy(write_city(tmp_path / "a.json", doc))
-    assert {p.building for p in proxy.polygons} == {"b"}
+    assert {p.building for p in proxy.polygons} == {"b"} and len(proxy) == 6
     assert proxy.ids[0] == "b-part_WallSurface_0"
+    # an LOD0 footprint alone is nothing to texture
+    doc["CityObjects"] = {"b": building}
+    doc["CityObjects"]["b"]["geometry"] = building["geometry"][:1]
+    with pytest.raises(DifftexError, match="no building surface of LOD 1 to 2.2"):
+        load_proxy(write_city(tmp_path / "c.json", doc))
 
     flipped = [list(r) for r in SHELL[1]]
     flipped[1] = flipped[1][::-1]
@@ -186,7 +202,7 @@ def _wrong_nesting(doc):
         ),
         (
             _edited(lambda d: d["CityObjects"]["h"].update(geometry=[d["CityObjects"]["h"]["geometry"][2]])),
-            ["no building surface of LOD <= 2.2"],
+            ["no building surface of LOD 1 to 2.2"],
         ),
     ],
 )

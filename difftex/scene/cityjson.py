@@ -1,7 +1,9 @@
 """CityJSON proxies: the surfaces of LOD2 building models (CityJSON 1.0, 1.1, 2.0) as planar loops.
 
 A CityJSON file holds CityObjects (buildings, building parts...), each with geometries at one or
-more levels of detail. Per object the geometry of the highest LOD up to ``MAX_LOD`` (2.2) is taken;
+more levels of detail. Per object the geometry of the highest LOD from ``MIN_LOD`` (1: an LOD0
+footprint has no walls) up to ``MAX_LOD`` (2.2) is taken, and a building whose parts have such a
+geometry is left to its parts;
 each of its surfaces (an outer ring and optional hole rings, as indices into the file's shared
 ``vertices``, which ``transform`` scales and translates) becomes one surface here, named
 ``<cityobject id>_<semantic type>_<n>`` with n counted per object and type in file order, so the
@@ -32,6 +34,7 @@ from difftex.scene.planar import newell_normal
 log = logging.getLogger(__name__)
 
 MAX_LOD = 2.2
+MIN_LOD = 1.0  # LOD0 is a footprint or roof outline: no walls to texture
 SKIPPED_SEMANTICS = {
     "GroundSurface": "they face down into the ground, no photo sees them",
     "ClosureSurface": "they are virtual surfaces closing an open part of a solid",
@@ -111,13 +114,13 @@ def _lod(geom: dict) -> float:
 
 
 def pick_geometry(obj: dict) -> dict | None:
-    """The object's geometry of the highest LOD <= MAX_LOD among the surface types, or None."""
+    """The object's geometry of the highest LOD in [MIN_LOD, MAX_LOD] among the surface types, or None."""
     best: dict | None = None
     for geom in obj.get("geometry") or []:
         if not isinstance(geom, dict) or geom.get("type") not in SURFACE_DEPTH:
             continue
         lod = _lod(geom)
-        if lod <= MAX_LOD and (best is None or lod > _lod(best)):
+        if MIN_LOD <= lod <= MAX_LOD and (best is None or lod > _lod(best)):
             best = geom
     return best
 
@@ -243,9 +246,15 @@ def read_cityjson(path: str | Path) -> list[Surface]:
     surfaces: list[Surface] = []
     other_types: set[str] = set()
     above_lod: list[str] = []
+    if not all(isinstance(obj, dict) for obj in objects.values()):
+        oid = next(k for k, v in objects.items() if not isinstance(v, dict))
+        raise DifftexError(f"{path}: CityObject '{oid}' is not a JSON object")
+    # a building whose parts have geometry: the parts hold the detail, the building's own
+    # geometry (3D BAG: a footprint, an LOD1 block) would duplicate them
+    with_parts = {p for obj in objects.values() if pick_geometry(obj) for p in obj.get("parents") or []}
     for oid, obj in objects.items():
-        if not isinstance(obj, dict):
-            raise DifftexError(f"{path}: CityObject '{oid}' is not a JSON object")
+        if oid in with_parts:
+            continue
         if not str(obj.get("type", "")).lstrip("+").startswith(BUILDING_TYPES):
             other_types.add(str(obj.get("type")))
             continue
@@ -259,15 +268,16 @@ def read_cityjson(path: str | Path) -> list[Surface]:
         log.warning("%s: CityObjects of type %s skipped (not buildings)", path, ", ".join(sorted(other_types)))
     if above_lod:
         log.warning(
-            "%s: %d CityObject(s) have no surface geometry of LOD <= %s, skipped: %s",
+            "%s: %d CityObject(s) have no surface geometry of LOD %s to %s, skipped: %s",
             path,
             len(above_lod),
+            MIN_LOD,
             MAX_LOD,
             ", ".join(above_lod[:5]) + (" ..." if len(above_lod) > 5 else ""),
         )
     kept = _drop_unseen(surfaces, path)
     if not kept:
-        raise DifftexError(f"{path}: CityJSON has no building surface of LOD <= {MAX_LOD} to texture")
+        raise DifftexError(f"{path}: CityJSON has no building surface of LOD {MIN_LOD:g} to {MAX_LOD} to texture")
     return kept
 
 
