@@ -97,11 +97,20 @@ def test_every_photo_filtered_out_stops_at_the_filter(scene, tmp_path):
 
 
 def test_warnings_reach_the_console_once(scene, tmp_path):
+    from scipy.ndimage import gaussian_filter
+
+    from difftex.scene.files import read_image, write_image
+
     shutil.copy(scene / "images" / "img_0000.png", scene / "images" / "extra.png")
+    blurred = scene / "images" / "img_0003.png"  # dropped as blurry: said on the console, not only in photos.csv
+    write_image(blurred, gaussian_filter(read_image(blurred), sigma=(3, 3, 0)))
     r = snakemake(tmp_path / "w", photos_target(), "--config", f"scene={scene}")
     assert r.returncode == 0, r.stdout[-3000:]
-    hits = [ln for ln in console_lines(r) if ln.startswith("difftex: warning: ") and "not in the COLMAP model" in ln]
+    warned = [ln for ln in console_lines(r) if ln.startswith("difftex: warning: ")]
+    hits = [ln for ln in warned if "not in the COLMAP model" in ln]
     assert len(hits) == 1 and "extra.png" in hits[0], r.stdout[-3000:]
+    hits = [ln for ln in warned if "dropped as blurry" in ln]
+    assert len(hits) == 1 and "1 photo dropped as blurry" in hits[0] and "img_0003.png (" in hits[0], warned
 
 
 @pytest.mark.parametrize(
