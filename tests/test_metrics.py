@@ -583,6 +583,18 @@ def test_stlpips_cuda_matches_cpu():
         assert gpu == pytest.approx(cpu, rel=1e-4, abs=1e-6)
 
 
+@pytest.mark.gpu
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
+def test_classic_lpips_cuda_matches_cpu(hub_weights):
+    a, b = texture(64, seed=4), blur(texture(64, seed=4), 1.5)
+    mask = np.zeros((64, 64), bool)
+    mask[8:40, 16:60] = True
+    for m in (None, mask):
+        cpu = metrics.lpips(a, b, m, variant="lpips")[0]
+        gpu = metrics.lpips(a, b, m, variant="lpips", device="cuda")[0]
+        assert gpu == pytest.approx(cpu, rel=1e-4, abs=1e-6)
+
+
 @needs_stlpips
 def test_texture_metrics_keys():
     img = texture()

@@ -251,7 +251,12 @@ def lpips(img_a: np.ndarray, img_b: np.ndarray, mask: np.ndarray | None = None, 
     folder = str(lpips_weight_files(weights_dir)["lpips"].parent) if kind == "lpips" else None
     net = network(kind, folder, spatial, device)
     a, b = (torch.from_numpy(v.astype(np.float32)).permute(2, 0, 1)[None].to(device) for v in (img_a, img_b))
-    with torch.no_grad():
+    cudnn = torch.backends.cudnn
+    # full float32 convolutions on a GPU: cuDNN's default TF32 (10-bit mantissa) moved VGG16's
+    # LPIPS by 2e-4 relative on an H100, more than the metric's own rounding
+    no_tf32 = cudnn.flags(enabled=cudnn.enabled, benchmark=cudnn.benchmark, deterministic=cudnn.deterministic,
+                          allow_tf32=False)
+    with torch.no_grad(), no_tf32:
         d = net(a, b, normalize=True)  # normalize: inputs in [0, 1] (ST-LPIPS maps them to [-1, 1])
     if not spatial:
         return float(d), label
