@@ -35,7 +35,7 @@ import torch.nn.functional as F
 
 from difftex.geometry.frames import UVFrame
 from difftex.sampling.photos import PhotoSet
-from difftex.sampling.relief import Relief, relief_visibility, shifted_frame
+from difftex.sampling.relief import GreySweep, Relief, relief_visibility
 from difftex.sampling.texels import level_frame, resample_nearest, texel_map
 
 GREY = (0.299, 0.587, 0.114)  # Rec. 601 luma: ZNCC compares structure, not colour
@@ -120,7 +120,7 @@ def box_filter(x: torch.Tensor, window: int) -> torch.Tensor:
         (B, h, w).
     """
     r = window // 2
-    y = x.double()  # running sums over a whole row lose float32's precision
+    y = x.double()  # running sums over a whole row would lose float32's precision
     for dim in (-1, -2):
         pad = [0, 0, 0, 0]
         pad[0 if dim == -1 else 2], pad[1 if dim == -1 else 3] = r + 1, r
@@ -128,19 +128,6 @@ def box_filter(x: torch.Tensor, window: int) -> torch.Tensor:
         n = c.shape[dim]
         y = (c.narrow(dim, window, n - window) - c.narrow(dim, 0, n - window)) / window
     return y.to(x.dtype)
-
-
-def box_mean(x: torch.Tensor, weight: torch.Tensor, window: int) -> tuple[torch.Tensor, torch.Tensor]:
-    """Weighted window means: sum(w x) / sum(w) over ``window`` x ``window`` texels, and sum(w)'s share.
-
-    Args:
-        x: (B, h, w) values; weight: (B, h, w) weights (0 where undefined).
-
-    Returns:
-        ((B, h, w) means, 0 where no weight; (B, h, w) the window's mean weight).
-    """
-    wsum = box_filter(weight, window)
-    return box_filter(weight * x, window) / wsum.clamp_min(1e-12), wsum
 
 
 def zncc(a: torch.Tensor, b: torch.Tensor, valid: torch.Tensor, window: int, eps: float = 1e-4) -> torch.Tensor:
@@ -155,13 +142,13 @@ def zncc(a: torch.Tensor, b: torch.Tensor, valid: torch.Tensor, window: int, eps
     """
     w = valid.float()
     b = b.expand_as(a)
-    ma, share = box_mean(a, w, window)
-    mb, _ = box_mean(b, w, window)
-    caa, _ = box_mean(a * a, w, window)
-    cbb, _ = box_mean(b * b, w, window)
-    cab, _ = box_mean(a * b, w, window)
-    va, vb = (caa - ma * ma).clamp_min(0), (cbb - mb * mb).clamp_min(0)
-    r = (cab - ma * mb) / torch.sqrt((va + eps) * (vb + eps))
+    share = box_filter(w, window)
+    inv = 1.0 / share.clamp_min(1e-12)
+    ma, mb = box_filter(w * a, window) * inv, box_filter(w * b, window) * inv
+    va = (box_filter(w * a * a, window) * inv - ma * ma).clamp_min(0)
+    vb = (box_filter(w * b * b, window) * inv - mb * mb).clamp_min(0)
+    cab = box_filter(w * a * b, window) * inv - ma * mb
+    r = cab / torch.sqrt((va + eps) * (vb + eps))
     return torch.where(share >= 0.5, r.clamp(-1, 1), torch.zeros_like(r))
 
 
@@ -170,28 +157,29 @@ def sweep_cost(
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """The plane sweep's cost volume: per height and texel, the mean of 1 - ZNCC(photo, median).
 
-    Each photo is sampled once per height (one trilinear sample per texel: the sweep compares
-    structure at its own frame's scale), grey, where it saw the plane at h = 0.
+    Each photo is sampled once per height, grey, at the pyramid level of the sweep frame's texels
+    (difftex.sampling.relief.GreySweep), where it saw the plane at h = 0 and lands in its crop.
 
     Returns:
         ((D, h, w) cost, inf where fewer than 3 photos compare; (D, h, w) how many photos do).
     """
     dev = photos.device
-    grey = torch.tensor(GREY, device=dev).view(3, 1, 1)
-    seen = {
-        n: torch.from_numpy(resample_nearest(photos.inp.texel_visible[n], photos.inp.frame, frame) & mask).to(dev)
-        for n in which
-    }
+    m = torch.from_numpy(mask).to(dev)
+    sweeps, seen = [], []
+    for n in which:
+        tm = texel_map(frame, photos.inp.photos[n], dev)
+        vis = torch.from_numpy(resample_nearest(photos.inp.texel_visible[n], photos.inp.frame, frame)).to(dev)
+        vis &= m & tm.valid
+        fp = float(tm.footprint[vis].median()) if bool(vis.any()) else 1.0
+        sweeps.append(GreySweep(photos.samplers[n], frame, photos.inp.photos[n], fp))
+        seen.append(vis)
     costs, counts = [], []
     for h in heights:
-        f = shifted_frame(frame, float(h))
         cols, vis = [], []
-        for n in which:
-            tm = texel_map(f, photos.inp.photos[n], dev)
-            if n in photos.corrections:
-                tm.pix = photos.corrections[n].apply(tm.pix)
-            cols.append((photos.samplers[n].sample(tm.pix, tm.footprint, 1) * grey).sum(0))
-            vis.append(seen[n] & tm.valid)
+        for sw, ok in zip(sweeps, seen):
+            g, inside = sw.sample(float(h))
+            cols.append(g)
+            vis.append(ok & inside)
         g, v = torch.stack(cols), torch.stack(vis)
         med = torch.nanmedian(torch.where(v, g, torch.full_like(g, math.nan)), 0).values.nan_to_num(0.0)
         r = zncc(g, med, v, window)

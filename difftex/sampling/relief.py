@@ -26,12 +26,14 @@ Layer: sampling (difftex.sampling.photos maps photos through these when a polygo
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
 import torch
+import torch.nn.functional as F
 
-from difftex.geometry.frames import UVFrame
+from difftex.geometry.frames import UVFrame, texel_homography
 from difftex.sampling.texels import Region, TexelMap, resample_nearest, texel_map
 from difftex.scene.camera import Photo
 
@@ -143,6 +145,55 @@ def texel_map_relief(
         out.valid = torch.where(sel, tm.valid, out.valid)
     assert out is not None
     return out
+
+
+class GreySweep:
+    """One photo prepared for a plane sweep: its grey values at one pyramid level, sampled at the
+    texels of planes parallel to the polygon (one bilinear lookup per texel and plane).
+
+    A sweep maps every candidate photo through dozens of planes; the full mapping (three
+    channels, trilinear, with the viewing geometry) would cost several times more for what a
+    structure comparison needs. The level is the one whose pixels match the frame's texels
+    (median footprint); pinhole cameras are mapped in closed form, others through texel_map.
+    """
+
+    def __init__(self, sampler, frame: UVFrame, photo: Photo, footprint: float):
+        self.frame, self.photo, self.sampler = frame, photo, sampler
+        L = int(np.clip(np.floor(np.log2(max(footprint, 1.0))), sampler.base, sampler.top))
+        self.L = L
+        img = sampler.level_image(L)
+        grey = torch.tensor((0.299, 0.587, 0.114), device=img.device, dtype=img.dtype).view(3, 1, 1)
+        self.img = (img * grey).sum(0)[None, None]
+        dev = img.device
+        ty, tx = torch.meshgrid(
+            torch.arange(frame.height, device=dev, dtype=torch.float64) + 0.5,
+            torch.arange(frame.width, device=dev, dtype=torch.float64) + 0.5,
+            indexing="ij",
+        )
+        # the plane's homogeneous pixels, once; a shifted plane adds h K R n to them
+        H = torch.from_numpy(texel_homography(frame, photo)).to(dev)
+        self._q0 = torch.stack([tx * H[k, 0] + ty * H[k, 1] + H[k, 2] for k in range(3)], -1)
+        self._Kn = torch.from_numpy(photo.K() @ photo.R @ np.asarray(frame.normal, np.float64)).to(dev)
+
+    def pixels(self, h: float) -> torch.Tensor:
+        """(H, W, 2) full-resolution pixels of the frame's texels shifted to height h (NaN behind)."""
+        if not self.photo.is_pinhole:
+            return texel_map(shifted_frame(self.frame, h), self.photo, self.img.device).pix
+        q = self._q0 + h * self._Kn
+        z = q[..., 2:3]
+        return torch.where(z > 1e-9, q[..., :2] / z.clamp_min(1e-9), torch.full_like(q[..., :2], math.nan)).float()
+
+    def sample(self, h: float) -> tuple[torch.Tensor, torch.Tensor]:
+        """Grey values (H, W) at height h, and whether the texel lands inside the photo's crop."""
+        pix = self.pixels(h)
+        s = self.sampler
+        img = self.img
+        gx = ((pix[..., 0] - s.x0) / 2.0**self.L) / img.shape[3] * 2 - 1
+        gy = ((pix[..., 1] - s.y0) / 2.0**self.L) / img.shape[2] * 2 - 1
+        grid = torch.nan_to_num(torch.stack([gx, gy], -1), nan=-2.0)[None]
+        val = F.grid_sample(img, grid, mode="bilinear", padding_mode="border", align_corners=False)[0, 0]
+        inside = (grid[0].abs() <= 1).all(-1)
+        return val, inside
 
 
 def texel_depths(frame: UVFrame, photo: Photo, heights: np.ndarray) -> np.ndarray:
