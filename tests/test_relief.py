@@ -267,3 +267,15 @@ def test_relief_and_settings_check_their_input():
     with pytest.raises(ValueError):
         OptimizeConfig(relief=True, relief_range=(0.2, 0.4))
     assert OptimizeConfig(relief_range=[-0.3, 0.2]).relief_range == (-0.3, 0.2)
+
+
+@pytest.mark.gpu
+def test_relief_on_cuda_matches_cpu(scene):
+    if not torch.cuda.is_available():
+        pytest.skip("no CUDA")
+    inp, _, relief, _ = scene
+    ps = PhotoSet.load(inp, "cuda", relief_range=(SWEEP.lo, SWEEP.hi))
+    on_gpu, _ = estimate_relief(ps, SWEEP)
+    assert np.mean(on_gpu.heights == relief.heights) >= 0.98
+    assert on_gpu.hidden is not None and relief.hidden is not None
+    assert np.mean(on_gpu.hidden == relief.hidden) >= 0.99

@@ -91,6 +91,7 @@ class OptimizeConfig:
     # the normal gives each texel a height, and the photos are mapped through that displaced surface
     relief: bool = False
     relief_range: tuple[float, float] = (-0.6, 0.6)  # heights swept, scene units (< 0: into the facade)
+    relief_max_share: float = 0.2  # ... at most this share of the polygon's shorter side (scale-free)
     relief_long_side: int = 512  # texels of the sweep's frame, at most
     relief_window: int = 15  # ZNCC window of the sweep, texels of its frame (odd)
     relief_photos: int = 16  # most photos compared by the sweep, most frontal first
@@ -175,6 +176,7 @@ class OptimizeConfig:
         return ReliefSettings(
             lo=lo, hi=hi, long_side=self.relief_long_side, window=self.relief_window, max_photos=self.relief_photos,
             min_cos=self.relief_min_cos, margin=self.relief_margin, smooth=self.relief_smooth,
+            max_share=self.relief_max_share,
         )
 
     def cap(self, level: int) -> int:

@@ -26,6 +26,7 @@ a flat wall), the field is 0 and texturing is exactly as without relief.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
 
@@ -54,6 +55,9 @@ class ReliefSettings:
     margin: float = 0.05  # least cost gain over the plane for a height to be kept
     smooth: int = 9  # mode filter, texels (odd; 1: off)
     max_heights: int = 49  # most planes swept
+    # heights beyond this share of the polygon's shorter side are not swept: a scene in other units
+    # than metres (COLMAP's are arbitrary unless scaled), or a small polygon, gets a range in scale
+    max_share: float = 0.2
 
     def __post_init__(self):
         if not self.lo <= 0 <= self.hi or self.lo == self.hi:
@@ -62,6 +66,8 @@ class ReliefSettings:
             raise ValueError("relief window must be odd and >= 3, smooth odd and >= 1")
         if self.max_photos < 2 or not 0 <= self.min_cos < 1 or self.margin < 0 or self.max_heights < 3:
             raise ValueError("relief max_photos >= 2, min_cos in [0, 1), margin >= 0, max_heights >= 3")
+        if self.max_share <= 0:
+            raise ValueError(f"relief max_share must be > 0, got {self.max_share}")
 
 
 def sweep_photos(photos: PhotoSet, frame: UVFrame, mask: np.ndarray, min_cos: float, max_photos: int) -> list[int]:
@@ -271,6 +277,9 @@ def estimate_relief(photos: PhotoSet, s: ReliefSettings) -> tuple[Relief, dict]:
     flat = Relief(frame, np.zeros(frame.shape, np.float32))
     if len(which) < 3:
         return flat, {**stats, "heights": [], "relief_share": 0.0, "reason": "fewer than 3 photos"}
+    short = min(frame.width, frame.height) * frame.texel_size
+    s = dataclasses.replace(s, lo=max(s.lo, -s.max_share * short), hi=min(s.hi, s.max_share * short))
+    stats["range"] = [s.lo, s.hi]
     heights = sweep_heights(photos, which, frame, s)
     with torch.no_grad():
         cost, _ = sweep_cost(photos, which, frame, mask, heights, s.window)
