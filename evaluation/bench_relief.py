@@ -20,7 +20,7 @@ import platform
 import shlex
 import sys
 import time
-from datetime import datetime, timezone
+from datetime import UTC, datetime
 from pathlib import Path
 
 import numpy as np
@@ -38,9 +38,9 @@ def _interior(region: np.ndarray, r: int) -> np.ndarray:
 
 
 def run_one(inp, device: str, relief: bool, side: int) -> dict:
+    import analytic_relief as ar
     import torch
 
-    import analytic_relief as ar
     from difftex.compose.texturing import texture_polygon
     from difftex.method.config import ComputeConfig, OptimizeConfig
 
@@ -80,9 +80,8 @@ def main(argv=None) -> int:
     ap.add_argument("--out", default="evaluation/results/bench_relief")
     args = ap.parse_args(argv)
 
-    import torch
-
     import analytic_relief as ar
+    import torch
 
     torch.set_num_threads(args.threads)
     w, hgt = args.photo_size
@@ -101,7 +100,7 @@ def main(argv=None) -> int:
     dev = torch.cuda.get_device_name(0) if args.device == "cuda" else platform.processor() or platform.machine()
     meta = {
         "command": shlex.join(["python", "evaluation/bench_relief.py", *(argv if argv is not None else sys.argv[1:])]),
-        "date": datetime.now(timezone.utc).strftime("%Y-%m-%d %H:%M UTC"),
+        "date": datetime.now(UTC).strftime("%Y-%m-%d %H:%M UTC"),
         "device": dev,
         "torch": torch.__version__,
         "threads": args.threads,
