@@ -304,3 +304,117 @@ def test_cli_rejects_bad_values(tmp_path, capsys):
     assert "views" in capsys.readouterr().err
     with pytest.raises(DifftexError):
         get_preset("nope")
+
+
+def _gt_map_twice(cfg, long_side: int = 64) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A ground-truth map (tiny preset's building, its first wall) rendered with two render seeds,
+    as the generator renders it (``render_gt_map``); sRGB, and the texel mask."""
+    from difftex.geometry.frames import texel_mask, uv_frame
+    from difftex.scene.proxy import Polygon
+    from difftex.synth import render as rd
+    from difftex.synth.pipeline import build_model, render_gt_map
+
+    spec = cfg.buildings[0]
+    variant = rd.choose_variant(cfg.variant)
+    building, _, _, model, ground, ground_size, lighting, _, _ = build_model(cfg, spec, 0, 0)
+    scene = rd.build_scene(variant, model, ground, ground_size, lighting, occluders=False)
+    face = building.walls[0]
+    poly = Polygon(id=face.id, outer=face.outer.copy())
+    frame = uv_frame(poly, up=np.array([0.0, 0.0, 1.0]), long_side=long_side)
+    standoff = model.protrusion[poly.id] + 0.3
+    a, b = (rd.to_srgb(render_gt_map(cfg, scene, variant, frame, standoff, seed=s)) for s in (1, 2))
+    return a, b, texel_mask(poly, frame)
+
+
+# A ground-truth map rendered twice with different Monte Carlo seeds differs, in sRGB units, by at
+# most this RMS over the polygon's texels and this much at any texel (0.1 % of texels may exceed it:
+# grazing relief edges). Measured (tiny preset, walls at 96 texels): ldsampler 256 spp 0.0047-0.0059 RMS,
+# max 0.04-0.05; 1024 spp 0.0025-0.0031, max 0.02-0.03; the old independent 16 spp 0.054-0.067, max 0.3-0.37.
+GT_RMS_BOUND = 0.008
+GT_P999_BOUND = 0.06
+
+
+def _gt_spread(cfg) -> tuple[float, float]:
+    a, b, mask = _gt_map_twice(cfg)
+    d = np.abs(a - b)[mask]
+    return float(np.sqrt(np.mean(d**2))), float(np.percentile(d, 99.9))
+
+
+def test_ground_truth_is_converged_across_seeds():
+    """With the survey settings (ldsampler, gt_spp 256 as in survey-tiny), two renders of a map
+    agree within the bounds: the truth carries no noise a texture could not match."""
+    cfg = get_preset("tiny").replace(sampler="ldsampler", gt_spp=get_preset("survey-tiny").gt_spp)
+    rms, p999 = _gt_spread(cfg)
+    print(f"ground truth, ldsampler {cfg.gt_spp} spp: RMS {rms:.4f}, 99.9 % {p999:.4f}")
+    assert rms < GT_RMS_BOUND and p999 < GT_P999_BOUND
+
+
+def test_old_ground_truth_setting_fails_the_bound():
+    """The old setting (independent sampler, 16 spp) is far outside the bound: the test above can fail."""
+    cfg = get_preset("tiny").replace(sampler="independent", gt_spp=16)
+    rms, p999 = _gt_spread(cfg)
+    print(f"ground truth, independent 16 spp: RMS {rms:.4f}, 99.9 % {p999:.4f}")
+    assert rms > 3 * GT_RMS_BOUND and p999 > GT_P999_BOUND
+
+
+@pytest.fixture(scope="session")
+def survey_tiny(tmp_path_factory) -> Path:
+    from difftex.cli import main
+
+    out = tmp_path_factory.mktemp("synth") / "survey-tiny"
+    assert main(["synth", "--preset", "survey-tiny", "--out", str(out), "--seed", "2", "--quiet"]) == 0
+    return out
+
+
+def test_survey_photos_are_camera_jpegs_that_load(survey_tiny):
+    """survey-tiny writes JPEG photos named .jpg in the COLMAP model, loads as a scene, records the
+    camera model and sampler, and keeps the truth lossless (PNG) and free of the camera's noise."""
+    from difftex.scene.loading import load_scene
+    from difftex.synth.noise_level import noise_sigma
+
+    man = _manifest(survey_tiny)
+    names = [v["name"] for v in man["views"]]
+    assert names and all(n.endswith(".jpg") for n in names)
+    assert sorted(p.name for p in (survey_tiny / "images").iterdir()) == sorted(names)
+    assert (survey_tiny / "images" / names[0]).read_bytes()[:2] == b"\xff\xd8"
+    txt = (survey_tiny / "sparse" / "0" / "images.txt").read_text()
+    assert all(n in txt for n in names)
+    scene = load_scene(survey_tiny)
+    assert sorted(p.name for p in scene.photos) == sorted(names)
+    r = man["renderer"]
+    assert r["sampler"] == "ldsampler" and r["camera_model"]["iso"] > 0 and r["camera_model"]["jpeg_quality"] > 0
+    assert r["spp"]["ground_truth_maps"] >= 256
+    assert list((survey_tiny / "ground_truth" / "maps").glob("*.png"))
+    held = next((survey_tiny / "ground_truth" / "views" / "images").iterdir())
+    assert held.suffix == ".png"
+    assert noise_sigma(read_image(survey_tiny / "images" / names[0]), tile=16) > 0
+
+
+def test_survey_preset_lays_out_a_drone_survey():
+    """200 photos per building, about 10 at street level, the rest drone orbits looking down; the
+    written poses are off by about a pixel (true vs written projection of the building's corners)."""
+    from difftex.synth import cameras as cams
+    from difftex.synth.buildings import make_building
+    from difftex.synth.pipeline import _rngs
+
+    cfg = get_preset("survey")
+    assert len(cfg.buildings) == 3 and {b.style for b in cfg.buildings} >= {"lshape", "courtyard"}
+    assert (cfg.width, cfg.height, cfg.views) == (800, 600, 200) and cfg.sampler == "ldsampler"
+    assert 0.25 <= cfg.relief_depth <= 0.3 and cfg.occluders and cfg.iso > 0 and cfg.jpeg_quality > 0
+    spec = cfg.buildings[0]
+    rng = _rngs(0, 0, 7)
+    building = make_building(spec, rng[0])
+    views = cams.make_views(building, cfg.views, cfg.street_fraction, rng[5], prefix="img_", suffix=".jpg",
+                            rings=cfg.drone_rings)
+    kinds = [v.kind for v in views]
+    assert len(views) == 200 and kinds.count("street") == 10
+    down = np.degrees(np.arcsin([-v.R[2][2] for v in views if v.kind == "drone"]))  # R[2]: the viewing direction
+    assert down.min() > 15 and np.median(down) > 25, np.percentile(down, [0, 50])  # an oblique gimbal
+    f = cfg.width / 2 / np.tan(np.deg2rad(65) / 2)
+    corners = np.concatenate([face.outer for face in building.faces])
+    shifts = []
+    for v in views[:60]:
+        Rw, tw = cams.perturb(v.R, v.t, cfg.pose_noise_rot_deg, cfg.pose_noise_trans, rng[5])
+        a, b = corners @ v.R.T + v.t, corners @ Rw.T + tw
+        shifts.append(np.linalg.norm(f * (a[:, :2] / a[:, 2:] - b[:, :2] / b[:, 2:]), axis=1).mean())
+    assert 0.6 < np.median(shifts) < 1.6, np.median(shifts)

@@ -32,12 +32,19 @@ def add_arguments(p) -> None:
     p.add_argument("--width", type=int, help="photo width in pixels")
     p.add_argument("--height", type=int, help="photo height in pixels")
     p.add_argument("--spp", type=int, help="samples per pixel of the photos")
+    p.add_argument("--gt-spp", type=int, help="samples per texel of the ground-truth maps")
+    p.add_argument("--heldout-spp", type=int, help="samples per pixel of the held-out views (0: --gt-spp)")
+    p.add_argument("--sampler", choices=["independent", "stratified", "multijitter", "orthogonal", "ldsampler"],
+                   help="Mitsuba sampler of every render (survey: ldsampler)")
     p.add_argument("--gt-long-side", type=int, help="longest side of a ground-truth map in texels")
     p.add_argument("--pose-noise", type=_pair, metavar="ROT_DEG[,TRANS_M]",
                    help="std of the error added to the written poses (rendering uses the true pose)")
     p.add_argument("--exposure-range", type=float, help="max |log2 gain| of a photo, in stops")
     p.add_argument("--white-balance", type=float, help="std of the per-channel log gain of a photo")
-    p.add_argument("--image-noise", type=float, help="std of additive sensor noise (linear units)")
+    p.add_argument("--image-noise", type=float, help="legacy additive Gaussian noise std, linear units (with --iso 0)")
+    p.add_argument("--iso", type=float, help="camera model: sensor ISO, Poisson-Gaussian noise (0: off)")
+    p.add_argument("--lens-blur", type=float, help="camera model: Gaussian lens blur sigma in pixels")
+    p.add_argument("--jpeg-quality", type=int, help="camera model: write JPEG photos at this quality (0: PNG)")
     p.add_argument("--occluders", action=argparse.BooleanOptionalAction, default=None,
                    help="trees, poles and cars in front of the facades")
     p.add_argument("--relief-depth", type=float, help="window recess / cornice depth in metres (0: flat facades)")
@@ -49,8 +56,9 @@ def add_arguments(p) -> None:
 
 
 def overrides_from_args(args) -> dict:
-    keys = ["views", "held_out_views", "width", "height", "spp", "gt_long_side", "exposure_range", "white_balance",
-            "image_noise", "occluders", "relief_depth", "distortion", "sun", "variant"]
+    keys = ["views", "held_out_views", "width", "height", "spp", "gt_spp", "heldout_spp", "sampler", "gt_long_side",
+            "exposure_range", "white_balance", "image_noise", "iso", "lens_blur", "jpeg_quality", "occluders",
+            "relief_depth", "distortion", "sun", "variant"]
     out = {k: getattr(args, k) for k in keys if getattr(args, k, None) is not None}
     if args.pose_noise is not None:
         out["pose_noise_rot_deg"], out["pose_noise_trans"] = args.pose_noise
@@ -68,7 +76,7 @@ def run(args) -> int:
 
     out = Path(args.out) if args.out else Path("data") / "synth" / args.preset
     ov = overrides_from_args(args)
-    for k in ("views", "width", "height", "spp", "gt_long_side"):
+    for k in ("views", "width", "height", "spp", "gt_spp", "gt_long_side"):
         if k in ov and ov[k] < 1:
             raise DifftexError(f"--{k.replace('_', '-')} must be >= 1, got {ov[k]}")
     t0 = time.perf_counter()

@@ -67,9 +67,17 @@ def _outside(building: Building, xy, margin: float) -> bool:
     return not building.footprint.buffer(margin).contains(shapely.Point(xy))
 
 
+DRONE_RINGS = ((1.6, 0.55), (1.9, 1.0), (2.3, 1.6))  # (distance factor, height factor of top): the old presets'
+
+
 def make_views(building: Building, n: int, street_fraction: float, rng: np.random.Generator,
-               prefix: str, kind_prefix: str = "", azimuth_offset: float = 0.0) -> list[View]:
-    """Drone orbits at several heights looking obliquely down, plus street-level views at walls."""
+               prefix: str, kind_prefix: str = "", azimuth_offset: float = 0.0, suffix: str = ".png",
+               rings: tuple[tuple[float, float], ...] = DRONE_RINGS) -> list[View]:
+    """Drone orbits at several heights looking obliquely down, plus street-level views at walls.
+
+    Drone photo ``i`` flies on ring ``i mod len(rings)``: at ``radius * distance factor + 6 m``
+    from the footprint's centre, ``top * height factor + U(2, 8) m`` high. ``suffix`` is the image
+    files' (``.jpg`` for JPEG photos); it changes the names only."""
     lo, hi = building.bounds()
     centre = 0.5 * (lo + hi)
     radius_xy = 0.5 * np.linalg.norm(hi[:2] - lo[:2])
@@ -77,7 +85,6 @@ def make_views(building: Building, n: int, street_fraction: float, rng: np.rando
     n_street = int(round(n * street_fraction))
     n_drone = n - n_street
     views = []
-    rings = [(1.6, 0.55), (1.9, 1.0), (2.3, 1.6)]  # (distance factor, height factor of top)
     for i in range(n_drone):
         ring = rings[i % len(rings)]
         az = azimuth_offset + 2 * np.pi * (i / max(n_drone, 1)) + rng.uniform(-0.15, 0.15)
@@ -107,7 +114,7 @@ def make_views(building: Building, n: int, street_fraction: float, rng: np.rando
         k += 1
     out = []
     for j, (kind, R, t) in enumerate(views):
-        out.append(View(f"{prefix}{j:04d}.png", kind_prefix or kind, R, t, 1 if kind == "drone" else 2))
+        out.append(View(f"{prefix}{j:04d}{suffix}", kind_prefix or kind, R, t, 1 if kind == "drone" else 2))
     return out
 
 

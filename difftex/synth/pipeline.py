@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import platform
 import time
@@ -10,6 +11,7 @@ from pathlib import Path
 import numpy as np
 
 from difftex.scene.planar import triangulate_rings
+from difftex.synth.camera_model import apply_camera
 from difftex.synth.presets import BuildingSpec, SynthConfig
 
 EXPOSURE = 1.0  # linear scale of the reference exposure (ground truth); photos vary around it
@@ -76,7 +78,9 @@ def run_scene(
     timing["model_s"] = time.perf_counter() - t0
 
     # --- cameras ------------------------------------------------------------------------------
-    train = cams.make_views(building, cfg.views, cfg.street_fraction, r_cam, prefix="img_")
+    camera = cfg.camera_model()
+    train = cams.make_views(building, cfg.views, cfg.street_fraction, r_cam, prefix="img_", suffix=camera.suffix,
+                            rings=cfg.drone_rings)
     held = cams.make_views(
         building,
         cfg.held_out_views,
@@ -85,6 +89,7 @@ def run_scene(
         prefix="heldout_",
         kind_prefix="heldout",
         azimuth_offset=np.pi / max(cfg.views, 1) + 0.37,
+        rings=cfg.drone_rings,
     )
     intr = [
         cams.Intrinsics(1, cfg.width, cfg.height, cfg.width / 2 / np.tan(np.deg2rad(65) / 2), cfg.distortion),
@@ -113,15 +118,14 @@ def run_scene(
         for i, v in enumerate(train):
             c = intr_by_id[v.camera_id]
             cw, ch = canv[c.camera_id]
-            sensor = rd.perspective_sensor(variant, v.R, v.t, c.f, cw, ch, cfg.spp)
+            sensor = rd.perspective_sensor(variant, v.R, v.t, c.f, cw, ch, cfg.spp, cfg.sampler)
             lin = rd.render(variant, scene, sensor, cfg.spp, seed=1000 * building_index + i + 7919 * seed)
             if c.k != 0:
                 lin = cams.warp(lin, maps[c.camera_id])
-            lin = lin * (EXPOSURE * v.gain) * np.asarray(v.wb, np.float32)
-            if cfg.image_noise > 0:
-                nrng = np.random.default_rng([seed, building_index, i, 17])
-                lin = lin + nrng.normal(0, cfg.image_noise, lin.shape).astype(np.float32)
-            write_image(out / "images" / v.name, rd.to_srgb(lin))
+            # Only training photos go through the camera; the truth stays the renderer's radiance.
+            srgb, jpeg = apply_camera(lin * EXPOSURE, camera, v.gain, v.wb,
+                                      np.random.default_rng([seed, building_index, i, 17]))
+            _write_photo(out / "images" / v.name, srgb, jpeg)
             advance(1)
         timing["photos_s"] = time.perf_counter() - t1
         timing["per_photo_s"] = timing["photos_s"] / max(len(train), 1)
@@ -152,8 +156,8 @@ def run_scene(
         for i, v in enumerate(held):
             c = intr_by_id[v.camera_id]
             cw, ch = canv[c.camera_id]
-            sensor = rd.perspective_sensor(variant, v.R, v.t, c.f, cw, ch, cfg.gt_spp)
-            lin = rd.render(variant, gscene, sensor, cfg.gt_spp, seed=500000 + 1000 * building_index + i)
+            sensor = rd.perspective_sensor(variant, v.R, v.t, c.f, cw, ch, cfg.held_out_spp, cfg.sampler)
+            lin = rd.render(variant, gscene, sensor, cfg.held_out_spp, seed=500000 + 1000 * building_index + i)
             if c.k != 0:
                 lin = cams.warp(lin, maps[c.camera_id])
             write_image(gt / "views" / "images" / v.name, rd.to_srgb(lin * EXPOSURE))
@@ -205,7 +209,12 @@ def run_scene(
             "mitsuba": mitsuba.__version__,
             "variant": variant,
             "exposure_reference": EXPOSURE,
-            "tonemap": "linear * gain * white_balance (+ noise), then sRGB OETF, 8-bit PNG",
+            "sampler": cfg.sampler,
+            "spp": {"photos": rd.effective_spp(cfg.sampler, cfg.spp),
+                    "ground_truth_maps": rd.effective_spp(cfg.sampler, cfg.gt_spp),
+                    "held_out_views": rd.effective_spp(cfg.sampler, cfg.held_out_spp)},
+            "camera_model": dataclasses.asdict(camera),
+            "tonemap": _tonemap_note(camera),
         },
         "lighting": lighting,
         "cameras": [
@@ -251,6 +260,7 @@ def run_scene(
             "width": cfg.width,
             "height": cfg.height,
             "spp": cfg.spp,
+            "sampler": cfg.sampler,
         },
     )
     if cfg.previews:
@@ -258,6 +268,28 @@ def run_scene(
 
         write_previews(out, train, intr_by_id, polygons)
     return manifest
+
+
+def _write_photo(path: Path, srgb: np.ndarray, jpeg: bytes | None) -> None:
+    """An 8-bit PNG of ``srgb``, or the camera's JPEG bytes as they are (re-encoding would add loss)."""
+    from difftex.scene.files import atomic_path, write_image
+
+    if jpeg is None:
+        write_image(path, srgb)
+        return
+    with atomic_path(path) as tmp:
+        tmp.write_bytes(jpeg)
+
+
+def _tonemap_note(camera) -> str:
+    if camera.iso > 0:
+        noise = (f"Poisson-Gaussian sensor noise at ISO {camera.iso:g} ({camera.white_electrons:.0f} e- at white, "
+                 f"read noise {camera.read_noise:g} e-)")
+    else:
+        noise = f"additive Gaussian noise {camera.image_noise:g}"
+    blur = f", lens blur sigma {camera.lens_blur:g} px" if camera.lens_blur else ""
+    store = f"8-bit JPEG quality {camera.jpeg_quality} (4:2:0)" if camera.jpeg_quality else "8-bit PNG"
+    return f"photos: linear * gain * white balance{blur}, {noise}, sRGB OETF, {store}; truth: linear, sRGB, 8-bit PNG"
 
 
 def _render_gt_maps(cfg, building, model, polygons, gscene, variant, gt: Path, advance, up) -> dict:
@@ -271,10 +303,9 @@ def _render_gt_maps(cfg, building, model, polygons, gscene, variant, gt: Path, a
         # The camera stands just in front of the relief, so nothing farther out (e.g. another wing
         # of the building) can come between it and the facade.
         standoff = model.protrusion[poly.id] + 0.3
-        sensor = rd.ortho_sensor(variant, frame, standoff, cfg.gt_spp)
-        lin = rd.render(variant, gscene, sensor, cfg.gt_spp, seed=900000 + k)
-        write_image(gt / "maps" / f"{poly.id}.png", rd.to_srgb(lin * EXPOSURE))
-        write_image(gt / "maps_linear" / f"{poly.id}.exr", lin * EXPOSURE)
+        lin = render_gt_map(cfg, gscene, variant, frame, standoff, seed=900000 + k)
+        write_image(gt / "maps" / f"{poly.id}.png", rd.to_srgb(lin))
+        write_image(gt / "maps_linear" / f"{poly.id}.exr", lin)
         write_image(gt / "masks" / f"{poly.id}.png", texel_mask(poly, frame).astype(np.float32))
         fd = frame.to_dict()
         fd["standoff"] = standoff
@@ -283,6 +314,16 @@ def _render_gt_maps(cfg, building, model, polygons, gscene, variant, gt: Path, a
         frames[poly.id] = fd
         advance(1)
     return frames
+
+
+def render_gt_map(cfg: SynthConfig, gscene, variant: str, frame, standoff: float, seed: int) -> np.ndarray:
+    """One ground-truth map: linear radiance per texel of ``frame`` (reference exposure), seen by
+    an orthographic camera ``standoff`` in front of the plane, ``cfg.gt_spp`` samples of
+    ``cfg.sampler`` per texel. ``seed`` only changes the Monte Carlo draw (tests compare two)."""
+    from difftex.synth import render as rd
+
+    sensor = rd.ortho_sensor(variant, frame, standoff, cfg.gt_spp, cfg.sampler)
+    return rd.render(variant, gscene, sensor, cfg.gt_spp, seed=seed) * EXPOSURE
 
 
 def polygon_id_image(polygons, R, t, intr) -> np.ndarray:

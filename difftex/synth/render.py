@@ -15,6 +15,7 @@ import numpy as np
 
 from difftex.errors import DifftexError
 from difftex.synth.detail import DetailedModel
+from difftex.synth.presets import SAMPLERS
 
 _PROBE = (
     "import mitsuba as mi; mi.set_variant('{v}'); "
@@ -126,7 +127,8 @@ def build_scene(
     return mi.load_dict(d)
 
 
-def perspective_sensor(variant: str, R: np.ndarray, t: np.ndarray, f: float, width: int, height: int, spp: int):
+def perspective_sensor(variant: str, R: np.ndarray, t: np.ndarray, f: float, width: int, height: int, spp: int,
+                       sampler: str = "independent"):
     """Mitsuba camera for a COLMAP pose: Mitsuba's camera x is left and y up, COLMAP's right and down."""
     mi = _mi(variant)
     C = -R.T @ t
@@ -146,14 +148,14 @@ def perspective_sensor(variant: str, R: np.ndarray, t: np.ndarray, f: float, wid
                 "width": int(width),
                 "height": int(height),
                 "rfilter": {"type": "box"},
-                "pixel_format": "rgba" if False else "rgb",
+                "pixel_format": "rgb",
             },
-            "sampler": {"type": "independent", "sample_count": int(spp)},
+            "sampler": sampler_dict(variant, sampler, spp),
         }
     )
 
 
-def ortho_sensor(variant: str, frame, standoff: float, spp: int):
+def ortho_sensor(variant: str, frame, standoff: float, spp: int, sampler: str = "independent"):
     """Orthographic camera whose film is exactly a UV frame's texel grid.
 
     Measured Mitsuba convention: film column c sees camera-local x = 1 - 2(c+.5)/W and row r
@@ -175,14 +177,55 @@ def ortho_sensor(variant: str, frame, standoff: float, spp: int):
             "near_clip": 1e-3,
             "far_clip": 1e5,
             "film": {"type": "hdrfilm", "width": int(W), "height": int(H), "rfilter": {"type": "box"}},
-            "sampler": {"type": "independent", "sample_count": int(spp)},
+            "sampler": sampler_dict(variant, sampler, spp),
         }
     )
 
 
+def effective_spp(sampler: str, spp: int) -> int:
+    """The sample count Mitsuba 3.9 actually takes for ``sampler`` asked for ``spp`` samples.
+
+    Stratified samplers need a square (``ldsampler``: a power of 4, ``orthogonal``: a prime
+    squared) and silently round up; asking for the rounded count keeps the manifest truthful
+    and Mitsuba quiet. Mirrors ``Sampler::sample_count()`` (checked in tests/test_synth.py).
+
+    Args:
+        sampler: a Mitsuba sampler plugin name (``SAMPLERS``).
+        spp: samples per pixel asked for, >= 1.
+
+    Returns:
+        The count, >= ``spp``.
+    """
+    if sampler not in SAMPLERS:
+        raise DifftexError(f"unknown Mitsuba sampler '{sampler}' (known: {', '.join(SAMPLERS)})")
+    if spp < 1:
+        raise DifftexError(f"samples per pixel must be >= 1, got {spp}")
+    if sampler == "ldsampler":
+        return 4 ** max(1, int(np.ceil(np.log(spp) / np.log(4) - 1e-9)))  # square and a power of two
+    if sampler == "stratified":
+        return int(np.ceil(np.sqrt(spp))) ** 2
+    if sampler == "multijitter":
+        # A grid of round(sqrt n) columns and ceil(n / columns) rows.
+        cols = max(1, int(np.sqrt(spp)))
+        return cols * int(np.ceil(spp / cols))
+    if sampler == "orthogonal":
+        r = max(2, int(np.ceil(np.sqrt(spp))))
+        while any(r % d == 0 for d in range(2, int(np.sqrt(r)) + 1)):
+            r += 1
+        return r * r
+    return int(spp)
+
+
+def sampler_dict(variant: str, sampler: str, spp: int) -> dict:
+    """Mitsuba sampler description with a sample count it takes as is (see ``effective_spp``)."""
+    return {"type": sampler, "sample_count": effective_spp(sampler, spp)}
+
+
 def render(variant: str, scene, sensor, spp: int, seed: int) -> np.ndarray:
+    """Render ``sensor``'s film; ``spp`` is rounded up as the sensor's sampler wants it."""
     mi = _mi(variant)
-    img = np.array(mi.render(scene, sensor=sensor, spp=int(spp), seed=int(seed)), dtype=np.float32)
+    spp = int(sensor.sampler().sample_count())
+    img = np.array(mi.render(scene, sensor=sensor, spp=spp, seed=int(seed)), dtype=np.float32)
     return img[..., :3] if img.shape[-1] >= 3 else img
 
 
