@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 
 from difftex.errors import DifftexError
-from difftex.export.assemble import AssembleConfig, PolygonTexture, assemble, dilate, pack, sample_atlas, triangulate
+from difftex.export.assemble import AssembleConfig, PolygonTexture, assemble, dilate, pack, triangulate
+from difftex.export.check import sample_atlas
 from difftex.geometry.frames import texel_mask, uv_frame
 from difftex.scene.proxy import Polygon
 
@@ -136,7 +137,7 @@ def test_texture_orientation_survives_the_round_trip(tmp_path):
 
 def test_mirrored_texture_is_detected(tmp_path):
     """The check above can fail: a texture flipped left-right after packing is caught."""
-    from difftex.export.assemble import verify_glb
+    from difftex.export.check import verify_glb
 
     items, _ = _items(np.random.default_rng(3), long_side=64)
     assemble(items, tmp_path, AssembleConfig(padding=2))

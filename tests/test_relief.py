@@ -207,8 +207,10 @@ def test_box_filter_is_the_zero_padded_window_mean():
 def test_zncc_ignores_gain_and_offset_and_flat_windows_score_zero():
     g = torch.rand(1, 30, 30)
     v = torch.ones_like(g, dtype=torch.bool)
-    r = zncc(2.5 * g + 0.3, g[0], v, 7)
-    assert torch.allclose(r[:, 3:-3, 3:-3], torch.ones(1, 24, 24), atol=1e-3)
+    r = zncc(2.5 * g + 0.3, g[0], v, 7, eps=1e-9)
+    assert torch.allclose(r[:, 3:-3, 3:-3], torch.ones(1, 24, 24), atol=1e-4)
+    # the default variance floor costs textured windows (variance ~0.08) under 1 %
+    assert (zncc(2.5 * g + 0.3, g[0], v, 7)[:, 3:-3, 3:-3] > 0.99).all()
     assert (zncc(-g, g[0], v, 7)[:, 3:-3, 3:-3] < -0.99).all()
     flat = torch.full((1, 30, 30), 0.5)
     assert zncc(flat, flat[0], v, 7).abs().max() < 1e-3
@@ -279,3 +281,72 @@ def test_relief_on_cuda_matches_cpu(scene):
     assert np.mean(on_gpu.heights == relief.heights) >= 0.98
     assert on_gpu.hidden is not None and relief.hidden is not None
     assert np.mean(on_gpu.hidden == relief.hidden) >= 0.99
+
+
+# ------------------------------------------------------------------------------------------
+# Export: the height field and its normal map beside the texture, and in the GLB
+
+
+def test_normal_map_of_flat_ramp_and_step():
+    from difftex.compose.outputs import normal_map
+
+    flat = normal_map(np.zeros((4, 5), np.float32), 0.1)
+    assert np.allclose(flat, [0.5, 0.5, 1.0])
+    # rising along x (texel columns) by one texel size per texel: a 45 degree slope facing -x
+    ramp = normal_map(np.tile(np.arange(6, dtype=np.float32) * 0.1, (3, 1)), 0.1)
+    n = ramp * 2 - 1
+    assert np.allclose(n[..., 0], -np.sqrt(0.5), atol=1e-6) and np.allclose(n[..., 2], np.sqrt(0.5), atol=1e-6)
+    # rising down the image (texel rows) tilts the normal towards glTF's +Y (up the image)
+    down = normal_map(np.tile((np.arange(6, dtype=np.float32) * 0.1)[:, None], (1, 3)), 0.1) * 2 - 1
+    assert (down[..., 1] > 0.7).all()
+    step = normal_map(np.array([[0, 0, -0.3, -0.3]] * 3, np.float32), 0.01) * 2 - 1
+    assert np.allclose(np.linalg.norm(step, axis=-1), 1, atol=1e-5) and (step[:, 1:3, 0] > 0.99).all()
+    assert np.allclose(normal_map(np.zeros((1, 1), np.float32), 1.0), [0.5, 0.5, 1.0])
+    with pytest.raises(ValueError):
+        normal_map(np.zeros((3, 3), np.float32), 0.0)
+
+
+def test_finish_writes_height_and_normal_and_removes_them_without_relief(tmp_path):
+    from difftex.compose.outputs import finish_polygon, read_relief, write_composite
+    from difftex.scene.files import read_image
+
+    H, W = 6, 8
+    U = np.full((H, W, 3), 0.5, np.float32)
+    mask = np.ones((H, W), bool)
+    h = np.zeros((H, W), np.float32)
+    h[2:4, 3:6] = -0.25
+    comp = tmp_path / "composite.npz"
+    write_composite(comp, U, mask, mask, np.zeros((H, W), int), ["a.png"], {}, relief=(h, 0.05))
+    got, s = read_relief(comp)
+    assert np.array_equal(got, h) and s == 0.05
+    out = tmp_path / "tex"
+    finish_polygon(comp, out)
+    assert np.allclose(read_image(out / "height.exr")[..., 0], h)
+    normal = read_image(out / "normal.png")
+    assert normal.shape == (H, W, 3) and np.allclose(normal[0, 0], [0.5, 0.5, 1.0], atol=1 / 255)
+    write_composite(comp, U, mask, mask, np.zeros((H, W), int), ["a.png"], {})
+    assert read_relief(comp) is None
+    finish_polygon(comp, out)
+    assert not (out / "height.exr").exists() and not (out / "normal.png").exists()
+
+
+def test_the_glb_carries_the_normal_map(tmp_path):
+    import trimesh
+
+    from difftex.export.assemble import AssembleConfig, PolygonTexture, assemble
+    from difftex.geometry.frames import texel_mask, uv_frame
+    from difftex.scene.proxy import Polygon
+
+    poly = Polygon("w", np.array([[0, 0, 0], [4.0, 0, 0], [4.0, 0, 3], [0, 0, 3]]))
+    frame = uv_frame(poly, np.array([0.0, 0, 1]), long_side=40)
+    tex = np.full((*frame.shape, 3), 0.4, np.float32)
+    normal = np.broadcast_to(np.array([0.9, 0.5, 0.7], np.float32), (*frame.shape, 3)).copy()
+    items = [PolygonTexture(poly, frame, tex, texel_mask(poly, frame), 1.0, 3, normal=normal)]
+    summary = assemble(items, tmp_path, AssembleConfig(padding=2))
+    assert summary["normal_pages"] == ["model_atlas0_normal.png"]
+    geom = next(iter(trimesh.load(tmp_path / "model.glb").geometry.values()))
+    page = np.asarray(geom.visual.material.normalTexture.convert("RGB"), np.float32) / 255
+    pl = summary["polygons"][0]["rect"]
+    assert np.allclose(page[pl[1] + 5, pl[0] + 5], [0.9, 0.5, 0.7], atol=2 / 255)
+    plain = assemble([PolygonTexture(poly, frame, tex, texel_mask(poly, frame), 1.0, 3)], tmp_path / "b")
+    assert "normal_pages" not in plain and not list((tmp_path / "b").glob("*_normal.png"))

@@ -16,7 +16,8 @@ import pytest
 
 from difftex.cli import main
 from difftex.errors import DifftexError
-from difftex.export.assemble import AssembleConfig, sample_atlas
+from difftex.export.assemble import AssembleConfig
+from difftex.export.check import sample_atlas
 from difftex.export.tiles import (
     WGS84_A,
     WGS84_F,

@@ -52,7 +52,7 @@ def _view_check(scene_dir, proxy, info, glb, out_png) -> dict | None:
 
     import numpy as np
 
-    from difftex.export.assemble import render_view
+    from difftex.export.check import render_view
     from difftex.geometry.frames import sample_photo
     from difftex.scene.camera import load_photos
     from difftex.scene.files import read_image, write_image
@@ -172,6 +172,7 @@ def run(args) -> int:
                 mask = mask[np.minimum(iy.astype(int), mask.shape[0] - 1)][
                     :, np.minimum(ix.astype(int), mask.shape[1] - 1)
                 ]
+        normal_png = textures / poly.id / "normal.png"
         items.append(
             PolygonTexture(
                 polygon=poly,
@@ -180,6 +181,7 @@ def run(args) -> int:
                 mask=mask if tex is not None else None,
                 coverage=coverage if tex is not None else 0.0,
                 photos=n_photos,
+                normal=read_image(normal_png) if tex is not None and normal_png.is_file() else None,
             )
         )
 

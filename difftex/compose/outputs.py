@@ -140,11 +140,47 @@ class OutputConfig:
             raise ValueError(f"bits must be 8 or 16, got {self.bits}")
 
 
+def normal_map(heights: np.ndarray, texel_size: float) -> np.ndarray:
+    """The tangent-space normal map of a height field, as glTF's ``normalTexture`` reads it.
+
+    Texel x runs along the frame's e_u (glTF's +X, "right"), texel y along e_v, which points
+    down the image, so glTF's +Y ("up") is -e_v; +Z is the polygon's outward normal. With
+    h(x, y) in scene units and central differences over texels of size s, the surface normal is
+    (-dh/dx, +dh/dy, s) normalised (dh/dy is taken down the image, hence the sign).
+
+    Args:
+        heights: (H, W) heights along the normal, scene units.
+        texel_size: scene units per texel, > 0.
+
+    Returns:
+        (H, W, 3) float32 in [0, 1]: (n + 1) / 2; (0.5, 0.5, 1) where the field is flat.
+    """
+    if heights.ndim != 2 or texel_size <= 0:
+        raise ValueError(f"heights must be (H, W) and texel_size > 0, got {heights.shape} and {texel_size}")
+    h = heights.astype(np.float64)
+    gy, gx = np.gradient(h) if min(h.shape) > 1 else (np.zeros_like(h), np.zeros_like(h))
+    n = np.stack([-gx, gy, np.full_like(h, float(texel_size))], -1)
+    n /= np.linalg.norm(n, axis=-1, keepdims=True)
+    return ((n + 1.0) / 2.0).astype(np.float32)
+
+
 def finish_polygon(composite: str | Path, out_dir: str | Path, cfg: OutputConfig = OutputConfig()) -> dict:
     """texture.png (cfg.bits), source.png, source.npz, coverage.png, report.json (and texture.exr) of one
-    polygon from its composite.npz; returns the report."""
+    polygon from its composite.npz, and with a relief its height field (height.exr, scene units
+    along the normal) and normal map (normal.png, glTF tangent space); returns the report."""
+    from difftex.scene.files import write_image
+
     U, mask, seen, dominant, names, report = read_composite(composite)
     write_texture_outputs(out_dir, U, mask, seen, dominant, names, report, bits=cfg.bits, exr=cfg.exr)
+    relief = read_relief(composite)
+    out_dir = Path(out_dir)
+    if relief is None:
+        for stale in ("height.exr", "normal.png"):  # of an earlier run with a relief
+            (out_dir / stale).unlink(missing_ok=True)
+        return report
+    heights, texel_size = relief
+    write_image(out_dir / "height.exr", heights[..., None].astype(np.float32))
+    write_image(out_dir / "normal.png", normal_map(heights, texel_size), bits=8)
     return report
 
 
@@ -156,16 +192,22 @@ def write_composite(
     dominant: np.ndarray,
     names: list[str],
     report: dict,
+    relief: tuple[np.ndarray, float] | None = None,
 ) -> None:
     """A polygon's composed texture in float (half precision), before quantisation to a PNG.
 
     The texturing stage writes it; assembly turns it into the per-polygon PNGs and the atlas at
     the configured bit depth, so a change of output format does not redo the texturing.
+    ``relief``: the polygon's height field (H, W) in scene units and the texel size, when the
+    texturing mapped the photos through one.
     """
     import json
 
     from difftex.scene.files import write_npz
 
+    extra = {}
+    if relief is not None:
+        extra = {"heights": np.asarray(relief[0], np.float32), "texel_size": np.array(float(relief[1]))}
     write_npz(
         path,
         texture=np.asarray(U, np.float16),
@@ -175,7 +217,22 @@ def write_composite(
         dominant=dominant.astype(np.int32),
         photos=np.array(names, dtype=str),
         report=np.array(json.dumps(report)),
+        **extra,
     )
+
+
+def read_relief(path: str | Path) -> tuple[np.ndarray, float] | None:
+    """(heights (H, W) float32, texel size) of a composite written with a relief, else None (only
+    those two members are read: the texture beside them can be hundreds of MB)."""
+    from difftex.errors import DifftexError
+
+    try:
+        with np.load(path, allow_pickle=False) as d:
+            if "heights" not in d.files:
+                return None
+            return d["heights"].astype(np.float32), float(d["texel_size"])
+    except (OSError, ValueError, KeyError) as exc:
+        raise DifftexError(f"{path}: unreadable npz ({exc})") from None
 
 
 def read_composite(path: str | Path) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, list[str], dict]:

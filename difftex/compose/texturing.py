@@ -174,4 +174,5 @@ def write_polygon(tp: TexturedPolygon, optimized_dir: str | Path) -> None:
         tp.dominant,
         names,
         dict(tp.report, optimize=tp.stats),
+        relief=(tp.heights, inp.frame.texel_size) if tp.heights is not None else None,
     )

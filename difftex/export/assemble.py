@@ -62,6 +62,7 @@ class PolygonTexture:
     mask: np.ndarray | None = None  # (h, w) bool valid texels (None: all valid)
     coverage: float = 0.0
     photos: int = 0
+    normal: np.ndarray | None = None  # (h, w, 3) tangent-space normal map in [0, 1] of the relief, if any
 
     @property
     def textured(self) -> bool:
@@ -82,6 +83,8 @@ class Placement:
 class Atlas:
     pages: list[np.ndarray]  # (H, W, 3) float32
     placements: dict[str, Placement] = field(default_factory=dict)
+    # the relief's normal maps at the same placements (flat (0.5, 0.5, 1) elsewhere); None: no relief
+    normal_pages: list[np.ndarray] | None = None
 
 
 # ---------------------------------------------------------------------------------------------
@@ -217,7 +220,27 @@ def build_atlas(items: list[PolygonTexture], cfg: AssembleConfig) -> Atlas:
         h, w = img.shape[:2]
         atlas.pages[b][y : y + h, x : x + w] = img
         atlas.placements[pid] = Placement(page=b, x=x, y=y, width=w, height=h, scale=scales[pid])
+    if any(it.normal is not None for it in items if it.textured):
+        atlas.normal_pages = _normal_pages(items, atlas, pad)
     return atlas
+
+
+def _normal_pages(items: list[PolygonTexture], atlas: Atlas, pad: int) -> list[np.ndarray]:
+    """The relief normal maps packed like the textures (each resized to its texture's placement)."""
+    flat = np.array([0.5, 0.5, 1.0], np.float32)
+    pages = [np.broadcast_to(flat, p.shape).copy() for p in atlas.pages]
+    for it in items:
+        if it.normal is None or not it.textured:
+            continue
+        pl = atlas.placements[it.polygon.id]
+        h, w = pl.height - 2 * pad, pl.width - 2 * pad
+        n = it.normal
+        if n.shape[:2] != (h, w):  # a texture shrunk to fit its page: nearest keeps the steps
+            iy = np.minimum(((np.arange(h) + 0.5) * n.shape[0] / h).astype(int), n.shape[0] - 1)
+            ix = np.minimum(((np.arange(w) + 0.5) * n.shape[1] / w).astype(int), n.shape[1] - 1)
+            n = n[iy][:, ix]
+        pages[pl.page][pl.y : pl.y + pl.height, pl.x : pl.x + pl.width] = dilate(n, None, pad)
+    return pages
 
 
 # ---------------------------------------------------------------------------------------------
@@ -300,21 +323,29 @@ def write_glb(
     page_paths: list[Path],
     pad: int,
     transform: np.ndarray | None = None,
+    normal_paths: list[Path] | None = None,
 ) -> None:
     """One glTF node/mesh per polygon (named by its id); one PBR material per atlas page.
-    ``transform`` (4 x 4): every node's matrix (a 3D Tiles tile's z-up to glTF y-up); None: identity."""
+    ``transform`` (4 x 4): every node's matrix (a 3D Tiles tile's z-up to glTF y-up); None: identity.
+    ``normal_paths``: the relief's normal-map pages, the materials' ``normalTexture`` (viewers
+    shade the recesses and balconies the flat proxy lacks)."""
     import trimesh
     from PIL import Image
 
     from difftex.scene.files import atomic_path
 
-    materials = []
-    for k, png in enumerate(page_paths):
+    def load(png: Path):
         img = Image.open(png)
         img.load()
+        return img
+
+    materials = []
+    for k, png in enumerate(page_paths):
+        normal = {"normalTexture": load(normal_paths[k])} if normal_paths else {}
         materials.append(
             trimesh.visual.material.PBRMaterial(
-                name=f"atlas{k}", baseColorTexture=img, metallicFactor=0.0, roughnessFactor=1.0, doubleSided=False
+                name=f"atlas{k}", baseColorTexture=load(png), metallicFactor=0.0, roughnessFactor=1.0,
+                doubleSided=False, **normal,
             )
         )
     scene = trimesh.Scene()
@@ -338,130 +369,6 @@ def write_glb(
 
 
 # ---------------------------------------------------------------------------------------------
-# Check
-
-
-def sample_atlas(page: np.ndarray, uv: np.ndarray) -> np.ndarray:
-    """Bilinear samples of an atlas page at OBJ-convention UVs (v up)."""
-    from difftex.geometry.frames import sample_photo
-
-    h, w = page.shape[:2]
-    pix = np.stack([uv[:, 0] * w, (1.0 - uv[:, 1]) * h], axis=1)
-    return sample_photo(page, pix)
-
-
-def verify_glb(path: Path, items: list[PolygonTexture], samples_per_polygon: int = 64, seed: int = 0) -> dict:
-    """Reload the GLB with trimesh and check that it holds every polygon, covers its area, and
-    shows the polygon's texture: colours sampled through the reloaded UVs at random points of
-    each triangle are compared with the polygon's own texture at the same world points."""
-    import trimesh
-
-    from difftex.geometry.frames import sample_photo
-
-    rng = np.random.default_rng(seed)
-    scene = trimesh.load(path, file_type="glb", force="scene")
-    missing, area_err, errs, worst = [], 0.0, [], ("", 0.0)
-    page_cache: dict[int, np.ndarray] = {}
-    for it in items:
-        pid = it.polygon.id
-        geom = scene.geometry.get(pid)
-        if geom is None:
-            missing.append(pid)
-            continue
-        area_err = max(area_err, abs(float(geom.area) - it.polygon.area) / max(it.polygon.area, 1e-12))
-        if not it.textured:
-            continue
-        uvs = np.asarray(geom.visual.uv, np.float64)
-        img = geom.visual.material.baseColorTexture
-        key = id(img)
-        if key not in page_cache:
-            page_cache[key] = np.asarray(img.convert("RGB"), np.float32) / 255.0
-        page = page_cache[key]
-        # random barycentric points, area-weighted triangle choice
-        tri = rng.choice(len(geom.faces), size=samples_per_polygon, p=geom.area_faces / geom.area_faces.sum())
-        r = rng.random((samples_per_polygon, 2))
-        r[r.sum(1) > 1] = 1 - r[r.sum(1) > 1]
-        bary = np.column_stack([1 - r.sum(1), r])
-        f = geom.faces[tri]
-        X = np.einsum("ij,ijk->ik", bary, geom.vertices[f])
-        uv = np.einsum("ij,ijk->ik", bary, uvs[f])
-        got = sample_atlas(page, uv)
-        t = it.frame.world_to_texel(X) * (it.texture.shape[1] / it.frame.width)
-        want = sample_photo(it.texture, t)
-        if it.mask is not None:
-            from scipy.ndimage import binary_erosion
-
-            # Bilinear taps at the polygon's edge reach outside texels, which the atlas has
-            # dilated and the source texture has not: compare where all four taps are inside.
-            inner_mask = binary_erosion(it.mask, structure=np.ones((3, 3), bool), border_value=0)
-            ix = np.clip(np.floor(t[:, 0]).astype(int), 0, it.mask.shape[1] - 1)
-            iy = np.clip(np.floor(t[:, 1]).astype(int), 0, it.mask.shape[0] - 1)
-            inner = inner_mask[iy, ix]
-            got, want = got[inner], want[inner]
-        if len(got):
-            # 8-bit PNG quantisation is 1/255; bilinear sampling of both adds nothing on top
-            e = float(np.abs(got - want).max())
-            errs.append(e)
-            if e > worst[1]:
-                worst = (pid, e)
-    return {
-        "glb_polygons": len(scene.geometry),
-        "missing_polygons": missing,
-        "max_area_rel_error": area_err,
-        "max_color_error": max(errs) if errs else 0.0,
-        "worst_polygon": worst[0],
-    }
-
-
-def render_view(glb: str | Path, proxy, photo, long_side: int = 512) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Render the reloaded GLB as photo ``photo`` sees it: the project's ray caster finds the
-    nearest proxy polygon per pixel, the polygon's reloaded UVs (an affine function on its plane,
-    fitted to its reloaded vertices) give the atlas position, the atlas is sampled bilinearly.
-
-    Returns (render (h, w, 3), covered (h, w) bool, pixel centres (h, w, 2)) at a stride that
-    makes the long side about ``long_side``.
-
-    Not shared with ``difftex.evaluation.views.render_proxy`` on purpose: this one checks the
-    written file, so it reads everything from the reloaded GLB (its UVs, its 8-bit atlas pages with
-    their dilated borders, the grey patch of untextured polygons, which it counts as covered);
-    render_proxy scores a results folder's own per-polygon textures (any method's: baselines and
-    peers write no GLB), through their UV frames with the photo's camera model, and must tell
-    textured pixels from untextured ones and report the polygon under each pixel. Both use the
-    same ray caster (``id_buffer``) and the same bilinear sampler (``sample_photo``).
-    """
-    import trimesh
-
-    from difftex.geometry.visibility import id_buffer
-
-    stride = max(1, math.ceil(max(photo.width, photo.height) / long_side))
-    ids, dist = id_buffer(proxy, photo, stride=stride)
-    # the same pixel centres as id_buffer's
-    ys = np.minimum(np.arange(0, photo.height, stride) + (0.5 * stride if stride > 1 else 0.5), photo.height - 0.5)
-    xs = np.minimum(np.arange(0, photo.width, stride) + (0.5 * stride if stride > 1 else 0.5), photo.width - 0.5)
-    pix = np.stack(np.meshgrid(xs, ys), axis=-1)
-    scene = trimesh.load(glb, file_type="glb", force="scene")
-    out = np.zeros((*ids.shape, 3), np.float32)
-    covered = np.zeros(ids.shape, bool)
-    pages: dict[int, np.ndarray] = {}
-    for j, poly in enumerate(proxy.polygons):
-        sel = ids == j
-        geom = scene.geometry.get(poly.id)
-        if not sel.any() or geom is None:
-            continue
-        rays = photo.unproject(pix[sel])
-        X = photo.center + dist[sel][:, None].astype(np.float64) * rays
-        A = np.column_stack([geom.vertices, np.ones(len(geom.vertices))])
-        M = np.linalg.lstsq(A, np.asarray(geom.visual.uv, np.float64), rcond=None)[0]
-        uv = np.column_stack([X, np.ones(len(X))]) @ M
-        img = geom.visual.material.baseColorTexture
-        if id(img) not in pages:
-            pages[id(img)] = np.asarray(img.convert("RGB"), np.float32) / 255.0
-        out[sel] = sample_atlas(pages[id(img)], uv)
-        covered |= sel
-    return out, covered, pix
-
-
-# ---------------------------------------------------------------------------------------------
 
 
 def assemble(
@@ -481,12 +388,17 @@ def assemble(
     pad = int(cfg.padding)
     atlas = build_atlas(items, cfg)
     for stale in out_dir.glob(f"{name}_atlas*.png"):
-        stale.unlink()  # pages of an earlier run with more pages
+        stale.unlink()  # pages of an earlier run with more pages (or with normal maps)
     page_paths = []
     for k, page in enumerate(atlas.pages):
         p = out_dir / f"{name}_atlas{k}.png"
         write_image(p, page, bits=bits)
         page_paths.append(p)
+    normal_paths = []
+    for k, page in enumerate(atlas.normal_pages or []):
+        p = out_dir / f"{name}_atlas{k}_normal.png"
+        write_image(p, page, bits=8)
+        normal_paths.append(p)
     obj, mtl = write_obj(out_dir, items, atlas, [p.name for p in page_paths], pad, name=name)
     summary = {
         "obj": obj.name,
@@ -496,6 +408,8 @@ def assemble(
         ],
         "polygons": [],
     }
+    if normal_paths:
+        summary["normal_pages"] = [p.name for p in normal_paths]
     for it in items:
         pl = atlas.placements[it.polygon.id]
         summary["polygons"].append(
@@ -518,8 +432,10 @@ def assemble(
     )
     if cfg.glb:
         glb = out_dir / f"{name}.glb"
-        write_glb(glb, items, atlas, page_paths, pad)
+        write_glb(glb, items, atlas, page_paths, pad, normal_paths=normal_paths or None)
         summary["glb"] = glb.name
         if cfg.verify:
+            from difftex.export.check import verify_glb
+
             summary["check"] = verify_glb(glb, items)
     return summary
