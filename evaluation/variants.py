@@ -10,7 +10,8 @@ overrides; null for the plain per-texel average; ``{"baseline": "average" | "fro
 visibility (``texture.density: auto`` at ``--density-scale``), and is scored against the
 ground-truth ortho map resampled to the texture's frame: Error 90/95 % and SSIM over the
 polygon's texels (difftex.metrics), sharpness = mean colour gradient magnitude over the ground
-truth's, detail = the share of the ground truth's gradients reproduced (metrics.detail_gain),
+truth's, detail = the share of the ground truth's gradients reproduced (metrics.detail_gain), LPIPS
+(metrics.lpips: piq's classic LPIPS where its weights are on disk, else ST-LPIPS, named in the table),
 and the effective number of photos per texel 1 / sum W^2 (mean over texels). Same metric code
 as the tables; no held-out views, no assembly. Writes <out>.json and <out>.md.
 """
@@ -66,6 +67,7 @@ def run(
     out = {}
     for name, overrides in variants.items():
         errs, ssims, weights, sharp, gsharp, detail, neff, seconds = [], [], [], [], [], [], [], 0.0
+        lps: list[float] = []
         for v in vis:
             inp = polygon_input_from_visibility(v, by_name)
             t0 = time.perf_counter()
@@ -91,6 +93,8 @@ def run(
             mk = inp.texel_mask
             errs.append(metrics.texel_error(U, ref)[mk])
             ssims.append(metrics.ssim(U, ref, mk))
+            lp, lpips_label = metrics.lpips(np.clip(U, 0, 1), ref, mk)
+            lps.append(float("nan") if lp is None else lp)
             weights.append(float(mk.sum()))
             sharp.append(metrics.mean_gradient(U, mk))
             gsharp.append(metrics.mean_gradient(ref, mk))
@@ -101,6 +105,8 @@ def run(
             "e90": float(np.percentile(e, 90)),
             "e95": float(np.percentile(e, 95)),
             "ssim": float((np.asarray(ssims) * w).sum() / w.sum()),
+            "lpips": float((np.asarray(lps) * w).sum() / w.sum()),
+            "lpips_variant": lpips_label,
             "sharpness_vs_gt": float((np.asarray(sharp) * w).sum() / (np.asarray(gsharp) * w).sum()),
             "detail_vs_gt": float((np.asarray(detail) * w).sum() / w.sum()),
             "effective_photos": float(np.concatenate(neff).mean()) if neff else None,
@@ -109,6 +115,7 @@ def run(
         r = out[name]
         print(
             f"{scene.name} {name:14s} E90 {r['e90']:.4f} E95 {r['e95']:.4f} SSIM {r['ssim']:.4f} "
+            f"LPIPS {r['lpips']:.4f} "
             f"sharpness/gt {r['sharpness_vs_gt']:.3f} detail/gt {r['detail_vs_gt']:.3f} "
             f"photos/texel {r['effective_photos']} {seconds:.0f}s",
             flush=True,
@@ -162,14 +169,17 @@ def main(argv=None) -> int:
                 f"{res['texels']} texels; metrics against the ground-truth maps at each texture's resolution."
             ],
         ),
-        "| variant | overrides | Error 90 % | Error 95 % | SSIM | sharpness / GT | detail / GT | photos per texel "
-        "| seconds |",
-        "|---|---|---|---|---|---|---|---|---|",
+        f"LPIPS: {next(iter(res['variants'].values()))['lpips_variant']} (mean over the polygons, by texels).",
+        "",
+        "| variant | overrides | Error 90 % | Error 95 % | SSIM | LPIPS | sharpness / GT | detail / GT | "
+        "photos per texel | seconds |",
+        "|---|---|---|---|---|---|---|---|---|---|",
     ]
     for name, r in res["variants"].items():
         neff = f"{r['effective_photos']:.1f}" if r["effective_photos"] is not None else "(blend of all)"
         lines.append(
             f"| {name} | `{json.dumps(r['overrides'])}` | {r['e90']:.4f} | {r['e95']:.4f} | {r['ssim']:.4f} | "
+            f"{r['lpips']:.4f} | "
             f"{r['sharpness_vs_gt']:.3f} | {r['detail_vs_gt']:.3f} | {neff} | {r['seconds']:.0f} |"
         )
     C.write_outputs(
