@@ -17,7 +17,9 @@ h(t) along the normal (difftex.sampling.relief), they agree. h(t) is found by sw
 4. the height field (:func:`height_field`) takes per texel the height of least cost, keeps it
    only where it beats the plane by ``margin`` (where the photos agree at h = 0, or the wall is
    featureless, the plane stays), and flattens it with a mode filter of ``smooth`` texels, so
-   recesses and balconies come out as flat steps (the facade's relief is made of planes).
+   recesses and balconies come out as flat steps (the facade's relief is made of planes);
+5. a sweep is trusted only with at least MIN_PHOTOS photos and at most MAX_STEPS steps off the
+   plane: otherwise the polygon keeps its plane (``stats["reason"]`` says why).
 
 The field is estimated at a frame of at most ``long_side`` texels and used at every level of
 the polygon (its steps are resampled nearest). Where the sweep finds nothing (too few photos,
@@ -40,6 +42,12 @@ from difftex.sampling.relief import GreySweep, Relief, relief_visibility
 from difftex.sampling.texels import level_frame, resample_nearest, texel_map
 
 GREY = (0.299, 0.587, 0.114)  # Rec. 601 luma: ZNCC compares structure, not colour
+# Fewer photos than this within the angle give a median and a mean cost too noisy to tell a
+# recess from chance (lund-door's archivolts, 3-10 photos, took heights all over the range).
+MIN_PHOTOS = 5
+# A field with more flat steps than this off the plane is not a facade's relief (recesses,
+# balconies, a cornice) but the sweep following noise or a curved surface: the plane is kept.
+MAX_STEPS = 4
 
 
 @dataclass(frozen=True)
@@ -52,7 +60,7 @@ class ReliefSettings:
     window: int = 15  # ZNCC window, texels of that frame (odd)
     max_photos: int = 16
     min_cos: float = 0.5  # photos seen within arccos(min_cos) of the normal
-    margin: float = 0.05  # least cost gain over the plane for a height to be kept
+    margin: float = 0.15  # least cost gain over the plane for a height to be kept
     smooth: int = 9  # mode filter, texels (odd; 1: off)
     max_heights: int = 49  # most planes swept
     # heights beyond this share of the polygon's shorter side are not swept: a scene in other units
@@ -275,8 +283,8 @@ def estimate_relief(photos: PhotoSet, s: ReliefSettings) -> tuple[Relief, dict]:
     which = sweep_photos(photos, frame, mask, s.min_cos, s.max_photos)
     stats: dict = {"photos": [inp.photos[n].name for n in which], "long_side": max(frame.shape)}
     flat = Relief(frame, np.zeros(frame.shape, np.float32))
-    if len(which) < 3:
-        return flat, {**stats, "heights": [], "relief_share": 0.0, "reason": "fewer than 3 photos"}
+    if len(which) < MIN_PHOTOS:
+        return flat, {**stats, "heights": [], "relief_share": 0.0, "reason": f"fewer than {MIN_PHOTOS} photos"}
     short = min(frame.width, frame.height) * frame.texel_size
     s = dataclasses.replace(s, lo=max(s.lo, -s.max_share * short), hi=min(s.hi, s.max_share * short))
     stats["range"] = [s.lo, s.hi]
@@ -284,6 +292,11 @@ def estimate_relief(photos: PhotoSet, s: ReliefSettings) -> tuple[Relief, dict]:
     with torch.no_grad():
         cost, _ = sweep_cost(photos, which, frame, mask, heights, s.window)
     h = height_field(cost, heights, mask, s.margin, s.smooth)
+    steps = len(np.unique(h[mask])) - int(bool((h[mask] == 0).any()))
+    if steps > MAX_STEPS:
+        stats.update({"heights": [float(x) for x in heights], "relief_share": 0.0, "steps": steps,
+                      "reason": f"{steps} steps off the plane (more than {MAX_STEPS}): not a facade's relief"})
+        return flat, stats
     stats.update(
         {
             "heights": [float(x) for x in heights],
