@@ -12,11 +12,13 @@ import math
 from html import escape as _esc
 from pathlib import Path
 
-# matplotlib's colours for the terms (k, C0, C3, C1, C2), so the curves look as they did
+# matplotlib's colours for the terms (k, C0, C3, C4, C1, C2), so the curves look as they did;
+# "sparsity" is the paper's L1 term (weights: normalised), drawn only where it is on
 LOSS_COLOURS = (
     ("total", "#000000"),
     ("render", "#1f77b4"),
     ("ghost", "#d62728"),
+    ("sparsity", "#9467bd"),
     ("persp", "#ff7f0e"),
     ("para", "#2ca02c"),
 )

@@ -4,7 +4,7 @@ Sharpness is the variance of the Laplacian of the grey image at a common size, j
 to the set's median so that the threshold does not depend on the camera or the scene.
 
 The per-polygon tests (``max_angle_deg``, ``min_pixels``) never take a polygon's last photos
-(paper, Sec. 3.4: improper photo removal causes irreversible colour loss). A polygon that every
+(paper, Sec. 4.3: improper photo removal causes irreversible colour loss). A polygon that every
 sharp photo sees beyond ``max_angle_deg`` keeps all of those oblique photos (``textured_from_oblique``);
 one that no photo sees with ``min_pixels`` pixels keeps the sharp photos in which some of it is
 visible at all (``textured_from_glimpses``). Only a polygon that no sharp photo sees stays

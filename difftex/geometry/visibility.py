@@ -212,7 +212,7 @@ def scene_visibility(
 
     A photo that sees fewer than ``min_texels`` texels, and one of ``fallback`` (per polygon id:
     photo name -> why the filter left it out, e.g. inclined), joins only where it is the last
-    source of some texels: dropping it there would lose their colour for good (paper, Sec. 3.4),
+    source of some texels: dropping it there would lose their colour for good (paper, Sec. 4.3),
     and the texturing's quality weights and photo drop keep it out of the texels that other
     photos see. ``PolygonVisibility.rescued`` lists those photos. ``texel_candidates``: a
     photo stays a candidate only where it is among that many best of some texel

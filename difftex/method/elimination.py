@@ -1,4 +1,5 @@
-"""Data quality optimization (Sec. 3.4): the activation masks a_k, pixel elimination and photo drop.
+"""Data quality optimization (Sec. 4.3): the activation masks a_k (Sec. 4.2), pixel elimination
+and photo drop.
 
 All functions work on one level's slot layout: (K, h, w) tensors, slot j of texel t holding
 photo ``idx[j, t]``.
@@ -33,42 +34,63 @@ def base_mask(lv: Level, eliminated: torch.Tensor, dropped_slots: torch.Tensor) 
     return lv.visible & ~eliminated & ~dropped_slots
 
 
-def update_activation(z: torch.Tensor, base: torch.Tensor, tau: float) -> torch.Tensor:
-    """a = base & (W > tau), W normalised over the base candidates; the best one always stays.
+def update_activation(
+    z: torch.Tensor, base: torch.Tensor, tau: float, mode: str = "softmax", prev: torch.Tensor | None = None
+) -> torch.Tensor:
+    """a = base & (selected weight > tau); the best one always stays (Sec. 4.2's a_k update).
 
-    Keeping each texel's strongest candidate avoids holes when every weight is below tau.
+    The selected weight is losses.selection_weights: W normalised over the base candidates
+    (softmax), or the weights w themselves (normalised: the paper's "w_k greater than ... tau").
+    Keeping each texel's strongest candidate avoids holes when every weight is below tau; with
+    normalised weights it is the strongest of the slots active before (``prev``, where any is
+    left in ``base``): a slot frozen below tau must not take over from the photo whose weight the
+    L1 term is taking to zero.
+
+    Shapes: z, base, prev (K, h, w) -> (K, h, w) bool.
     """
-    W = losses.blend_weights(z, base)
+    W = losses.selection_weights(z, base, mode)
     act = base & (W > tau)
-    best = argmax0(torch.where(base, W, torch.full_like(W, -1.0)))
-    keep = torch.zeros_like(act).scatter_(0, best, True) & base
+    pool = base
+    if mode == "normalised" and prev is not None:
+        left = prev & base
+        pool = torch.where(left.any(0, keepdim=True), left, base)
+    best = argmax0(torch.where(pool, W, torch.full_like(W, -1.0)))
+    keep = torch.zeros_like(act).scatter_(0, best, True) & pool
     return act | keep
 
 
 def eliminate_pixels(lv: Level, active: torch.Tensor, W: torch.Tensor, cfg: OptimizeConfig) -> torch.Tensor:
     """Slots whose colour lies beyond sigma_k standard deviations of the texel's selected colours.
 
-    "paper": mean/std of all selected colours (a pixel can then be at most sqrt(n-1) std away,
-    so this needs n >= 11 to fire); "loo": mean/std of the *other* selected colours, with a noise
-    floor sigma_min, which catches a lone occluded pixel among three or more. At most one slot
-    per texel per pass, never the texel's highest-weight one, and only with >= 3 selected.
+    "paper" (Sec. 4.3, Data Elimination): per texel the mean and standard deviation of its
+    selected (active) colours; every selected slot further than sigma_k standard deviations from
+    the mean goes. The colours are points in RGB: the standard deviation is their RMS distance to
+    the mean, sqrt(var) with var the mean squared distance. With the mean and deviation including
+    the pixel tested, a pixel lies at most sqrt(n - 1) deviations away, so at sigma_k 3 the test
+    needs 11 selected photos or more to remove any.
+
+    "loo" (the project's default): mean/std of the *other* selected colours, with a noise floor
+    sigma_min, which catches a lone occluded pixel among three or more; at most one slot per
+    texel per pass, never the texel's highest-weight one (``W``), and only with >= 3 selected.
+
+    Shapes: active, W (K, h, w); lv.colours (K, 3, h, w) -> (K, h, w) bool.
     """
-    a = active.float()
+    a = active.to(lv.colours.dtype)
     n = a.sum(0)
     c = lv.colours
     s1 = (c * a[:, None]).sum(0)
-    s2 = ((c * c).sum(1) * a).sum(0)
     if cfg.elimination_test == "paper":
         mu = s1 / n.clamp_min(1)
-        var = (s2 / n.clamp_min(1) - (mu * mu).sum(0)).clamp_min(0)
         d2 = ((c - mu[None]) ** 2).sum(1)
-        z2 = d2 / (var + cfg.sigma_min**2)[None]
-    else:
-        m = (n[None] - a).clamp_min(1)
-        mu = (s1[None] - c * a[:, None]) / m[:, None]
-        var = ((s2[None] - (c * c).sum(1) * a) / m - (mu * mu).sum(1)).clamp_min(0)
-        d2 = ((c - mu) ** 2).sum(1)
-        z2 = d2 / (var + cfg.sigma_min**2)
+        # two passes, so that equal colours give var = d2 = 0 (to rounding, on both sides)
+        var = (d2 * a).sum(0) / n.clamp_min(1)
+        return active & (d2 > cfg.sigma_k**2 * var[None])
+    s2 = ((c * c).sum(1) * a).sum(0)
+    m = (n[None] - a).clamp_min(1)
+    mu = (s1[None] - c * a[:, None]) / m[:, None]
+    var = ((s2[None] - (c * c).sum(1) * a) / m - (mu * mu).sum(1)).clamp_min(0)
+    d2 = ((c - mu) ** 2).sum(1)
+    z2 = d2 / (var + cfg.sigma_min**2)
     # var is a mean squared distance over 3 channels; a 1-D k-sigma test on it reads k^2
     out = active & (z2 > cfg.sigma_k**2) & (n >= 3)[None]
     best = argmax0(torch.where(active, W, torch.full_like(W, -1.0)))
@@ -111,7 +133,11 @@ def photo_zero_share(
 def photos_to_drop(
     lv: Level, base: torch.Tensor, W: torch.Tensor, tau: float, tau_w: float, n_photos: int, extra: tuple | None = None
 ) -> list[int]:
-    """Photos whose weight is zero (<= tau) on more than tau_w of the texels they could serve."""
+    """Photos whose weight is zero (<= tau) on more than tau_w of the texels they could serve
+    (Sec. 4.3 i): "the portion of zero value weight in W_k (regarding the mask) exceeds tau_w").
+
+    ``W``: losses.selection_weights, what the activation threshold reads.
+    """
     share = photo_zero_share(lv, base, W, tau, n_photos, extra)
     return [int(k) for k in torch.nonzero(share > tau_w).flatten().tolist()]
 
@@ -121,8 +147,9 @@ def dropped_slot_mask(
 ) -> torch.Tensor:
     """Slots of dropped photos, except the best one of a texel that no other photo serves.
 
-    Removing a texel's last source would leave a hole the optimization cannot fill (paper:
-    "improper photo or pixel removal can cause irreversible color loss").
+    Removing a texel's last source would leave a hole the optimization cannot fill (the paper,
+    Sec. 4.3: "improper photo or pixel removal can cause irreversible color loss"; it names no
+    remedy, this one is the project's).
     """
     base = lv.visible & ~eliminated
     if not dropped:

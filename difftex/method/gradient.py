@@ -1,4 +1,4 @@
-"""The gradient of L with respect to the logits z of the weights in texel space, written out, and Adam.
+"""The gradient of L with respect to the parameters z of the weights in texel space, written out, and Adam.
 
 Autograd records some 40 intermediate (K, H, W) tensors per iteration of L and replays them
 backwards; every term of the texel-space objective has a short closed-form derivative, so this
@@ -6,8 +6,10 @@ computes L and dL/dz in one forward sweep over the slots (about a fifth of the m
 traffic; tests check it against autograd to float tolerance). The render-space L_Render
 (loss_mode "render") keeps autograd, through difftex.method.objective.
 
-Notation (per texel, K slots): W = softmax of the logits z over the active slots (losses.
-blend_weights), U = sum_j W_j I_j, q_j = (a_j Q_j)^2, A = sum_j q_j.
+Notation (per texel, K slots): W = the blend of the parameters z over the active slots (losses.
+blend_weights: softmax of logits, or the paper's normalised weights), U = sum_j W_j I_j,
+q_j = (a_j Q_j)^2, A = sum_j q_j. L_Para with live edge weights (para_edges "live") has no
+written-out gradient; it runs through autograd (OptimizeConfig.autograd).
 """
 
 from __future__ import annotations
@@ -88,11 +90,11 @@ def texel_value_and_grad(
     z: torch.Tensor, active: torch.Tensor, data: TexelData, D: dict | None, matches: dict, cfg
 ) -> tuple[dict[str, torch.Tensor], torch.Tensor]:
     """Every term of L in texel space (as difftex.method.objective.objective computes them) and
-    dL/dz, (K, H, W). ``cfg``: an OptimizeConfig."""
-    W = losses.blend_weights(z, active)
+    dL/dz, (K, H, W). ``cfg``: an OptimizeConfig with para_edges "fixed"."""
+    W = losses.blend_weights(z, active, cfg.weights)
     n = data.n_tex
     zero = z.new_zeros(())
-    terms: dict[str, torch.Tensor] = {"render": zero, "persp": zero, "para": zero, "ghost": zero}
+    terms: dict[str, torch.Tensor] = {"render": zero, "persp": zero, "para": zero, "ghost": zero, "sparsity": zero}
     gW = torch.zeros_like(W)
     if cfg.use_render:
         U = (W[:, None] * data.colours).sum(0)
@@ -135,9 +137,13 @@ def texel_value_and_grad(
     if cfg.use_render:
         total = total + cfg.alpha * (terms["render"] + cfg.ghost * terms["ghost"])
     total = total + cfg.beta * terms["persp"] + cfg.omega * terms["para"]
+    grad = losses.weights_vjp(z, active, W, gW, cfg.weights)
+    if cfg.use_render and cfg.sparsity > 0:  # eq. 4's L1 term, on the weights themselves
+        terms["sparsity"] = losses.sparsity_loss(z, active, n)
+        total = total + cfg.alpha * cfg.sparsity * terms["sparsity"]
+        grad = grad + cfg.alpha * cfg.sparsity * losses.sparsity_grad(z, active, n)
     terms["total"] = total
-    # softmax: dW_j/dz_i = W_i (delta_ij - W_j) on the active slots (W is zero on the others)
-    return terms, W * (gW - (W * gW).sum(0, keepdim=True))
+    return terms, grad
 
 
 @dataclass

@@ -1,5 +1,6 @@
 """One resolution level of the method: the candidates mapped into texel space, top-K slots,
-the initial weights Q = Q_a Q_c (Sec. 3.2), and the upsampling of weights between levels.
+the initial weights Q = Q_a Q_c (Sec. 4.2; times Q_r unless resolution_weight is 0), and the
+upsampling of weights between levels.
 
 Memory: every texel keeps only its ``top_k`` best candidate photos (slots), so the level's
 tensors grow with texels x K, not texels x photos. A level maps each photo once when all its
@@ -44,7 +45,7 @@ class Level:
     Q: torch.Tensor
     cost: torch.Tensor  # (K, h, w) |V^ - v~|^2
     G: torch.Tensor  # (h, w) mean gradient magnitude of the mapped photos
-    z0: torch.Tensor  # (K, h, w) initial logits of the weights
+    z0: torch.Tensor  # (K, h, w) initial parameters of the weights (losses.init_weights)
     v_tilde: np.ndarray
     n_candidates: int  # photos that see at least one texel at this level
     pixel_sets: losses.PixelBatch | None = None  # render mode
@@ -96,14 +97,6 @@ def gradient_magnitude(col: torch.Tensor, vis: torch.Tensor) -> torch.Tensor:
     gx[:, :, 1:] = (col[:, :, 1:] - col[:, :, :-1]) * okx
     gy[:, 1:, :] = (col[:, 1:, :] - col[:, :-1, :]) * oky
     return (gx * gx + gy * gy).sqrt().mean(0)
-
-
-LOG_ZERO = float(np.log(1e-6))  # the logit of a weight that starts at (practically) zero
-
-
-def init_logits(weights: torch.Tensor) -> torch.Tensor:
-    """Logits whose softmax is proportional to ``weights`` (>= 0); zero weights get LOG_ZERO."""
-    return torch.log(weights.clamp_min(1e-6))
 
 
 def _scatter_photo_field(idx: torch.Tensor, values: torch.Tensor, n: int) -> tuple[torch.Tensor, torch.Tensor]:
@@ -304,8 +297,10 @@ def build_level(
         maps += 1
         return photos.map(n, frame, mask_np, transfers[n] if transfers is not None else None, regions[n])
 
-    s1 = torch.zeros(3, h, w, device=device)
-    s2 = torch.zeros(h, w, device=device)
+    # float64 sums: msd = s2 / n - |mu|^2 cancels where the candidates agree, and in float32 its
+    # rounding (~1e-7) would swamp a small sigma_min^2 (the paper preset's 1e-6) in Q_c
+    s1 = torch.zeros(3, h, w, device=device, dtype=torch.float64)
+    s2 = torch.zeros(h, w, device=device, dtype=torch.float64)
     cnt = torch.zeros(h, w, device=device)
     gsum = torch.zeros(h, w, device=device)
     fpbest = torch.zeros(h, w, device=device)  # the most pixels per texel of any candidate (Q_r's reference)
@@ -319,7 +314,7 @@ def build_level(
         y0, y1, x0, x1 = regions[n] if mapped is None else (0, h, 0, w)
         seen.append(n)
         v = mp.visible.float()
-        c = compared(n, mp)
+        c = compared(n, mp).double()
         s1[:, y0:y1, x0:x1] += c * v
         s2[y0:y1, x0:x1] += (c * c).sum(0) * v
         cnt[y0:y1, x0:x1] += v
@@ -330,8 +325,9 @@ def build_level(
         if keep_all:
             cache[n] = mp
     c = cnt.clamp_min(1.0)
-    mu = s1 / c
-    msd = (s2 / c - (mu * mu).sum(0)).clamp_min(0.0)  # mean squared distance to the mean
+    mu64 = s1 / c
+    msd = (s2 / c - (mu64 * mu64).sum(0)).clamp_min(0.0).float()  # mean squared distance to the mean
+    mu = mu64.float()
     G = gsum / c
     noise = level_noise(msd, cnt, cfg.sigma_min)
     normal = torch.tensor(frame.normal, dtype=torch.float32, device=device)
@@ -383,7 +379,7 @@ def build_level(
         qb = qac * resolution_factor(relative_footprint(mp.footprint, best), rw, mp.visible)
         q = qac * resolution_factor(relative_footprint(mp.footprint, None), rw, mp.visible) if split else qb
         pc = losses.persp_cost(mp.view[None], v_tilde)[0]
-        weight = qb  # the paper's initialisation: W proportional to Q (the blend's)
+        weight = qb  # as the paper (Sec. 4.2), the weights start at Q (here the blend's, with Q_r)
         if prev is not None:
             w_up, cov = upsample_photo_weight(prev[0], prev[1], n, frame, reg)
             # Where the coarser level had candidates but not this photo among its slots, the
@@ -445,7 +441,7 @@ def build_level(
         Q=Q,
         cost=cost,
         G=G,
-        z0=init_logits(w0 * vis),
+        z0=losses.init_weights(w0 * vis, cfg.weights),
         Qb=Qb,
         v_tilde=v_tilde.cpu().numpy(),
         n_candidates=len(seen),

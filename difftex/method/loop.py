@@ -1,9 +1,9 @@
-"""The coarse-to-fine optimization of one polygon's blend weights W (Sec. 3.2-3.4).
+"""The coarse-to-fine optimization of one polygon's blend weights W (Sec. 4.2-4.3).
 
-For each level, from ``long_side_start`` doubling up to the target: build the level (top-K
-candidates, Q init or the coarser level's weights upsampled), then Adam steps on L with the
-activation update, pixel elimination and photo drop between them, until the weights stop
-changing or the level's iteration cap.
+For each level, from ``long_side_start`` times ``level_step`` (the paper: from 256, doubling) up
+to the target: build the level (top-K candidates, Q init or the coarser level's weights
+upsampled), then Adam steps on L with the activation update, pixel elimination and photo drop
+between them, until the weights stop changing or the level's iteration cap.
 """
 
 from __future__ import annotations
@@ -33,7 +33,7 @@ from difftex.method.elimination import (
     update_activation,
 )
 from difftex.method.gradient import Adam
-from difftex.method.levels import Level, build_level, init_logits, upsample_field
+from difftex.method.levels import Level, build_level, upsample_field
 from difftex.method.objective import (
     LevelState,
     compiled_objective,
@@ -46,7 +46,7 @@ from difftex.method.render import build_pixel_sets
 from difftex.sampling.photos import MappedPhoto, PhotoSet
 from difftex.sampling.texels import level_frame, resample_nearest
 
-LOSS_KEYS = ("total", "render", "ghost", "persp", "para")
+LOSS_KEYS = ("total", "render", "ghost", "sparsity", "persp", "para")
 
 
 @dataclass
@@ -128,6 +128,10 @@ def optimize_polygon(
         "levels": [],
         "dropped": [],
         "config": cfg.to_dict(),
+        # which method ran: the keys where it is not the published one (config.PUBLISHED; none
+        # with preset paper), and the weights' parametrisation
+        "departures_from_paper": cfg.departures(),
+        "weights": cfg.weights,
     }
     sides = level_sides(max(inp.frame.shape), cfg.long_side_start, cfg.coarse_to_fine, cfg.level_step)
     dropped: set[int] = set()
@@ -164,10 +168,12 @@ def optimize_polygon(
                 transfers,
                 dropped=dropped,
                 mapped=first if li == 0 and not aligned else None,
-                prev=(prev.level, losses.blend_weights(prev.z, prev.active)) if prev is not None else None,
+                # the normalised blend W, whatever the parameters: every level starts from weights
+                # that sum to one per texel (the paper upsamples "the parameter field")
+                prev=(prev.level, losses.blend_weights(prev.z, prev.active, cfg.weights)) if prev is not None else None,
             )
             if cfg.use_render and cfg.loss_mode == "render":
-                lv.pixel_sets = build_pixel_sets(photos, lv, transfers)
+                lv.pixel_sets = build_pixel_sets(photos, lv, transfers, cfg.render_scale)
             t_setup = time.perf_counter() - tl
             st, lvl_stats = _run_level(lv, li, cfg, compute, dropped, stats, advance)
             lvl_stats.update(
@@ -180,7 +186,7 @@ def optimize_polygon(
     assert prev is not None
     lv = prev.level
     with torch.no_grad():
-        W = losses.blend_weights(prev.z, prev.active)
+        W = losses.blend_weights(prev.z, prev.active, cfg.weights)
         if cfg.parallax_sigma > 0:
             W, stats["parallax"] = parallax.parallax_weights(
                 W, lv.sharp, lv.cost, lv.sharp_noise, cfg.parallax_sigma, cfg.parallax_gate, lv.idx
@@ -236,7 +242,7 @@ def _align(photos: PhotoSet, frame, transfers, prev: LevelState | None, cfg: Opt
         noise = 0.05
     else:
         plv = prev.level
-        W = losses.blend_weights(prev.z, prev.active)
+        W = losses.blend_weights(prev.z, prev.active, cfg.weights)
         which = set(torch.unique(plv.idx[(W > cfg.tau) & plv.visible]).tolist()) - {-1}
         U = losses.compose(W, plv.sharp)  # registration needs the full detail
         consensus = upsample_field(U, plv.frame, frame)
@@ -266,11 +272,12 @@ def _run_level(
 ) -> tuple[LevelState, dict]:
     """Adam iterations at one level with activation updates, pixel elimination and photo drop."""
     N = len(stats["photos"])
+    mode = cfg.weights  # the parameters: logits (softmax) or the paper's weights (normalised)
     eliminated = torch.zeros_like(lv.visible)
     drop_slots = dropped_slot_mask(lv, eliminated, dropped)
     z = lv.z0.clone()
     base = base_mask(lv, eliminated, drop_slots)
-    st = LevelState(level=lv, z=z, active=update_activation(z, base, cfg.tau), eliminated=eliminated)
+    st = LevelState(level=lv, z=z, active=update_activation(z, base, cfg.tau, mode), eliminated=eliminated)
     adam = Adam(lr=cfg.lr, betas=cfg.betas)
     hist: dict[str, list] = {k: [] for k in LOSS_KEYS}
     n_elim = 0
@@ -280,12 +287,12 @@ def _run_level(
     it = 0
     if cfg.data_elimination:
         with torch.no_grad():
-            e = eliminate_pixels(lv, st.active, losses.blend_weights(st.z, st.active), cfg)
+            e = eliminate_pixels(lv, st.active, losses.blend_weights(st.z, st.active, mode), cfg)
             st.eliminated |= e
             n_elim += int(e.sum())
             drop_slots = dropped_slot_mask(lv, st.eliminated, dropped)
             base = base_mask(lv, st.eliminated, drop_slots)
-            st.active = update_activation(st.z, base, cfg.tau)
+            st.active = update_activation(st.z, base, cfg.tau, mode, st.active)
     free = None  # (1, h, w) float: 1 where the weights are optimized (None: everywhere)
     free_mask = lv.mask  # the texels L_Para couples
     settled_share = 0.0
@@ -294,8 +301,8 @@ def _run_level(
             settled, agree = settled_texels(lv, st.active, base, cfg.settle_sigma)
             # the Q blend of the candidates that agree: Q x base would bring back the photos the
             # coarser level or the first elimination left out for disagreeing (an occluder)
-            st.z = torch.where(settled[None], init_logits(lv.blend_Q * agree), st.z)
-            st.active = update_activation(st.z, base, cfg.tau)
+            st.z = torch.where(settled[None], losses.init_weights(lv.blend_Q * agree, mode), st.z)
+            st.active = update_activation(st.z, base, cfg.tau, mode, st.active)
             free = (~settled).to(st.z.dtype)[None]
             settled_share = float(settled.sum()) / lv.n_tex
             # L_Para couples free texels only: a seam against a settled texel, whose photos
@@ -312,25 +319,25 @@ def _run_level(
     # (difftex.method.sparse) when most texels are settled and the loss is the texel one.
     sp = None
     cur, lvc, extra = st, lv, None
-    if free is not None and anything and cfg.loss_mode == "texel" and 1.0 - settled_share <= SPARSE_MAX_SHARE:
+    if free is not None and anything and not cfg.autograd and 1.0 - settled_share <= SPARSE_MAX_SHARE:
         with torch.no_grad():
             sp = sparse.sparse_level(lv, free_mask, render_weights(lv, cfg), ghost_margin(lv, cfg))
             lvc = sp.sub
             cur = LevelState(level=lvc, z=sparse.gather(st.z, sp.src), active=sparse.gather(st.active, sp.src),
                              eliminated=sparse.gather(st.eliminated, sp.src))
             # the photo drop counts the settled texels as they stand (they do not change)
-            extra = settled_counts(lv, base, losses.blend_weights(st.z, base), cfg.tau, N, settled)
+            extra = settled_counts(lv, base, losses.selection_weights(st.z, base, mode), cfg.tau, N, settled)
             drop_slots = sparse.gather(drop_slots, sp.src)
             base = sparse.gather(base, sp.src)
             free = None
-    fn = compiled_objective(lvc, cfg.loss_mode, compute)
-    if fn is None and cfg.loss_mode == "render":
+    fn = compiled_objective(lvc, cfg, compute)
+    if fn is None and cfg.autograd:
         fn = objective  # autograd needs the function; the texel loss has its own gradient
     iter_times: list[float] = []
-    W_check = losses.blend_weights(st.z, st.active)
+    W_check = losses.blend_weights(st.z, st.active, mode)
     dominant_start = diagnostics.dominant_photo(lv.idx, W_check)
     if sp is not None:
-        W_check = losses.blend_weights(cur.z, cur.active)
+        W_check = losses.blend_weights(cur.z, cur.active, mode)
     fixed_share = settled_share if sp is not None else 0.0  # texels outside ``cur`` that do not move
     changes: list[float] = []
     colour_moves: list[float] = []  # conv_colour: the blend's colour change per window, in sigma_c
@@ -346,7 +353,7 @@ def _run_level(
             reason = f"{type(e).__name__}: {str(e).splitlines()[0][:200]}"
             warnings.warn(f"torch.compile failed ({reason}); running eagerly", stacklevel=2)
             stats["compile_failed"] = reason
-            fn = objective if cfg.loss_mode == "render" else None
+            fn = objective if cfg.autograd else None
             terms, grad = _evaluate(cur, sp, cfg, fn, True)
         for k in hist:
             hist[k].append(float(terms[k]) if k in terms else 0.0)
@@ -355,7 +362,8 @@ def _run_level(
             if free is not None:
                 grad = grad * free  # settled texels keep their blend
             adam.step(cur.z, grad)
-            W = losses.blend_weights(cur.z, base)
+            losses.project_weights(cur.z, mode)  # the paper's weights stay in [0, 1]
+            W = losses.selection_weights(cur.z, base, mode)
             if cfg.data_elimination:
                 if it >= cfg.min_iters_per_level // 2:
                     cand = [n for n in photos_to_drop(lvc, base, W, cfg.tau, cfg.tau_w, N, extra) if n not in dropped]
@@ -368,19 +376,19 @@ def _run_level(
                         stats["dropped"].append({"photo": stats["photos"][n], "level": li, "iteration": it})
                         drop_slots = dropped_slot_mask(lvc, cur.eliminated, dropped, W)
                 if it % max(cfg.eliminate_every, 1) == 0:
-                    elim = eliminate_pixels(lvc, cur.active, losses.blend_weights(cur.z, cur.active), cfg)
+                    elim = eliminate_pixels(lvc, cur.active, losses.blend_weights(cur.z, cur.active, mode), cfg)
                     cur.eliminated |= elim
                     n_elim += int(elim.sum())
                     if dropped:
                         drop_slots = dropped_slot_mask(lvc, cur.eliminated, dropped, W)
             base = base_mask(lvc, cur.eliminated, drop_slots)
-            cur.active = update_activation(cur.z, base, cfg.tau)
+            cur.active = update_activation(cur.z, base, cfg.tau, mode, cur.active)
         iter_times.append(time.perf_counter() - t_it)
         advance(1)
         if it % cfg.conv_window == 0:
             # Converged: over the last conv_window iterations almost every texel (99 %) moved
             # less than conv_tol of its weight.
-            W_now = losses.blend_weights(cur.z, cur.active)
+            W_now = losses.blend_weights(cur.z, cur.active, mode)
             changes.append(weight_change(W_now, W_check, lvc.mask, fixed_share=fixed_share))
             if cfg.conv_colour > 0:
                 moved = colour_change(W_now, W_check, lvc.colours, lvc.mask, fixed_share=fixed_share)
@@ -396,11 +404,11 @@ def _run_level(
         with torch.no_grad():  # the free texels back into the level; drops reach the settled ones too
             sparse.scatter_into(st.z, cur.z, sp.src)
             sparse.scatter_into(st.eliminated, cur.eliminated, sp.src)
-            W_full = losses.blend_weights(st.z, st.active)
+            W_full = losses.blend_weights(st.z, st.active, mode)
             full_drop = dropped_slot_mask(lv, st.eliminated, dropped, W_full)
-            st.active = update_activation(st.z, base_mask(lv, st.eliminated, full_drop), cfg.tau)
+            st.active = update_activation(st.z, base_mask(lv, st.eliminated, full_drop), cfg.tau, mode, st.active)
     final_terms = {k: float(v) for k, v in value_and_grad(st, cfg)[0].items()}
-    W_end = losses.blend_weights(st.z, st.active)
+    W_end = losses.blend_weights(st.z, st.active, mode)
     lvl_stats = {
         "level": li,
         "shape": list(lv.frame.shape),

@@ -1,11 +1,12 @@
 """The DiffTex objective for one polygon (paper eq. 3-9), on a slot layout of the weights.
 
 Layout: each texel keeps ``K`` candidate *slots*; slot ``j`` of texel ``t`` refers to photo
-``idx[j, t]`` (or -1). The parameters ``z`` (K, H, W) are logits: the blend weights, the paper's
-normalised w_k in [0, 1], are their softmax over the active slots, ``W = a e^z / sum_j(a e^z)``
-with ``a`` the activation mask a_k^i mapped to texel space. Every sum over texels is divided by the
-polygon's texel count ``n_tex`` so that the
-paper's balance (alpha, beta, omega) does not change with the resolution level.
+``idx[j, t]`` (or -1). The parameters ``z`` (K, H, W) are, by ``OptimizeConfig.weights``, logits
+whose softmax over the active slots is the blend W (``softmax``, the project's), or the paper's
+weights w in [0, 1], normalised per texel over the active slots (``normalised``, Sec. 4.1);
+``active`` is the activation mask a_k^i mapped to texel space. Every sum over texels is divided
+by the polygon's texel count ``n_tex``: the same factor for every term, so the balance alpha :
+beta : omega is the paper's and a level's loss values compare with another level's.
 
 Render loss comes in two forms: the texel-space form compares U with every photo mapped into
 texel space (fast); the render-space form renders the textured polygon into each photo's pixels
@@ -19,21 +20,117 @@ from dataclasses import dataclass
 import torch
 import torch.nn.functional as F
 
+WEIGHT_MODES = ("softmax", "normalised")  # OptimizeConfig.weights
 
-def blend_weights(z: torch.Tensor, active: torch.Tensor) -> torch.Tensor:
-    """W (K, H, W): the softmax of the logits z over each texel's active slots (zero where none).
 
-    Logits, not weights clamped to [0, 1] and renormalised: with normalised weights the
+def _check_mode(mode: str) -> None:
+    if mode not in WEIGHT_MODES:
+        raise ValueError(f"weights mode must be one of {', '.join(WEIGHT_MODES)}, got {mode!r}")
+
+
+def blend_weights(z: torch.Tensor, active: torch.Tensor, mode: str = "softmax") -> torch.Tensor:
+    """W (K, H, W), the blend weights of the parameters z over each texel's active slots.
+
+    ``mode`` "softmax": the softmax of the logits z (zero where no slot is active); "normalised":
+    :func:`normalised_weights`. Logits are the project's default: with normalised weights the
     gradient of a photo is proportional to how far its cost is from the texel's weighted mean,
     which vanishes for the runners-up as a texel narrows down to a few photos, so they linger
     for hundreds of iterations; Adam on logits lowers every losing photo's log-weight at its
     step size until the activation threshold tau removes it.
     """
+    _check_mode(mode)
+    if mode == "normalised":
+        return normalised_weights(z, active)
     x = torch.where(active, z, torch.full_like(z, float("-inf")))
     zm = x.amax(0, keepdim=True).detach()
     zm = torch.where(torch.isfinite(zm), zm, torch.zeros_like(zm))  # texels with nothing active
     e = torch.exp(x - zm)
     return e / e.sum(0, keepdim=True).clamp_min(1e-30)
+
+
+def normalised_weights(w: torch.Tensor, active: torch.Tensor) -> torch.Tensor:
+    """W_k = a_k w_k / sum_j a_j w_j: the paper's weights w in [0, 1] as a normalised vector per
+    texel (Sec. 4.1), over the active slots.
+
+    Where every active weight is zero (L1 sparsity can take them there) the texel keeps an even
+    blend of its active slots, which the activation update reduces to its strongest photo
+    (elimination.update_activation); the paper does not say what such a texel shows. Where no
+    slot is active, W is zero. Finite everywhere, its gradient too (no 0 / 0 in either branch).
+
+    Args:
+        w: (K, H, W) weights, >= 0.
+        active: (K, H, W) bool.
+
+    Returns:
+        (K, H, W) W, summing to one over the active slots of every texel that has one.
+    """
+    a = active.to(w.dtype)
+    aw = a * w
+    s = aw.sum(0, keepdim=True)
+    pos = s > 0
+    even = a / a.sum(0, keepdim=True).clamp_min(1.0)
+    return torch.where(pos, aw / torch.where(pos, s, torch.ones_like(s)), even)
+
+
+def selection_weights(z: torch.Tensor, base: torch.Tensor, mode: str = "softmax") -> torch.Tensor:
+    """What the activation threshold tau and the photo drop's "zero weight" read, (K, H, W).
+
+    "softmax": the blend weights over the slots that may carry weight (``base``); "normalised":
+    the weights w themselves (the paper selects a pixel "with w_k greater than ... tau", and its
+    L1 term shrinks w, not the normalised W).
+    """
+    if mode == "normalised":
+        return torch.where(base, z, torch.zeros_like(z))
+    return blend_weights(z, base)
+
+
+def weights_vjp(z: torch.Tensor, active: torch.Tensor, W: torch.Tensor, gW: torch.Tensor, mode: str = "softmax"):
+    """dL/dz from dL/dW through :func:`blend_weights`; all (K, H, W).
+
+    softmax: dW_j/dz_i = W_i (delta_ij - W_j); normalised: dW_j/dw_i = a_i (delta_ij - W_j) / S,
+    S = sum_k a_k w_k, and zero where S = 0 (the even blend does not depend on w).
+    """
+    c = gW - (W * gW).sum(0, keepdim=True)
+    if mode != "normalised":
+        return W * c
+    a = active.to(z.dtype)
+    s = (a * z).sum(0, keepdim=True)
+    pos = s > 0
+    return torch.where(pos, a * c / torch.where(pos, s, torch.ones_like(s)), torch.zeros_like(c))
+
+
+def init_weights(weights: torch.Tensor, mode: str = "softmax") -> torch.Tensor:
+    """Parameters whose blend is proportional to ``weights`` (>= 0): their logits (softmax;
+    a zero weight gets the logit of 1e-6) or the weights clipped to [0, 1] (normalised: the paper
+    initialises w_k to Q, Sec. 4.2)."""
+    if mode == "normalised":
+        return weights.clamp(0.0, 1.0)
+    return torch.log(weights.clamp_min(1e-6))
+
+
+def project_weights(z: torch.Tensor, mode: str = "softmax") -> None:
+    """In place, after an optimizer step: the paper's weights back into [0, 1] (normalised;
+    logits need nothing)."""
+    if mode == "normalised":
+        z.clamp_(0.0, 1.0)
+
+
+def sparsity_loss(w: torch.Tensor, active: torch.Tensor, n_tex: float) -> torch.Tensor:
+    """The L1 term of L_Render (eq. 4), sum_k sum_o |W_k(t_o)|, on the weights in use.
+
+    On the un-normalised weights w (weights "normalised"): on the normalised W it would be one
+    per texel, a constant. Shrinking every w by the same step, it lowers the smallest ones to
+    zero first, which the activation threshold then deselects: sparsity. Slots outside
+    ``active`` carry no weight (their w is frozen) and are not counted.
+
+    Shapes: w, active (K, H, W) -> ().
+    """
+    return (active.to(w.dtype) * w).abs().sum() / n_tex
+
+
+def sparsity_grad(w: torch.Tensor, active: torch.Tensor, n_tex: float) -> torch.Tensor:
+    """d sparsity_loss / dw, (K, H, W): a_k sign(w_k) / n_tex (0 at w = 0, as autograd's |.|)."""
+    return active.to(w.dtype) * torch.sign(w) / n_tex
 
 
 def compose(W: torch.Tensor, colours: torch.Tensor) -> torch.Tensor:
@@ -48,8 +145,10 @@ def render_loss_texel(U, colours, active, Q, n_tex: float) -> torch.Tensor:
 
 
 def para_edge_cost(active: torch.Tensor, D: torch.Tensor, axis: int, lambda_s: float) -> torch.Tensor:
-    """C(t_o, t_q) = m_k(t_o) D(t_o, t_q) + lambda_s per slot (eq. 8), with m_k the overlap mask."""
-    overlap = (active.sum(0, keepdim=True) >= 2) & active  # m_k: another mapped photo overlaps
+    """C(t_o, t_q) = m_k(t_o) D(t_o, t_q) + lambda_s per slot (eq. 8), with m_k the overlap mask:
+    one where slot k is active at t_o and another slot is too (the paper: another mapped photo
+    overlaps photo k's, whose selected pixels a_k marks)."""
+    overlap = (active.sum(0, keepdim=True) >= 2) & active  # m_k: another selected photo overlaps
     return crop_pair(overlap, axis, "o").to(D.dtype) * D[None] + lambda_s
 
 
@@ -96,7 +195,7 @@ class PixelSet:
     colour: torch.Tensor  # (n, 3) photo colours at those pixels
     texel: torch.Tensor  # (n,) flat index of the nearest texel
     slot: torch.Tensor  # (n,) slot of this photo at that texel, -1 if it is not a candidate there
-    scale: float  # visible texels / pixels: puts a photo's pixel sum on the texel-sum scale
+    scale: float  # what each pixel counts in L_Render (pixel_weight)
 
 
 @dataclass
@@ -113,6 +212,25 @@ class PixelBatch:
     @property
     def n(self) -> int:
         return int(self.colour.shape[0])
+
+
+def pixel_weight(mode: str, texels: int, pixels: int, step: int) -> float:
+    """How much one of a photo's rendered pixels counts in L_Render's sum (PixelSet.scale).
+
+    Args:
+        mode: ``render_scale``. "texels" (the project's): texels / pixels, so that every photo's
+            pixel sum sits on the texel-sum scale of the other terms, however large the photo
+            sees the polygon. "pixels" (eq. 4): a sum over the photo's pixels at its own
+            resolution; rendered at a pyramid level whose pixel is ``step`` x ``step`` of them,
+            each counts for step^2.
+        texels: the polygon's texels the photo sees at this level; pixels: its rendered pixels.
+        step: full-resolution pixels per rendered pixel along an axis (2^level).
+    """
+    if mode not in ("texels", "pixels"):
+        raise ValueError(f"render_scale must be texels or pixels, got {mode!r}")
+    if mode == "pixels":
+        return float(step * step)
+    return texels / max(pixels, 1)
 
 
 def batch_pixel_sets(sets: list[PixelSet], support: torch.Tensor, device) -> PixelBatch:
@@ -155,7 +273,13 @@ def render_view(
 
 
 def render_loss_pixels(U, support, batch: PixelBatch, active, Q, n_tex: float) -> torch.Tensor:
-    """Render-space L_Render data term: sum_k ||a_k Q (R_k - I_k)||^2 over a_k^i pixels."""
+    """Render-space L_Render data term (eq. 4): sum_k ||a_k Q (R_k - I_k)||^2 over a_k^i pixels.
+
+    Each pixel counts ``batch.scale`` times (pixel_weight); a and Q are the values at the texel
+    the pixel falls on (the paper: "each element in Q^i is equal to Q(t_o)").
+
+    Shapes: U (3, H, W), support (H, W), active / Q (K, H, W) -> ().
+    """
     if batch.n == 0:
         return U.new_zeros(())
     K = active.shape[0]
@@ -170,7 +294,7 @@ def render_loss_pixels(U, support, batch: PixelBatch, active, Q, n_tex: float) -
 
 
 def guidance_direction(view_dirs: torch.Tensor, normal: torch.Tensor) -> torch.Tensor:
-    """v~_i = 0.5 sum v_k / |sum v_k| - 0.5 n_i (Sec. 3.2, the text before eq. 5).
+    """v~_i = 0.5 sum v_k / |sum v_k| - 0.5 n_i (Sec. 4.2, the text before eq. 5).
 
     v_k are the photos' viewing directions.
     """
@@ -252,14 +376,18 @@ def smooth_abs(x: torch.Tensor, eps: float) -> torch.Tensor:
     return (x * x + eps * eps).sqrt() - eps if eps > 0 else x.abs()
 
 
-def edge_weights(U: torch.Tensor, G: torch.Tensor, axes=(1, 2)) -> dict[int, torch.Tensor]:
-    """D(t_o, t_q) = S(|U(t_o) - U(t_q)|) (1 + G(t_o)) per neighbour direction (eq. 9), no gradient.
+def edge_weights(U: torch.Tensor, G: torch.Tensor, axes=(1, 2), detach: bool = True) -> dict[int, torch.Tensor]:
+    """D(t_o, t_q) = S(|U(t_o) - U(t_q)|) (1 + G(t_o)) per neighbour direction (eq. 9).
 
-    D is a constant of L_Para: it says where a change of source is expensive; letting its
-    gradient act would blur U instead of moving the seams. It changes slowly with U, so the
-    optimizer refreshes it every few iterations.
+    ``detach`` (para_edges "fixed", the project's): D is a constant of L_Para. It says where a
+    change of source is expensive; letting its gradient act would blur U instead of moving the
+    seams. It changes slowly with U, so the optimizer refreshes it every few iterations. Not
+    detached ("live"): eq. 9 as written, a function of the current U, differentiated.
+
+    Shapes: U (3, H, W), G (H, W) -> {axis: (H - 1, W) or (H, W - 1)}.
     """
-    U = U.detach()
+    if detach:
+        U = U.detach()
     return {
         a: torch.sigmoid((crop_pair(U, a, "o") - crop_pair(U, a, "q")).norm(dim=0)) * (1.0 + crop_pair(G, a, "o"))
         for a in axes

@@ -20,20 +20,25 @@ class LevelState:
     """The optimization variables of one level and what changes with them."""
 
     level: Level
-    z: torch.Tensor  # (K, h, w) logits of the blend weights (losses.blend_weights)
+    z: torch.Tensor  # (K, h, w) parameters of the blend weights: logits or weights (losses.blend_weights)
     active: torch.Tensor  # (K, h, w) bool a^_k
     eliminated: torch.Tensor  # (K, h, w) bool
     it: int = 0
-    D: dict | None = None  # L_Para edge weights, refreshed every eliminate_every iterations
+    D: dict | None = None  # L_Para edge weights, refreshed every eliminate_every iterations (para_edges "fixed")
     matches: dict = field(default_factory=dict)  # L_Para slot correspondences per neighbour axis
     texel: TexelData | None = None  # texel-space data of the written-out gradient
 
 
 def objective(z, active, colours, Q, cost, D, matches, pixel_sets, support, n_tex: float,
-              cfg: OptimizeConfig, ghost_margin: float = 0.0) -> dict[str, torch.Tensor]:
+              cfg: OptimizeConfig, ghost_margin: float = 0.0, G=None) -> dict[str, torch.Tensor]:
     """Every term of L for one level and its weighted total: a pure function of tensors, so
-    torch.compile can fuse it (``ComputeConfig.compile``)."""
-    W = losses.blend_weights(z, active)
+    torch.compile can fuse it (``ComputeConfig.compile``).
+
+    L = alpha (L_Render + sparsity x L1 + ghost x spread) + beta L_Persp + omega L_Para (eq. 3,
+    with eq. 4's L1 term and the project's ghost term). ``D``: L_Para's edge weights (para_edges
+    "fixed"); with "live" they are computed here from U and ``G`` (eq. 9) and differentiated.
+    """
+    W = losses.blend_weights(z, active, cfg.weights)
     U = losses.compose(W, colours)
     terms = {}
     zero = z.new_zeros(())
@@ -43,14 +48,17 @@ def objective(z, active, colours, Q, cost, D, matches, pixel_sets, support, n_te
         else:
             terms["render"] = losses.render_loss_texel(U, colours, active, Q, n_tex)
         terms["ghost"] = losses.ghost_loss(W, U, colours, active, Q, n_tex, ghost_margin) if cfg.ghost > 0 else zero
+        terms["sparsity"] = losses.sparsity_loss(z, active, n_tex) if cfg.sparsity > 0 else zero
     terms["persp"] = losses.persp_loss(W, cost, n_tex) if cfg.use_persp else zero
     if cfg.use_para:
-        terms["para"] = losses.para_loss(W, U, active, None, matches, cfg.lambda_s, n_tex, cfg.para_eps, D)
+        if cfg.para_edges == "live":
+            D = losses.edge_weights(U, G, tuple(matches), detach=False)
+        terms["para"] = losses.para_loss(W, U, active, G, matches, cfg.lambda_s, n_tex, cfg.para_eps, D)
     else:
         terms["para"] = zero
     total = zero
     if cfg.use_render:
-        total = total + cfg.alpha * (terms["render"] + cfg.ghost * terms["ghost"])
+        total = total + cfg.alpha * (terms["render"] + cfg.ghost * terms["ghost"] + cfg.sparsity * terms["sparsity"])
     total = total + cfg.beta * terms["persp"] + cfg.omega * terms["para"]
     terms["total"] = total
     return terms
@@ -72,9 +80,9 @@ def refresh_edge_weights(st: LevelState, cfg: OptimizeConfig) -> None:
     """Recompute L_Para's edge weights D from the current texture when they are due (every
     ``eliminate_every`` iterations): D is a constant of the term between refreshes."""
     lv = st.level
-    if cfg.use_para and (st.D is None or st.it % max(cfg.eliminate_every, 1) == 0):
+    if cfg.use_para and cfg.para_edges == "fixed" and (st.D is None or st.it % max(cfg.eliminate_every, 1) == 0):
         with torch.no_grad():
-            U = losses.compose(losses.blend_weights(st.z, st.active), lv.colours)
+            U = losses.compose(losses.blend_weights(st.z, st.active, cfg.weights), lv.colours)
             st.D = losses.edge_weights(U, lv.G, tuple(st.matches))
 
 
@@ -82,32 +90,34 @@ def value_and_grad(st: LevelState, cfg: OptimizeConfig, fn=None) -> tuple[dict[s
     """The terms of L at the current weights and dL/dz (None when ``fn`` is None and the
     terms are only evaluated).
 
-    Texel space: the gradient written out (difftex.method.gradient). Render space: autograd
-    through ``fn`` (``objective`` or its torch.compile'd version).
+    Texel space with fixed L_Para edges: the gradient written out (difftex.method.gradient).
+    Otherwise (``cfg.autograd``: the render loss, live edges): autograd through ``fn``
+    (``objective`` or its torch.compile'd version).
     """
     lv = st.level
     refresh_edge_weights(st, cfg)
     Q = render_weights(lv, cfg)
-    if cfg.loss_mode == "texel":
+    if not cfg.autograd:
         if st.texel is None:
             st.texel = texel_data(lv.colours, Q, lv.cost, lv.n_tex, ghost_margin(lv, cfg))
         with torch.no_grad():
             return (fn or texel_value_and_grad)(st.z, st.active, st.texel, st.D, st.matches, cfg)
-    support = render_support(lv) if cfg.use_render else None
+    support = render_support(lv) if cfg.use_render and cfg.loss_mode == "render" else None
+    args = (lv.colours, Q, lv.cost, st.D, st.matches, lv.pixel_sets, support, lv.n_tex, cfg, ghost_margin(lv, cfg),
+            lv.G)
     if fn is None:
         with torch.no_grad():
-            return objective(st.z, st.active, lv.colours, Q, lv.cost, st.D, st.matches, lv.pixel_sets, support,
-                             lv.n_tex, cfg, ghost_margin(lv, cfg)), None
+            return objective(st.z, st.active, *args), None
     z = st.z.detach().requires_grad_(True)
-    terms = fn(z, st.active, lv.colours, Q, lv.cost, st.D, st.matches, lv.pixel_sets, support, lv.n_tex, cfg,
-               ghost_margin(lv, cfg))
+    terms = fn(z, st.active, *args)
     terms["total"].backward()
     return {k: v.detach() for k, v in terms.items()}, z.grad
 
 
-def compiled_objective(lv: Level, loss_mode: str, compute: ComputeConfig):
+def compiled_objective(lv: Level, cfg: OptimizeConfig, compute: ComputeConfig):
     """The level's loss function torch.compile'd, or None to run it eagerly: ``objective``
-    (autograd through it) for the render loss, ``texel_value_and_grad`` for the texel loss.
+    (autograd through it) for the render loss and live L_Para edges (``cfg.autograd``),
+    ``texel_value_and_grad`` otherwise.
 
     On the CPU, eager L costs some 30 elementwise passes over (K, H, W) tensors per iteration,
     and the written-out texel gradient some 80 over (K, 3, H, W) and (K, H, W) tensors, each a
@@ -122,4 +132,4 @@ def compiled_objective(lv: Level, loss_mode: str, compute: ComputeConfig):
     mode = compute.compile
     if mode == "off" or (mode == "auto" and lv.idx.numel() < compute.compile_min_slots):
         return None
-    return torch.compile(objective if loss_mode == "render" else texel_value_and_grad, dynamic=False)
+    return torch.compile(objective if cfg.autograd else texel_value_and_grad, dynamic=False)

@@ -1,4 +1,5 @@
-"""How much a level trusts each photo (Q = Q_a Q_c Q_r, Sec. 3.2) and how noisy its photos are (sigma_c)."""
+"""How much a level trusts each photo (Q = Q_a Q_c, Sec. 4.2, times the project's Q_r) and how noisy its
+photos are (sigma_c)."""
 
 from __future__ import annotations
 
@@ -15,12 +16,14 @@ def quality(
     visible: torch.Tensor,
     sigma_min: float,
 ) -> torch.Tensor:
-    """Q_a Q_c of one photo at every texel (Sec. 3.2), the paper's initial weight Q.
+    """Q_a Q_c of one photo at every texel (Sec. 4.2), the paper's initial weight Q.
 
-    Q_a is the frontality (cosine between the texel-to-camera direction and the normal); Q_c a
-    Gaussian of the colour's squared distance to the candidates' mean, with their mean squared
-    distance (plus a noise floor) as its variance. difftex multiplies it by Q_r
-    (:func:`resolution_factor`).
+    Q_a is the frontality (cosine between the texel-to-camera direction and the normal); Q_c the
+    paper's Gaussian(I_k, mu, sigma) of the colour, mu and sigma the mean and variance of the
+    candidates' colours: exp(-|I_k - mu|^2 / (2 sigma)), sigma their mean squared distance to mu
+    plus the floor sigma_min^2 (the project's: where every candidate agrees, sigma is 0). Its peak
+    is 1 (not the density's normalisation), so Q, and the weights it initialises, lie in [0, 1].
+    difftex multiplies it by Q_r (:func:`resolution_factor`) unless resolution_weight is 0.
 
     Args:
         cos: (h, w) Q_a.

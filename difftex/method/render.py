@@ -30,8 +30,12 @@ def render_support(lv: Level) -> torch.Tensor:
     return lv.mask & lv.visible.any(0)
 
 
-def build_pixel_sets(photos: PhotoSet, lv: Level, transfers: list | None) -> losses.PixelBatch:
-    """Per photo: its a_k^i pixels at the pyramid level matching the texel size, their texel coords."""
+def build_pixel_sets(
+    photos: PhotoSet, lv: Level, transfers: list | None, scale: str = "texels"
+) -> losses.PixelBatch:
+    """Per photo: its a_k^i pixels at the pyramid level matching the texel size, their texel
+    coords, and what each counts in L_Render (``scale``: OptimizeConfig.render_scale,
+    losses.pixel_weight)."""
     inp, device = photos.inp, photos.device
     if inp.a_bbox is None or inp.a_masks is None:
         raise DifftexError(
@@ -94,5 +98,6 @@ def build_pixel_sets(photos: PhotoSet, lv: Level, transfers: list | None) -> los
         slot = torch.where(slots.any(0), slots.float().argmax(0), torch.full_like(tex, -1))
         g = np.stack([t[:, 0] / w * 2 - 1, t[:, 1] / h * 2 - 1], -1).astype(np.float32)
         grid = torch.from_numpy(g).to(device)[None, :, None, :]
-        sets.append(losses.PixelSet(grid=grid, colour=colour, texel=tex, slot=slot, scale=n_tex / len(tex)))
+        weight = losses.pixel_weight(scale, n_tex, len(tex), s)
+        sets.append(losses.PixelSet(grid=grid, colour=colour, texel=tex, slot=slot, scale=weight))
     return losses.batch_pixel_sets(sets, render_support(lv), device)

@@ -114,10 +114,11 @@ def sparse_level(lv: Level, free: torch.Tensor, Q: torch.Tensor, margin: float) 
     return SparseLevel(sub=sub, src=src, edges=edges, texel=texel)
 
 
-def refresh_edge_weights(sp: SparseLevel, z: torch.Tensor, active: torch.Tensor) -> None:
-    """D = S(|U(o) - U(q)|) (1 + G(o)) on every edge (losses.edge_weights, eq. 9), no gradient."""
+def refresh_edge_weights(sp: SparseLevel, z: torch.Tensor, active: torch.Tensor, mode: str = "softmax") -> None:
+    """D = S(|U(o) - U(q)|) (1 + G(o)) on every edge (losses.edge_weights, eq. 9), no gradient;
+    ``mode``: OptimizeConfig.weights."""
     with torch.no_grad():
-        U = losses.compose(losses.blend_weights(z, active), sp.sub.colours)[:, 0]  # (3, F)
+        U = losses.compose(losses.blend_weights(z, active, mode), sp.sub.colours)[:, 0]  # (3, F)
         G = sp.sub.G[0]
         for e in sp.edges.values():
             e.D = torch.sigmoid((U[:, e.o] - U[:, e.q]).norm(dim=0)) * (1.0 + G[e.o])
@@ -183,12 +184,11 @@ def value_and_grad(
         terms, grad = (fn or texel_value_and_grad)(z, active, sp.texel, None, {}, _without_para(cfg))
         if cfg.use_para:
             if refresh or any(e.D is None for e in sp.edges.values()):
-                refresh_edge_weights(sp, z, active)
-            W = losses.blend_weights(z, active)[:, 0]
+                refresh_edge_weights(sp, z, active, cfg.weights)
+            W = losses.blend_weights(z, active, cfg.weights)[:, 0]
             val, gW = para_value_and_grad(W, active[:, 0], sp.edges, cfg.lambda_s, cfg.para_eps)
             gW = (cfg.omega / sp.texel.n_tex) * gW[:, None]
-            Wf = W[:, None]
-            grad = grad + Wf * (gW - (Wf * gW).sum(0, keepdim=True))  # through the softmax
+            grad = grad + losses.weights_vjp(z, active, W[:, None], gW, cfg.weights)  # through the blend
             terms["para"] = val / sp.texel.n_tex
             terms["total"] = terms["total"] + cfg.omega * terms["para"]
     return terms, grad
