@@ -182,19 +182,19 @@ def sweep_cost(
     sweeps, seen = [], []
     for n in which:
         tm = texel_map(frame, photos.inp.photos[n], dev)
-        vis = torch.from_numpy(resample_nearest(photos.inp.texel_visible[n], photos.inp.frame, frame)).to(dev)
-        vis &= m & tm.valid
-        fp = float(tm.footprint[vis].median()) if bool(vis.any()) else 1.0
+        ok = torch.from_numpy(resample_nearest(photos.inp.texel_visible[n], photos.inp.frame, frame)).to(dev)
+        ok &= m & tm.valid
+        fp = float(tm.footprint[ok].median()) if bool(ok.any()) else 1.0
         sweeps.append(GreySweep(photos.samplers[n], frame, photos.inp.photos[n], fp))
-        seen.append(vis)
+        seen.append(ok)
     costs, counts = [], []
     for h in heights:
-        cols, vis = [], []
+        cols, inside = [], []
         for sw, ok in zip(sweeps, seen):
-            g, inside = sw.sample(float(h))
+            g, within = sw.sample(float(h))
             cols.append(g)
-            vis.append(ok & inside)
-        g, v = torch.stack(cols), torch.stack(vis)
+            inside.append(ok & within)
+        g, v = torch.stack(cols), torch.stack(inside)
         med = torch.nanmedian(torch.where(v, g, torch.full_like(g, math.nan)), 0).values.nan_to_num(0.0)
         r = zncc(g, med, v, window)
         both = v & (r != 0)
