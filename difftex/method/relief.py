@@ -83,8 +83,7 @@ def sweep_photos(photos: PhotoSet, frame: UVFrame, mask: np.ndarray, min_cos: fl
     quarter of the polygon's texels, the most frontal ``max_photos`` of them (median cos).
 
     Returns:
-        Photo indices, most frontal first; at least the 3 most frontal that see the polygon when
-        fewer pass the angle test (a sweep needs three to have a median).
+        Photo indices, most frontal first (estimate_relief keeps the plane with fewer than MIN_PHOTOS).
     """
     scored = []
     n_mask = max(int(mask.sum()), 1)
@@ -95,8 +94,7 @@ def sweep_photos(photos: PhotoSet, frame: UVFrame, mask: np.ndarray, min_cos: fl
             continue
         scored.append((float(np.median(tm.cos.numpy()[vis])), n))
     scored.sort(reverse=True)
-    keep = [n for c, n in scored if c >= min_cos][:max_photos]
-    return keep if len(keep) >= 3 else [n for _, n in scored[:3]]
+    return [n for c, n in scored if c >= min_cos][:max_photos]
 
 
 def sweep_heights(photos: PhotoSet, which: list[int], frame: UVFrame, s: ReliefSettings) -> np.ndarray:
