@@ -21,9 +21,12 @@ def _pair(text: str) -> tuple[float, float]:
 def add_arguments(p) -> None:
     import argparse
 
-    from difftex.synth.presets import PRESETS
+    from difftex.synth.presets import DISTRICTS, PRESETS
 
-    p.add_argument("--preset", default="tiny", choices=sorted(PRESETS), help="scene size and content (default: tiny)")
+    p.add_argument("--preset", default="tiny", choices=sorted([*PRESETS, *DISTRICTS]),
+                   help="scene size and content (default: tiny); city, city-block: districts for scale tests")
+    p.add_argument("--district", type=int, metavar="N",
+                   help="a district of N buildings for scale tests (docs/synth.md, Districts); --views per building")
     p.add_argument("--out", help="output folder (default: data/synth/<preset>)")
     p.add_argument("--seed", type=int, default=0, help="random seed; same seed, same scene (default 0)")
     p.add_argument("--building", action="append", help="only this building of the preset (repeatable)")
@@ -73,7 +76,10 @@ def run(args) -> int:
 
     from difftex.errors import DifftexError
     from difftex.synth import generate
+    from difftex.synth.presets import DISTRICTS
 
+    if args.district is not None or args.preset in DISTRICTS:
+        return _run_district(args)
     out = Path(args.out) if args.out else Path("data") / "synth" / args.preset
     ov = overrides_from_args(args)
     for k in ("views", "width", "height", "spp", "gt_spp", "gt_long_side"):
@@ -82,4 +88,28 @@ def run(args) -> int:
     t0 = time.perf_counter()
     generate(args.preset, out, seed=args.seed, progress=not args.quiet, buildings=args.building, **ov)
     print(f"synth: wrote {out} in {time.perf_counter() - t0:.1f} s")
+    return 0
+
+
+def _run_district(args) -> int:
+    """``--district N`` or a district preset: only --out, --seed, --views, --width, --height apply."""
+    import time
+    from pathlib import Path
+
+    from difftex.errors import DifftexError
+    from difftex.synth.district import DistrictConfig, generate_district
+    from difftex.synth.presets import DISTRICTS
+
+    preset = args.preset if args.preset in DISTRICTS else "city-block"
+    kw = dict(DISTRICTS[preset])
+    if args.district is not None:
+        kw["buildings"] = args.district
+    kw.update({k: getattr(args, k) for k in ("views", "width", "height") if getattr(args, k, None) is not None})
+    name = preset if args.district is None else f"district{args.district}"
+    out = Path(args.out) if args.out else Path("data") / "synth" / name
+    t0 = time.perf_counter()
+    m = generate_district(out, DistrictConfig(**kw), seed=args.seed, progress=not args.quiet)
+    if m["unseen_polygons"]:
+        raise DifftexError(f"{out}: {len(m['unseen_polygons'])} polygon(s) seen by no photo (raise --views)")
+    print(f"synth: wrote {out} ({m['polygons']} polygons, {m['photos']} photos) in {time.perf_counter() - t0:.1f} s")
     return 0

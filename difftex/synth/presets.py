@@ -186,6 +186,13 @@ PRESETS: dict[str, SynthConfig] = {
     ),
 }
 
+# Districts for scale tests (difftex.synth.district.DistrictConfig keywords; docs/synth.md, *Districts*):
+# about 9 polygons per building, photos 160x120, no ground truth.
+DISTRICTS: dict[str, dict] = {
+    "city-block": dict(buildings=12, views=10),  # about 100 polygons, 120 photos
+    "city": dict(buildings=120, views=84),  # about 1,100 polygons, 10,080 photos
+}
+
 
 def get_preset(name: str) -> SynthConfig:
     try:
