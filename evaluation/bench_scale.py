@@ -63,7 +63,8 @@ def parse_log(text: str) -> dict:
         text: the content of ``.snakemake/log/<date>.snakemake.log``.
 
     Returns:
-        {"jobs": {rule: n}, "intervals": [(start, end) in seconds since the first timestamp]}.
+        {"jobs": {rule: n}, "intervals": [(start, end) in seconds since the first timestamp],
+        "seconds": {rule: sum of its jobs' (end - start)}} (1-second timestamps: per job +-1 s).
     """
     stamp = t_first = 0.0
     seen = False
@@ -71,6 +72,7 @@ def parse_log(text: str) -> dict:
     starts: dict[str, float] = {}
     intervals: list[tuple[float, float]] = []
     jobs: dict[str, int] = {}
+    seconds: dict[str, float] = {}
     for line in text.splitlines():
         m = _STAMP.match(line)
         if m:
@@ -87,7 +89,8 @@ def parse_log(text: str) -> dict:
             continue
         if (m := _DONE.match(line)) and m.group(1) in starts:
             intervals.append((starts.pop(m.group(1)), stamp - t_first))
-    return {"jobs": jobs, "intervals": intervals}
+            seconds[m.group(2)] = seconds.get(m.group(2), 0.0) + intervals[-1][1] - intervals[-1][0]
+    return {"jobs": jobs, "intervals": intervals, "seconds": seconds}
 
 
 def busy_seconds(intervals: list[tuple[float, float]]) -> float:
@@ -140,7 +143,8 @@ def run_size(buildings: int, views: int, cores: int, work: Path, seed: int) -> d
     for rule in sorted(set(log["jobs"]) | set(bench)):
         b = bench.get(rule, {})
         stages[rule] = {"jobs": log["jobs"].get(rule, b.get("jobs", 0)), "wall_s": b.get("wall_s"),
-                        "cpu_s": b.get("cpu_s"), "max_rss_mb": b.get("max_rss_mb")}
+                        "cpu_s": b.get("cpu_s"), "max_rss_mb": b.get("max_rss_mb"),
+                        "log_s": log["seconds"].get(rule)}
     busy = busy_seconds(log["intervals"])
     return {"buildings": buildings, "polygons": m["polygons"], "photos": m["photos"], "views": views,
             "unseen": len(m["unseen_polygons"]), "generate_s": gen_s, "dag_s": dag_s, "wall_s": wall, "cpu_s": cpu,
@@ -197,7 +201,8 @@ def extrapolate(rows: list[dict]) -> dict:
     for rule in sorted({k for r in rows for k in r["stages"]}):
         wk = "photos" if rule in PHOTO_STAGES else "polygons"
         st = [r["stages"].get(rule, {}) for r in rows]
-        out["stages"][rule] = {"wall_s": fit_at(wk, [s.get("wall_s") for s in st]),
+        wall = [s.get("wall_s") if s.get("wall_s") is not None else s.get("log_s") for s in st]
+        out["stages"][rule] = {"wall_s": fit_at(wk, wall),
                                "jobs": fit_at("polygons", [s.get("jobs") for s in st], affine=True),
                                "max_rss_mb": fit_at(wk, [s.get("max_rss_mb") for s in st])}
     for q in ("wall_s", "cpu_s", "dag_s", "overhead_s", "peak_rss_mb"):
@@ -258,9 +263,10 @@ def write(stem: Path, rows: list[dict], ext: dict, mach: dict, args, note: str, 
         lines.append(f"| {r['polygons']} | {r['photos']} | {r['generate_s']:.1f} | {r['dag_s']:.1f} | "
                      f"{r['wall_s']:.1f} | {r['cpu_s']:.1f} | {r['busy_s']:.0f} | {r['overhead_s']:.0f} | "
                      f"{r['jobs']} | {r['peak_rss_mb']:.0f} | {r['unseen']} | {r['load_avg'][0]:.1f} |")
-    lines += ["", "## Per stage", "", "Per size: jobs / wall s (sum over jobs) / CPU s / peak RSS MB of its "
-              "largest job; then the fitted exponent of wall, jobs and RSS against the stage's work and the wall "
-              "(sum over jobs) and peak RSS extrapolated to 10,000 polygons.", "",
+    lines += ["", "## Per stage", "", "Per size: jobs / wall s (sum over jobs; in brackets the same from the log's "
+              "job start and finish times, which local rules without a benchmark file have too) / CPU s / peak RSS "
+              "MB of its largest job; then the fitted exponent of wall (the log's where there is no benchmark), jobs "
+              "and RSS against the stage's work, and wall and peak RSS extrapolated to 10,000 polygons.", "",
               "| stage | " + " | ".join(f"{r['polygons']} polygons" for r in rows) +
               " | b wall | b jobs | b RSS | wall at 10k (s) | jobs at 10k | RSS at 10k (MB) |",
               "|---|" + "---|" * (len(rows) + 6)]
@@ -268,8 +274,8 @@ def write(stem: Path, rows: list[dict], ext: dict, mach: dict, args, note: str, 
         cells = []
         for r in rows:
             s = r["stages"].get(rule)
-            cells.append("-" if s is None else f"{s['jobs']} / {_f(s['wall_s'])} / {_f(s['cpu_s'])} / "
-                                               f"{_f(s['max_rss_mb'], '.0f')}")
+            cells.append("-" if s is None else f"{s['jobs']} / {_f(s['wall_s'])} ({_f(s.get('log_s'), '.0f')}) / "
+                                               f"{_f(s['cpu_s'])} / {_f(s['max_rss_mb'], '.0f')}")
         fw, fj, fr = fits["wall_s"], fits["jobs"], fits["max_rss_mb"]
         lines.append(f"| {rule} | " + " | ".join(cells) + f" | {_f(fw['exponent'], '.2f')} | "
                      f"{_f(fj.get('per_unit'), '.2f')} | {_f(fr['exponent'], '.2f')} | {_f(fw['at_target'], '.0f')} | "
@@ -310,6 +316,12 @@ def main(argv=None) -> int:
 
         data = json.loads(Path(args.out).with_suffix(".json").read_text())
         old = argparse.Namespace(**data["args"])
+        for r in data["rows"]:
+            logs = sorted((Path(old.work) / "runs" / f"district{r['buildings']}" / ".snakemake" / "log").glob("*.log"))
+            if logs:
+                sec = parse_log(logs[-1].read_text())["seconds"]
+                for rule, st in r["stages"].items():
+                    st["log_s"] = sec.get(rule)
         print(write(Path(args.out), data["rows"], extrapolate(data["rows"]), data["machine"], old,
                     "smoke" if old.smoke else "full",
                     data.get("command") or "python evaluation/bench_scale.py" + (" --smoke" if old.smoke else "")))
