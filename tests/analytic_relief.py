@@ -12,11 +12,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from difftex.geometry.frames import map_texels, texel_mask, uv_frame
-from difftex.sampling.photos import PolygonInput
 from difftex.scene.camera import Photo
 
-from analytic import UP, WALL_H, WALL_W, make_photo, wall
+from analytic import WALL_H, WALL_W, make_input, make_photo  # noqa: F401  (make_input: the same wall's input)
 
 RECESS = 0.3  # depth of the window's back pane behind the wall, metres
 BALCONY = 0.4  # how far the balcony's front stands out
@@ -115,12 +113,3 @@ def photos(n_yaw=(-35, -20, 0, 20, 35), pitches=(-15, 10, 30), size=(320, 240), 
         make_photo(f"p{i:02d}.png", yaw, dist=6.0, pitch_deg=p, f=f, size=size)
         for i, (yaw, p) in enumerate((y, p) for y in n_yaw for p in pitches)
     ]
-
-
-def make_input(phs, images, long_side=192) -> PolygonInput:
-    poly = wall()
-    frame = uv_frame(poly, UP, long_side=long_side)
-    mask = texel_mask(poly, frame)
-    vis = np.stack([map_texels(frame, ph).valid & mask for ph in phs])
-    by_name = {ph.name: im for ph, im in zip(phs, images)}
-    return PolygonInput("wall", frame, mask, list(phs), vis, lambda ph: by_name[ph.name])

@@ -26,6 +26,7 @@ Layer: sampling (difftex.sampling.photos maps photos through these when a polygo
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
 
@@ -78,15 +79,8 @@ class Relief:
 
 def shifted_frame(frame: UVFrame, h: float) -> UVFrame:
     """``frame`` moved by ``h`` along its normal: its texel (tx, ty) is X(tx, ty) at height h."""
-    return UVFrame(
-        origin=np.asarray(frame.origin, np.float64) + float(h) * np.asarray(frame.normal, np.float64),
-        e_u=frame.e_u,
-        e_v=frame.e_v,
-        normal=frame.normal,
-        texel_size=frame.texel_size,
-        width=frame.width,
-        height=frame.height,
-    )
+    origin = np.asarray(frame.origin, np.float64) + float(h) * np.asarray(frame.normal, np.float64)
+    return dataclasses.replace(frame, origin=origin)
 
 
 def quantise_heights(heights: np.ndarray, max_steps: int = MAX_STEPS) -> np.ndarray:
