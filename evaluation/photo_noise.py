@@ -10,9 +10,11 @@ Three tables go to evaluation/results/photo_noise.md (and .json), with the comma
    photos, at full resolution and box-downsampled 2x and 4x (towards the texel scale). Synthetic:
    the old setting (16 spp, independent sampler, additive noise 0.004, PNG), rendered here for a
    few photos of the survey's first building, and the rendered survey scenes.
-2. (--render-noise) For one survey photo: the noise the *camera model* puts in the stored photo
-   (two camera draws on one render) and the noise the *renderer* leaves (two render seeds through
-   one camera draw), per sampler and spp; exact differences, RMS and robust (1.4826 MAD) std.
+2. (--render-noise) For one survey photo: the noise the camera's *sensor* adds (two sensor draws
+   on one render) and the noise the *renderer* leaves (two render seeds, no sensor noise), per
+   sampler and spp; both after exposure and lens blur, in sRGB floats before 8-bit quantisation and
+   JPEG (which would floor both at the quantisation's own noise); exact differences, RMS and robust
+   (1.4826 MAD) std.
 """
 
 from __future__ import annotations
@@ -73,7 +75,7 @@ def render_noise_rows(samplers: list[tuple[str, int]], view_index: int = 1) -> l
     """Camera noise and render noise in one survey photo (first building, one drone view)."""
     from difftex.synth import cameras as cams
     from difftex.synth import render as rd
-    from difftex.synth.camera_model import apply_camera
+    from difftex.synth.camera_model import expose, lens_blur, sensor_noise, srgb_encode
     from difftex.synth.noise_level import box_downsample
     from difftex.synth.pipeline import build_model
     from difftex.synth.presets import get_preset
@@ -90,8 +92,12 @@ def render_noise_rows(samplers: list[tuple[str, int]], view_index: int = 1) -> l
         sensor = rd.perspective_sensor(variant, v.R, v.t, f, cfg.width, cfg.height, spp, sampler)
         return rd.render(variant, scene, sensor, spp, seed=seed)
 
-    def photo(lin, seed):
-        return apply_camera(lin, camera, 1.0, (1.0, 1.0, 1.0), np.random.default_rng(seed))[0]
+    def optics(lin):
+        return lens_blur(expose(lin, 1.0, (1.0, 1.0, 1.0)), camera.lens_blur)
+
+    def sensor(lin, seed):
+        return srgb_encode(sensor_noise(optics(lin), camera.white_electrons, camera.read_noise,
+                                        np.random.default_rng(seed)))
 
     def stats(diff):
         out = {}
@@ -103,12 +109,13 @@ def render_noise_rows(samplers: list[tuple[str, int]], view_index: int = 1) -> l
     rows = []
     ref_s, ref_n = samplers[-1]
     ref = render(ref_s, ref_n, 1)
-    rows.append({"what": f"camera (ISO {camera.iso:g}, blur {camera.lens_blur:g} px, JPEG {camera.jpeg_quality})",
-                 "noise": stats(photo(ref, 1) - photo(ref, 2))})
+    rows.append({"what": f"camera sensor (ISO {camera.iso:g}, {camera.white_electrons:.0f} e- at white)",
+                 "noise": stats(sensor(ref, 1) - sensor(ref, 2))})
     for s, n in samplers:
         a = ref if (s, n) == (ref_s, ref_n) else render(s, n, 1)
         b = render(s, n, 2)
-        rows.append({"what": f"render, {s} {rd.effective_spp(s, n)} spp", "noise": stats(photo(a, 7) - photo(b, 7))})
+        rows.append({"what": f"render, {s} {rd.effective_spp(s, n)} spp",
+                     "noise": stats(srgb_encode(optics(a)) - srgb_encode(optics(b)))})
     return rows
 
 
@@ -135,9 +142,10 @@ def write_report(path: Path, argv: list[str], rows: list[tuple[str, str, dict]],
     if rn:
         lines += [
             "",
-            "Render noise vs camera noise in one stored survey photo (building 1, a drone view, 800x600): the "
-            "camera row is two camera draws on one render, a render row two render seeds through one camera draw; "
-            "8-bit levels, RMS / robust std (1.4826 MAD), per downsampling.",
+            "Render noise vs camera noise in one survey photo (building 1, a drone view, 800x600, after exposure "
+            "and 0.5 px lens blur, sRGB before 8-bit quantisation and JPEG): the camera row is two sensor draws on "
+            "one render, a render row two render seeds without sensor noise; 8-bit levels, RMS / robust std "
+            "(1.4826 MAD), per downsampling.",
             "",
             "| noise of | 1x RMS / robust | 2x | 4x |",
             "|---|---|---|---|",
@@ -172,6 +180,8 @@ def main(argv: list[str] | None = None) -> int:
     old = old_setting_photos(args.work, args.old_views)
     rows.append(("synthetic, old setting (independent 16 spp, additive 0.004, PNG)", "800x600", _levels(_read(old))))
     print(rows[-1][0], _fmt(rows[-1][2]), flush=True)
+    samplers = [("independent", 16), ("ldsampler", 16), ("ldsampler", 64), ("ldsampler", 256)]
+    rn = render_noise_rows(samplers) if args.render_noise else None
     scenes = sorted(p for p in args.survey.iterdir() if (p / "synth.json").is_file()) if args.survey.is_dir() else []
     for scene in scenes:
         man = json.loads((scene / "synth.json").read_text())
@@ -180,7 +190,6 @@ def main(argv: list[str] | None = None) -> int:
         rows.append((label, f"{man['config']['width']}x{man['config']['height']}",
                      _levels(_read(_photos(scene / "images", args.every)))))
         print(rows[-1][0], _fmt(rows[-1][2]), flush=True)
-    rn = render_noise_rows([("independent", 16), ("ldsampler", 16), ("ldsampler", 64)]) if args.render_noise else None
     text = write_report(args.out, argv, rows, rn)
     args.out.with_suffix(".json").write_text(json.dumps({"photos": [{"name": n, "size": s, "levels": st}
                                                                    for n, s, st in rows], "render_noise": rn},

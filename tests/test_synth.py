@@ -330,7 +330,8 @@ def _gt_map_twice(cfg, long_side: int = 64) -> tuple[np.ndarray, np.ndarray, np.
 # most this RMS over the polygon's texels and this much at any texel (0.1 % of texels may exceed it:
 # grazing relief edges). Measured (tiny preset, walls at 96 texels): ldsampler 256 spp 0.0047-0.0059 RMS,
 # max 0.04-0.05; 1024 spp 0.0025-0.0031, max 0.02-0.03; the old independent 16 spp 0.054-0.067, max 0.3-0.37.
-GT_RMS_BOUND = 0.008
+# This test's wall at 64 texels (coarser texels, more texture per texel): 0.0066 / 0.043 and 0.066 / 0.23.
+GT_RMS_BOUND = 0.01
 GT_P999_BOUND = 0.06
 
 
