@@ -50,7 +50,8 @@ def read_benchmarks(results: Path) -> dict[str, dict]:
     from difftex.evaluation.report import stage_benchmarks
 
     return {
-        rule: {"jobs": d["jobs"], "wall_s": d["seconds"], "cpu_s": d["cpu_s"], "max_rss_mb": d["max_rss_mb"]}
+        rule: {"jobs": d["jobs"], "wall_s": d["seconds"], "max_job_s": d["max_s"], "cpu_s": d["cpu_s"],
+               "max_rss_mb": d["max_rss_mb"]}
         for rule, d in stage_benchmarks(results).items()
     }
 

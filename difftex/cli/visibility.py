@@ -7,10 +7,14 @@ HELP = "Compute which texels of each polygon every kept photo sees (depth test a
 
 
 def add_arguments(p) -> None:
-    p.add_argument("--scene", required=True)
+    p.add_argument("--scene", help="scene folder (not with --merge)")
     p.add_argument("--photos", help="the filter stage's JSON table; without it every photo is a candidate")
     p.add_argument("--config", help="YAML config; sections 'texture' and 'visibility' are read")
     p.add_argument("--out-dir", required=True)
+    p.add_argument("--tile", help="TILE/TILES: only this spatial tile of the polygons (difftex.scene.partition); "
+                   "its rows go to --rows instead of summary.json")
+    p.add_argument("--rows", help="with --tile: the tile's summary rows (JSON)")
+    p.add_argument("--merge", nargs="+", help="write OUT_DIR/summary.json from these tiles' rows (no scene is read)")
     p.add_argument("--quiet", action="store_true")
 
 
@@ -34,7 +38,33 @@ def polygon_notes(filtered: dict, vis) -> dict:
     return out
 
 
+def merge_tiles(paths: list[str], out_dir) -> int:
+    """summary.json from the tiles' rows, in the proxy's polygon order (as one job writes it)."""
+    from pathlib import Path
+
+    from difftex.errors import DifftexError
+    from difftex.scene.files import read_json, write_json
+
+    rows, seconds, scene = [], 0.0, None
+    for path in paths:
+        data = read_json(path)
+        if not isinstance(data, dict) or "rows" not in data:
+            raise DifftexError(f"{path}: not a tile of the difftex visibility stage")
+        scene = scene or data.get("scene")
+        seconds += float(data.get("seconds", 0.0))
+        rows += data["rows"]
+    if sorted(r["index"] for r in rows) != list(range(len(rows))):
+        raise DifftexError(f"{paths[0]}: the visibility tiles do not hold every polygon once: rerun the visibility stage")
+    rows = [{k: v for k, v in r.items() if k != "index"} for r in sorted(rows, key=lambda r: r["index"])]
+    out = Path(out_dir)
+    write_json(out / "summary.json", {"scene": scene, "polygons": rows, "seconds": round(seconds, 2)})
+    print(f"visibility of {len(rows)} polygons from {len(paths)} tile(s) -> {out / 'summary.json'}")
+    return 0
+
+
 def run(args) -> int:
+    if args.merge:
+        return merge_tiles(args.merge, args.out_dir)
     import time
     from pathlib import Path
 
@@ -47,7 +77,21 @@ def run(args) -> int:
     t0 = time.perf_counter()
     tex = section(args.config, "texture", TextureConfig)
     vcfg = section(args.config, "visibility", VisibilityConfig)
-    scene = load_scene(args.scene)
+    if not args.scene:
+        raise DifftexError("--scene is needed (except with --merge)")
+    if bool(args.tile) != bool(args.rows):
+        raise DifftexError("--tile and --rows go together")
+    # a tile reads the cameras only: the filter stage's chunks checked every photo's file
+    scene = load_scene(args.scene, check_images=not args.tile)
+    only = None
+    if args.tile:
+        import numpy as np
+
+        from difftex.scene.partition import parse_part, polygon_tiles
+
+        j, n = parse_part(args.tile)
+        tiles = polygon_tiles(np.array([p.centroid for p in scene.proxy.polygons]), n)
+        only = tiles[j].tolist() if j < len(tiles) else []
     filtered: dict = {}  # the filter's record per polygon
     if args.photos:
         table = read_json(args.photos)
@@ -77,10 +121,12 @@ def run(args) -> int:
         top_k=top_k,
         fallback=later,
         threads=job_threads(),
+        only=only,
     )
     out = Path(args.out_dir)
     out.mkdir(parents=True, exist_ok=True)
     rows = []
+    index = {p.id: i for i, p in enumerate(scene.proxy.polygons)}
     for v in vis:
         save_visibility(out / f"{v.polygon_id}.npz", v)
         ts = v.texel_size or {}
@@ -106,6 +152,11 @@ def run(args) -> int:
             + (f"; last source of some texels: {', '.join(v.rescued)}" if v.rescued else "")
         )
     secs = time.perf_counter() - t0
+    if args.tile:
+        rows = [{"index": index[r["id"]], **r} for r in rows]
+        write_json(args.rows, {"scene": str(scene.root), "tile": args.tile, "rows": rows, "seconds": round(secs, 2)})
+        print(f"{scene.name}: visibility of tile {args.tile} ({len(vis)} polygons) in {secs:.1f} s -> {args.rows}")
+        return 0
     write_json(out / "summary.json", {"scene": str(scene.root), "polygons": rows, "seconds": round(secs, 2)})
     print(f"{scene.name}: visibility of {len(vis)} polygons in {secs:.1f} s -> {out}")
     return 0

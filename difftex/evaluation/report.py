@@ -439,8 +439,8 @@ def write_report(results: str | Path, out: str | Path | None = None, scene: str 
 
 
 def stage_benchmarks(results: Path) -> dict[str, dict]:
-    """{rule: {"jobs": n, "seconds": sum of wall seconds, "cpu_s": sum of Snakemake's cpu_time,
-    "max_rss_mb": max}} from Snakemake's benchmark files R/benchmarks/<rule>/*.tsv.
+    """{rule: {"jobs": n, "seconds": sum of wall seconds, "max_s": the longest job's, "cpu_s": sum of
+    Snakemake's cpu_time, "max_rss_mb": max}} from Snakemake's benchmark files R/benchmarks/<rule>/*.tsv.
 
     cpu_time is sampled from the job's processes and misses most of a long texture job's CPU
     (15 of 41 s per job on archive at `balanced`): a lower bound, not summed into any report."""
@@ -455,10 +455,11 @@ def stage_benchmarks(results: Path) -> dict[str, dict]:
             continue
         head, row = lines[0].split("\t"), lines[1].split("\t")
         rec = dict(zip(head, row))
-        d = out.setdefault(rule, {"jobs": 0, "seconds": 0.0, "cpu_s": 0.0, "max_rss_mb": 0.0})
+        d = out.setdefault(rule, {"jobs": 0, "seconds": 0.0, "max_s": 0.0, "cpu_s": 0.0, "max_rss_mb": 0.0})
         d["jobs"] += 1
         try:
             d["seconds"] += float(rec.get("s", 0))
+            d["max_s"] = max(d["max_s"], float(rec.get("s", 0)))
             cpu, rss = rec.get("cpu_time", "NA"), rec.get("max_rss", "NA")
             if cpu not in ("NA", "-", ""):
                 d["cpu_s"] += float(cpu)

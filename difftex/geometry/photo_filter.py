@@ -269,11 +269,20 @@ def unseen_reason(sight: dict[str, dict], blurry: list[str]) -> str:
     return f"back-facing to every camera (all {n})"
 
 
-def filter_photos(proxy: Proxy, photos: list[Photo], cfg: FilterConfig, progress: bool = True) -> dict:
-    """Decide which photos to keep, globally and per polygon; returns the table as a dict."""
+def photo_records(proxy: Proxy, photos: list[Photo], cfg: FilterConfig, progress: bool = True) -> list[PhotoRecord]:
+    """Each photo's own tests: its sharpness, and the polygons it sees with their pixel counts and
+    viewing angles (an id buffer at ``cfg.analysis_long_side`` against the whole proxy). Nothing
+    here depends on the other photos, so a large scene's photos are measured in chunks by
+    separate jobs and :func:`decide_photos` merges them.
+
+    Args:
+        proxy: the whole proxy (every polygon may hide another).
+        photos: the photos to measure (all of the scene's, or one chunk).
+    Returns:
+        One PhotoRecord per photo, in order, with ``kept`` and ``reason`` still undecided.
+    """
     from rich.progress import track
 
-    t0 = time.perf_counter()
     pp = prepare(proxy)
     records = []
 
@@ -304,6 +313,42 @@ def filter_photos(proxy: Proxy, photos: list[Photo], cfg: FilterConfig, progress
                 )
             rec.sharpness = ahead.popleft().result()  # a decode error surfaces here, in photo order
             records.append(rec)
+    return records
+
+
+def record_from_dict(d: dict) -> PhotoRecord:
+    """A PhotoRecord from its JSON form (``PhotoRecord.__dict__``, as a chunk's job writes it)."""
+    try:
+        return PhotoRecord(**d)
+    except TypeError as exc:
+        raise DifftexError(f"not a difftex photo record ({exc})") from None
+
+
+def filter_photos(proxy: Proxy, photos: list[Photo], cfg: FilterConfig, progress: bool = True) -> dict:
+    """Decide which photos to keep, globally and per polygon; returns the table as a dict."""
+    t0 = time.perf_counter()
+    records = photo_records(proxy, photos, cfg, progress)
+    result = decide_photos(proxy, photos, records, cfg)
+    result["seconds"] = round(time.perf_counter() - t0, 3)
+    return result
+
+
+def decide_photos(proxy: Proxy, photos: list[Photo], records: list[PhotoRecord], cfg: FilterConfig) -> dict:
+    """The filter's decisions from every photo's record (:func:`photo_records`): blur relative
+    to the set's median, per polygon the kept photos (:func:`polygon_photos`), and for polygons
+    no kept photo sees, the glimpses found by casting rays at the polygon itself (the cameras
+    only: no photo is decoded here).
+
+    Args:
+        photos: every photo of the scene, in the records' order.
+        records: one per photo.
+    Returns:
+        The filter table (``write_table``); its ``seconds`` are the decisions' own.
+    """
+    if [r.name for r in records] != [ph.name for ph in photos]:
+        raise DifftexError("the photo records do not match the scene's photos (a stale chunk of the filter stage?)")
+    t0 = time.perf_counter()
+    pp = None  # the caster, built for the first polygon that needs its glimpses (most scenes: none)
     med = float(np.median([r.sharpness for r in records])) if records else 0.0
     for r in records:
         r.sharpness_rel = r.sharpness / med if med > 0 else 1.0
@@ -325,6 +370,7 @@ def filter_photos(proxy: Proxy, photos: list[Photo], cfg: FilterConfig, progress
             continue
         # no sharp photo sees it with min_pixels pixels: look at the polygon itself in every photo
         points = polygon_points(poly)
+        pp = pp or prepare(proxy)
         sight = {ph.name: sight_line(pp, i, ph, points) for ph in photos}
         usable = {n: s for n, s in sight.items() if s["state"] == "visible" and not _blurry(by_name[n])}
         if usable:

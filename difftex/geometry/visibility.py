@@ -207,6 +207,7 @@ def scene_visibility(
     fallback: dict[str, dict[str, str]] | None = None,
     texel_candidates: int | None = None,
     threads: int = 1,
+    only: list[int] | None = None,
 ) -> list[PolygonVisibility]:
     """Visibility of every polygon in its candidate photos (photo names per polygon id).
 
@@ -226,7 +227,10 @@ def scene_visibility(
     the photos when all are pinhole (rasterised; numpy releases the GIL in the array work); one
     full-resolution id buffer per thread is in memory at a time.
 
-    ``texture``: the texture section, or an int long side (tests and tools).
+    ``texture``: the texture section, or an int long side (tests and tools). ``only``: indices
+    of the polygons to compute (a spatial tile of a large scene; the others still occlude them),
+    which then decode only their own candidate photos; their results are the same as in a run
+    over all polygons.
     """
     from rich.progress import track
 
@@ -234,20 +238,31 @@ def scene_visibility(
 
     cfg = texture if isinstance(texture, TextureConfig) else TextureConfig(density=None, long_side=int(texture))
     caster = ProxyCaster.build(proxy)
-    probes = [uv_frame(p, up, long_side=PROBE_LONG_SIDE) for p in proxy.polygons] if cfg.mode == "auto" else None
-    probe_masks = [texel_mask(p, f) for p, f in zip(proxy.polygons, probes)] if probes else None
     fallback = fallback or {}
-    wanted = {pid: set(names) | set(fallback.get(pid, ())) for pid, names in candidates.items()}
+    todo = list(range(len(proxy.polygons))) if only is None else sorted({int(i) for i in only})
+    probes = probe_masks = None
+    if cfg.mode == "auto":  # the probe frames of the polygons computed here (None elsewhere)
+        probes = [None] * len(proxy.polygons)
+        probe_masks = [None] * len(proxy.polygons)
+        for i in todo:
+            probes[i] = uv_frame(proxy.polygons[i], up, long_side=PROBE_LONG_SIDE)
+            probe_masks[i] = texel_mask(proxy.polygons[i], probes[i])
+    ids_todo = {proxy.polygons[i].id for i in todo}
+    wanted = {
+        pid: set(names) | set(fallback.get(pid, ())) for pid, names in candidates.items() if pid in ids_todo
+    }
     parts: list[list[_Sighting]] = [[] for _ in proxy.polygons]
-    used = [ph for ph in photos if any(ph.name in s for s in wanted.values())]
+    wanted_names = set().union(*wanted.values()) if wanted else set()
+    used = [ph for ph in photos if ph.name in wanted_names]
 
     def sightings(ph: Photo) -> list[tuple[int, _Sighting]]:
         ids, _ = id_buffer(caster, ph)
         # which polygons the photo sees at all: one pass, not one per polygon
         hits = np.bincount(ids.ravel() + 1, minlength=len(proxy.polygons) + 1)[1:]
         found = []
-        for i, poly in enumerate(proxy.polygons):
-            if ph.name not in wanted.get(poly.id, ()) or hits[i] == 0:
+        for i in np.flatnonzero(hits).tolist():  # the polygons it sees, not all of a district's
+            poly = proxy.polygons[i]
+            if ph.name not in wanted.get(poly.id, ()):
                 continue
             if (poly.normal @ (ph.center - poly.centroid)) <= 0:
                 continue  # the camera is behind the plane: it sees none of this face's outside
@@ -333,7 +348,7 @@ def scene_visibility(
 
     # the polygons side by side as well (their texel visibility per photo is numpy array work)
     with ThreadPoolExecutor(max_workers=workers) as pool:
-        return list(pool.map(polygon_visibility, range(len(proxy.polygons)), proxy.polygons))
+        return list(pool.map(polygon_visibility, todo, [proxy.polygons[i] for i in todo]))
 
 
 def best_per_texel(kept: list[tuple], frame: UVFrame, photos: dict, m: int, grid: int = 64) -> tuple[list, list]:

@@ -126,7 +126,7 @@ def read_reconstruction(sparse_dir: str | Path):
     return read_model(sparse_dir)
 
 
-def _model_file(sparse_dir: Path, stem: str) -> Path:
+def model_file(sparse_dir: Path, stem: str) -> Path:
     """The file that defines ``stem`` (cameras/images): the binary one when both exist, as read."""
     binary = sparse_dir / f"{stem}.bin"
     return binary if binary.is_file() else sparse_dir / f"{stem}.txt"
@@ -139,6 +139,23 @@ def unlisted_photos(images_dir: Path, listed: set[str]) -> list[str]:
         return []
     names = (p.relative_to(images_dir).as_posix() for p in images_dir.rglob("*") if p.suffix.lower() in IMAGE_SUFFIXES)
     return sorted(n for n in names if n not in listed and (images_dir / n).is_file())
+
+
+def check_photo_file(photo: Photo, sparse_dir: str | Path, camera_id: int | str = "") -> None:
+    """Stop with one line naming the photo's file when it is missing or its size is not its
+    camera's (the header only is read)."""
+    from difftex.scene.files import image_size
+
+    sparse_dir = Path(sparse_dir)
+    path = photo.image_path
+    if not path.is_file():
+        raise DifftexError(f"{path}: image listed in {model_file(sparse_dir, 'images')} is missing")
+    size = image_size(path)
+    if size != (photo.width, photo.height):
+        raise DifftexError(
+            f"{path}: image is {size[0]}x{size[1]} but camera {camera_id} in "
+            f"{model_file(sparse_dir, 'cameras')} says {photo.width}x{photo.height}"
+        )
 
 
 def load_photos(
@@ -157,14 +174,12 @@ def load_photos(
         check_images: check the files (False where only the cameras are needed).
         reconstruction: the already read model of ``sparse_dir``, to avoid reading it again.
     """
-    from difftex.scene.files import image_size
-
     sparse_dir = Path(sparse_dir)
     rec = reconstruction if reconstruction is not None else read_reconstruction(sparse_dir)
     images_dir = Path(images_dir)
     if check_images and not images_dir.is_dir():
         raise DifftexError(f"{images_dir}: images folder not found")
-    images_file = _model_file(sparse_dir, "images")
+    images_file = model_file(sparse_dir, "images")
     photos = []
     for image in rec.images.values():
         if hasattr(image, "has_pose") and not image.has_pose:
@@ -176,17 +191,7 @@ def load_photos(
             raise DifftexError(
                 f"{images_file}: image '{image.name}': rotation is not a rotation (det {np.linalg.det(R):.3f})"
             )
-        if check_images:
-            if not path.is_file():
-                raise DifftexError(f"{path}: image listed in {images_file} is missing")
-            size = image_size(path)
-            if size != (cam.width, cam.height):
-                raise DifftexError(
-                    f"{path}: image is {size[0]}x{size[1]} but camera {cam.camera_id} in "
-                    f"{_model_file(sparse_dir, 'cameras')} says {cam.width}x{cam.height}"
-                )
-        photos.append(
-            Photo(
+        photo = Photo(
                 name=image.name,
                 image_path=path,
                 camera=cam,
@@ -196,22 +201,30 @@ def load_photos(
                 height=int(cam.height),
                 model=str(cam.model_name),
             )
-        )
+        if check_images:
+            check_photo_file(photo, sparse_dir, cam.camera_id)
+        photos.append(photo)
     if not photos:
         raise DifftexError(f"{images_file}: COLMAP model has no registered images")
     if check_images:
-        extra = unlisted_photos(images_dir, {im.name for im in rec.images.values()})
-        if extra:
-            shown = ", ".join(extra[:3]) + (", ..." if len(extra) > 3 else "")
-            log.warning(
-                "%s: %d photo%s not in the COLMAP model %s, ignored (%s)",
-                images_dir,
-                len(extra),
-                "s are" if len(extra) > 1 else " is",
-                images_file,
-                shown,
-            )
+        warn_unlisted(images_dir, rec, images_file)
     return sorted(photos, key=lambda p: p.name)
+
+
+def warn_unlisted(images_dir: Path, rec, images_file: Path) -> None:
+    """One warning giving the count of photos in ``images_dir`` that the model ``rec`` (read from
+    ``images_file``) does not list: they are ignored."""
+    extra = unlisted_photos(images_dir, {im.name for im in rec.images.values()})
+    if extra:
+        shown = ", ".join(extra[:3]) + (", ..." if len(extra) > 3 else "")
+        log.warning(
+            "%s: %d photo%s not in the COLMAP model %s, ignored (%s)",
+            images_dir,
+            len(extra),
+            "s are" if len(extra) > 1 else " is",
+            images_file,
+            shown,
+        )
 
 
 def scene_up(photos: list[Photo]) -> np.ndarray:

@@ -17,6 +17,7 @@ No torch here: the Snakefile's process calls these for every job.
 from __future__ import annotations
 
 import hashlib
+import logging
 import math
 from pathlib import Path
 
@@ -243,3 +244,50 @@ def assemble_mem_mb(polygon_rows: list[dict], cfg: dict) -> int:
     page = int(cfg["assemble"]["max_page_size"]) ** 2
     page = min(page, int(texels * 1.3) + 1)
     return int(cfg["run"]["base_mem_mb"] + math.ceil((3 * page * 12 + texels * 13) / 2**20))
+
+
+def filter_parts(scene_inputs_list: list[str], scene: str | Path, per_job: int) -> dict[str, list[str]]:
+    """The filter stage's chunks: {part name: its photo files}, cut as the jobs cut them
+    (difftex.scene.partition). A scene not yet on disk (the example before it is generated) has
+    one part and no photo inputs; its job finds its photos when it runs.
+
+    Args:
+        scene_inputs_list: the scene's input files (proxy, model, photos), as the workflow lists them.
+        scene: the scene folder.
+        per_job: ``run.filter_photos_per_job``.
+    """
+    from difftex.scene.partition import part_name, parts_for, photo_chunk
+
+    images = Path(scene) / "images"
+    photos = [p for p in scene_inputs_list if Path(p).suffix.lower() in IMAGE_SUFFIXES]
+    names = [Path(p).relative_to(images).as_posix() for p in photos]
+    n = parts_for(len(names), per_job)
+    return {part_name(j, n): [str(images / name) for name in photo_chunk(names, j, n)] for j in range(n)}
+
+
+def visibility_tiles(scene: str | Path, per_job: int) -> list[str]:
+    """The visibility stage's spatial tiles (names): ceil(polygons / per_job). The proxy is read
+    for its polygon count; a proxy that is not there yet (the example) or cannot be read gives one
+    tile, whose job reports the problem in one line as it would without tiles."""
+    from difftex.errors import DifftexError
+    from difftex.scene.loading import find_proxy
+    from difftex.scene.partition import part_name, parts_for
+    from difftex.scene.proxy import load_proxy
+
+    quiet = logging.getLogger("difftex.scene.proxy")
+    level = quiet.level
+    quiet.setLevel(logging.ERROR)  # its warnings (skipped polygons) are the filter stage's to give, once
+    try:
+        count = len(load_proxy(find_proxy(Path(scene))).polygons)
+    except (DifftexError, OSError):
+        count = 0
+    finally:
+        quiet.setLevel(level)
+    n = parts_for(count, per_job)
+    return [part_name(j, n) for j in range(n)]
+
+
+def gather_mem_mb(items: int, run: dict, mb_per_item: float = 0.05) -> int:
+    """A merge of the scene stages' parts holds their records: ``mb_per_item`` per photo or
+    polygon (a photo's record lists the polygons it sees with their angles) on top of Python's."""
+    return int(run["base_mem_mb"] + math.ceil(items * mb_per_item))

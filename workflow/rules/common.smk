@@ -12,6 +12,7 @@ sys.path.insert(0, str(Path(workflow.basedir)))
 shell.prefix(f"set -euo pipefail; export PATH={shlex.quote(str(Path(sys.executable).parent))}:$PATH; ")
 
 import difftex.workflow.glue as wf
+import difftex.scene.partition as partition
 import difftex.workflow.jobs as jobs
 from difftex.workflow import runguard, runlog
 from difftex.errors import DifftexError
@@ -45,6 +46,10 @@ try:
     STAGE_CFG = wf.stage_config_paths(R, STAGE_TEXT)
     # Perspective quality on every scene; ground-truth maps and views where the scene has them.
     EVALUATE = wf.want_evaluation(config)
+    # The whole-scene stages in bounded jobs (difftex/scene/partition.py): chunks of photos for
+    # the filter, spatial tiles of polygons for visibility; one of each below those sizes.
+    FILTER_PARTS = jobs.filter_parts(SCENE_INPUTS, SCENE, config["run"]["filter_photos_per_job"])
+    VISIBILITY_TILES = jobs.visibility_tiles(SCENE, config["run"]["visibility_polygons_per_job"])
 except DifftexError as exc:
     # One line and no Snakemake frame around it (SystemExit passes Snakemake's handlers).
     runguard.stop(str(exc))
@@ -64,6 +69,8 @@ RUN_GUARD = runguard.RunGuard(R)
 wildcard_constraints:
     pid="[A-Za-z0-9_-]+",
     job="[A-Za-z0-9_-]+",
+    part="[0-9]+-of-[0-9]+",
+    tile="[0-9]+-of-[0-9]+",
     stage="|".join(wf.STAGE_SECTIONS),
     digest="[0-9a-f]{12}",
 
