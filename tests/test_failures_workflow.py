@@ -33,6 +33,9 @@ QUICK = (
     "optimize={long_side_start: 32, max_iters_per_level: [5, 3]}",
     "run={evaluate: false}",
 )
+# the resume tests: a texture job, and so a finish job, per polygon, so that the gate (FinishGate)
+# can hold the run between two polygons' textures
+RESUME = (*QUICK[:-1], "run={evaluate: false, pack_seconds: 0}")
 
 
 def snakemake_cmd(workdir: Path, *args: str) -> list[str]:
@@ -188,7 +191,7 @@ def resume_scene(small_synth_scene, tmp_path_factory) -> Path:
 def reference_run(resume_scene, tmp_path_factory) -> Path:
     """An uninterrupted run of the README command on the 3-polygon scene."""
     work = tmp_path_factory.mktemp("reference")
-    r = snakemake(work, "--config", f"scene={resume_scene}", *QUICK)
+    r = snakemake(work, "--config", f"scene={resume_scene}", *RESUME)
     assert r.returncode == 0, r.stdout[-3000:]
     return work / "results" / "small"
 
@@ -270,7 +273,7 @@ class FinishGate:
 def test_interrupted_and_killed_runs_resume_to_the_same_textures(resume_scene, reference_run, tmp_path):
     work = tmp_path / "w"
     # one job at a time (the last --cores wins), so that the gate's count of textures is exact
-    args = ("--config", f"scene={resume_scene}", *QUICK, "--cores", "1")
+    args = ("--config", f"scene={resume_scene}", *RESUME, "--cores", "1")
     total = len(textures(reference_run)) // 3  # texture, source, coverage per polygon
     assert total == 3
     gate = FinishGate(tmp_path / "gate", work / "results/small/textures")
@@ -341,7 +344,7 @@ def test_full_disk_fails_in_one_line_and_the_rerun_completes(resume_scene, refer
         free = 160 * 1024  # the filter and visibility fit, not the per-polygon outputs
         ballast.write_bytes(b"\0" * (shutil.disk_usage(disk).free - free))
         work = tmp_path / "w"
-        args = ("--config", f"scene={resume_scene}", f"results={disk}/results", *QUICK)
+        args = ("--config", f"scene={resume_scene}", f"results={disk}/results", *RESUME)
         r = snakemake(work, *args)
         line = assert_console_error(r)
         assert "No space left on device" in line or "empty log" in line, line

@@ -235,7 +235,7 @@ def test_workflow_end_to_end(tiny_scene, tmp_path):
     assert set(job_counts(same.stdout)) <= {"compute_config", "all"}, same.stdout[-2000:]
     # an output-format change rewrites the files, no texturing
     counts = job_counts(snakemake(work, "-n", *args, "output={bits: 16}").stdout)
-    assert counts.get("finish", 0) == n_tex and "texture" not in counts
+    assert counts.get("finish", 0) == n_jobs and "texture" not in counts  # one per texture job
     # ... and an assembly-only change only assembly
     counts = job_counts(snakemake(work, "-n", *args, "assemble={padding: 2}").stdout)
     # evaluation reads the textures, not the model; the reports read the model summary (the HTML

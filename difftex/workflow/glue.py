@@ -267,14 +267,6 @@ def texture_jobs(summary: str | Path, cfg: dict) -> dict[str, list[str]]:
     return _JOBS_CACHE[key]
 
 
-def job_of(summary: str | Path, cfg: dict, pid: str) -> str:
-    """The texture job that textures polygon ``pid``."""
-    for job, pids in texture_jobs(summary, cfg).items():
-        if pid in pids:
-            return job
-    raise DifftexError(f"{summary}: polygon '{pid}' has no texture job (no photo sees it)")
-
-
 def polygon_row(summary: str | Path, pid: str) -> dict:
     for p in polygons(summary):
         if str(p["id"]) == pid:

@@ -76,7 +76,7 @@ wildcard_constraints:
 
 
 # Named input functions of the per-polygon rules (their rows come from the visibility checkpoint).
-# Small polygons share a texture job (difftex/workflow/jobs.py); `finish` stays one job per polygon.
+# Small polygons share a texture job (difftex/workflow/jobs.py), and its finish job.
 
 
 def get_summary():
@@ -115,19 +115,12 @@ def get_job_priority(wc):
     return jobs.priority(get_job_rows(wc), config)
 
 
-def get_polygon_job(wc):
-    return f"{R}/optimized/jobs/{wf.job_of(get_summary(), config, wc.pid)}.json"
-
-
 def get_assemble_mem_mb(wc, input):
     # asked before the checkpoint ran in a dry run
     rows = wf.polygons(input.summary) if Path(input.summary).is_file() else []
     return jobs.assemble_mem_mb(rows, config)
 
 
-def get_textured_ids():
-    return wf.textured_ids(checkpoints.visibility.get().output.summary)
-
-
 def get_textures(wc):
-    return expand(f"{R}/textures/{{pid}}/texture.png", pid=get_textured_ids())
+    # the finish jobs' lists; each wrote its polygons' R/textures/<pid>/ (the stages read the folder)
+    return expand(f"{R}/textures/jobs/{{job}}.json", job=wf.texture_jobs(get_summary(), config))

@@ -1,6 +1,6 @@
 # Per-polygon stages: `texture` (brightness transfers, blend-weight optimization and composition,
 # one pass over each polygon's photos) and `finish` (the PNGs and report from the float texture,
-# in the output format). Polygon ids, sizes and candidate photos come from the visibility
+# in the output format; one per texture job). Polygon ids, sizes and candidate photos come from the visibility
 # checkpoint, so a cluster runs the polygons in parallel; polygons smaller than run.pack_seconds
 # share a texture job (difftex/workflow/jobs.py), named by its polygon or `group-<digest>`. `run.gpu` > 0 requests GPUs; the
 # `compute` section (device, torch.compile) changes no result, so changing it reruns nothing.
@@ -45,24 +45,24 @@ rule texture:
 
 rule finish:
     input:
-        # the polygon's texture job; it wrote R/optimized/<pid>/composite.npz
-        job=get_polygon_job,
+        # the texture job; it wrote R/optimized/<pid>/composite.npz of each of its polygons
+        job=f"{R}/optimized/jobs/{{job}}.json",
         config=STAGE_CFG["output"],
     output:
-        texture=f"{R}/textures/{{pid}}/texture.png",
-        source=f"{R}/textures/{{pid}}/source.png",
-        dominant=f"{R}/textures/{{pid}}/source.npz",
-        coverage=f"{R}/textures/{{pid}}/coverage.png",
-        report=f"{R}/textures/{{pid}}/report.json",
+        # the job's list of its polygons, written last; each polygon's texture.png, source.png,
+        # source.npz, coverage.png and report.json are in R/textures/<polygon>/ (written atomically)
+        f"{R}/textures/jobs/{{job}}.json",
     params:
         stage_config=STAGE_TEXT["output"],
-        composite=lambda wc: f"{R}/optimized/{wc.pid}/composite.npz",
-        out_dir=lambda wc, output: Path(output.texture).parent,
+        composites=lambda wc: [f"{R}/optimized/{pid}/composite.npz" for pid in get_job_pids(wc)],
+        out_dirs=lambda wc: [f"{R}/textures/{pid}" for pid in get_job_pids(wc)],
     log:
-        f"{R}/logs/finish/{{pid}}.log",
+        f"{R}/logs/finish/{{job}}.log",
     conda:
         "../envs/difftex.yaml"
-    # a shell job that imports no torch (0.2 s): a run: job would spawn a second Snakemake (~1.5 s)
+    # a shell job that imports no torch (0.2 s), one per texture job (not per polygon: a
+    # district's thousands of polygons would be thousands of process starts); a run: job would
+    # spawn a second Snakemake (~1.5 s)
     shell:
-        "difftex finish --composite {params.composite:q} --config {input.config:q} "
-        "--out-dir {params.out_dir:q} > {log:q} 2>&1"
+        "difftex finish --composite {params.composites:q} --config {input.config:q} "
+        "--out-dir {params.out_dirs:q} --done {output:q} > {log:q} 2>&1"
