@@ -223,3 +223,29 @@ def test_block_scene_stages_in_parts_equal_one_job(tmp_path):
     npz = sorted(p.name for p in (one / "visibility").glob("*.npz"))
     assert len(npz) >= 100 and npz == sorted(p.name for p in (parts / "visibility").glob("*.npz"))
     assert all(_npz_equal(one / "visibility" / n, parts / "visibility" / n) for n in npz)
+
+
+def test_a_chunk_checks_its_own_photo_files_only(district, tmp_path, capsys):
+    import shutil
+
+    from difftex.scene.files import read_image, write_image
+
+    scene = tmp_path / "scene"
+    shutil.copytree(district, scene)
+    names = [p.relative_to(scene / "images").as_posix() for p in image_files(scene / "images")]
+    bad = scene / "images" / names[-1]  # in the last chunk
+    write_image(bad, read_image(bad)[:-8])  # 8 rows short of its camera's size
+    assert _cli("filter", "--quiet", "--scene", str(scene), "--part", "1/2", "--out", str(tmp_path / "p1.json")) == 0
+    capsys.readouterr()
+    assert _cli("filter", "--quiet", "--scene", str(scene), "--part", "2/2", "--out", str(tmp_path / "p2.json")) != 0
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and str(bad) in err[0] and "but camera" in err[0], err
+    assert not (tmp_path / "p2.json").exists()
+
+
+def test_finish_pairs_composites_with_folders(tmp_path, capsys):
+    out = tmp_path / "done.json"
+    assert _cli("finish", "--composite", "a.npz", "b.npz", "--out-dir", str(tmp_path / "a"), "--done", str(out)) != 0
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "2 --composite files but 1 --out-dir folders" in err[0]
+    assert not out.exists()

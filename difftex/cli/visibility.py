@@ -154,7 +154,11 @@ def run(args) -> int:
     secs = time.perf_counter() - t0
     if args.tile:
         rows = [{"index": index[r["id"]], **r} for r in rows]
-        write_json(args.rows, {"scene": str(scene.root), "tile": args.tile, "rows": rows, "seconds": round(secs, 2)})
+        # the photos this tile decoded (its polygons' candidates): a photo seen by two tiles is read twice
+        mine = {scene.proxy.polygons[i].id for i in only or []}
+        read = set().union(*(set(cands.get(pid, ())) | set(later.get(pid, ())) for pid in mine)) if mine else set()
+        write_json(args.rows, {"scene": str(scene.root), "tile": args.tile, "rows": rows, "seconds": round(secs, 2),
+                               "photos_read": len(read & {ph.name for ph in scene.photos})})
         print(f"{scene.name}: visibility of tile {args.tile} ({len(vis)} polygons) in {secs:.1f} s -> {args.rows}")
         return 0
     write_json(out / "summary.json", {"scene": str(scene.root), "polygons": rows, "seconds": round(secs, 2)})
