@@ -91,8 +91,8 @@ def main(argv=None) -> int:
         "One switch of the `optimize:` section off per row (OptimizeConfig: use_render, ghost, use_persp, "
         "use_para, data_elimination, settle_sigma, align, histogram_matching, coarse_to_fine), or another "
         "histogram-matching reference (histmatch_reference; default median); everything else as in `full`.",
-        "Maps scored against ground truth as in Table 1; time is texturing (init + optimize + histmatch) summed over "
-        "the polygons.",
+        "Maps scored against ground truth as in Table 1; time is texturing summed over the polygons (one `difftex "
+        "texture` per polygon: brightness transfers, the weights' initialization and optimization, composition).",
         "Peer rows: the peer programs on the same polygons and photos, for reference (not difftex variants).",
     ]
     notes += [n for n in [P.timing_note(rows)] if n]

@@ -91,9 +91,10 @@ def main(argv=None) -> int:
             "[0, sqrt 3], percentiles pooled over all texels; SSIM/LPIPS texel-weighted over polygons).",
             "`views`: the textured proxy rendered into the scene's occluder-free held-out views and compared on the "
             "proxy's pixels (Table 2's scheme on synthetic data).",
-            "Time: texturing only (sum over polygons of the method's per-polygon commands: init + optimize + histmatch "
-            f"for difftex); shared filter {common['filter_s']:.0f} s + visibility {common['visibility_s']:.0f} s not "
-            "included.",
+            "Time: texturing only (sum over polygons of the method's per-polygon command; for difftex one "
+            "`difftex texture` per polygon, which does the brightness transfers, the weights' initialization and "
+            f"optimization and the composition and writes the PNGs); shared filter {common['filter_s']:.0f} s + "
+            f"visibility {common['visibility_s']:.0f} s not included.",
             "Lower is better for Error and LPIPS, higher for SSIM, PSNR, Q_front, Q_vc. Sharpness: mean colour "
             "gradient over the ground truth's on the same texels (1 = as sharp; below: blurred; above: noise, seams). "
             "Detail: the ground truth's gradients the texture reproduces, sum(grad T . grad GT) / sum(|grad GT|^2) "
