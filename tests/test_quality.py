@@ -21,6 +21,20 @@ def test_relative_footprint_is_one_for_the_best_photo_and_absolute_below_one_pix
     assert torch.allclose(relative_footprint(fp, None), fp.clamp(max=1.0))  # resolution_reference: pixel
 
 
+def test_the_knee_counts_photos_near_the_best_as_fully_resolved():
+    best = torch.tensor([4.0, 4.0, 4.0, 4.0, 0.5, 0.0])
+    fp = torch.tensor([4.0, 3.0, 2.0, 1.0, 0.25, 0.0])
+    out = relative_footprint(fp, best, knee=1.5)
+    # within 1.5x of the best: 1; half the best's pixels: 0.75; a quarter: 0.375; no best pixel: 1.5 x fp
+    assert torch.allclose(out, torch.tensor([1.0, 1.0, 0.75, 0.375, 0.375, 0.0]))
+    assert torch.equal(relative_footprint(fp, best, knee=1.0), relative_footprint(fp, best))  # 1: no knee
+    assert torch.allclose(relative_footprint(fp, best, knee=1e9)[:5], torch.ones(5))  # a huge knee: all alike
+    from difftex.method.config import OptimizeConfig
+
+    with pytest.raises(ValueError, match="resolution_knee"):
+        OptimizeConfig(resolution_knee=0.5)
+
+
 @pytest.mark.parametrize("weight", [0.0, 1.0, 2.0])
 def test_quality_scales_with_the_relative_footprint(weight):
     h, w = 2, 3

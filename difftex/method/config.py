@@ -76,6 +76,9 @@ class OptimizeConfig:
     # "best": Q_r relative to the texel's best candidate; "pixel": min(1, pixels per texel), the
     # earlier Q_r, which ranks every photo with a pixel per texel or more alike
     resolution_reference: ResolutionReference = "best"
+    # with "best": photos within this factor of the texel's best candidate's pixels per texel count
+    # as fully resolved (Q_r = min(1, knee x footprint / best)^resolution_weight); 1: no knee
+    resolution_knee: float = 1.0
     # the relative Q_r also weighs the photos as witnesses of what a texel shows (L_Render and its
     # ghost term, the settling test): off, they count by Q_a Q_c min(1, px), so a close photo with
     # an occluder does not outvote the farther photos that see past it
@@ -159,6 +162,8 @@ class OptimizeConfig:
         _check_choice("resolution_reference", self.resolution_reference, ("best", "pixel"))
         if self.resolution_weight < 0:
             raise ValueError(f"resolution_weight must be >= 0, got {self.resolution_weight}")
+        if not self.resolution_knee >= 1.0:
+            raise ValueError(f"resolution_knee must be >= 1, got {self.resolution_knee}")
         _check_choice("histmatch_reference", self.histmatch_reference, ("best", "median", "pooled"))
         _check_choice("histmatch_model", self.histmatch_model, ("gain", "quantile"))
         if not set(self.histmatch_channels) <= set("hsv") or not self.histmatch_channels:

@@ -376,7 +376,7 @@ def build_level(
         qac = quality(mp.cos, c, mu[:, y0:y1, x0:x1], msd[sl], mp.visible, cfg.sigma_min)  # once for both Q
         best = fpbest[sl] if cfg.resolution_reference == "best" else None
         rw = cfg.resolution_weight
-        qb = qac * resolution_factor(relative_footprint(mp.footprint, best), rw, mp.visible)
+        qb = qac * resolution_factor(relative_footprint(mp.footprint, best, cfg.resolution_knee), rw, mp.visible)
         q = qac * resolution_factor(relative_footprint(mp.footprint, None), rw, mp.visible) if split else qb
         pc = losses.persp_cost(mp.view[None], v_tilde)[0]
         weight = qb  # as the paper (Sec. 4.2), the weights start at Q (here the blend's, with Q_r)

@@ -62,7 +62,7 @@ def resolution_factor(footprint: torch.Tensor, weight: float, visible: torch.Ten
     return torch.where(visible, footprint**weight, torch.zeros_like(footprint))
 
 
-def relative_footprint(footprint: torch.Tensor, best: torch.Tensor | None) -> torch.Tensor:
+def relative_footprint(footprint: torch.Tensor, best: torch.Tensor | None, knee: float = 1.0) -> torch.Tensor:
     """A photo's pixels per texel over the most that any of the texel's candidates has, or over
     one pixel where none has more: the base of Q_r.
 
@@ -76,13 +76,18 @@ def relative_footprint(footprint: torch.Tensor, best: torch.Tensor | None) -> to
         footprint: (h, w) the texel's size in the photo's pixels.
         best: (h, w) the largest footprint over the texel's candidates; None: min(1, footprint),
             the earlier Q_r (``resolution_reference: pixel``).
+        knee: with ``best``, photos within this factor of it count as fully resolved:
+            min(1, knee x footprint / best) (``resolution_knee``; 1: none). A drone photo four
+            times coarser than a street photo still falls off, while photos of nearly the same
+            resolution are not ranked by differences their blur does not show.
 
     Returns:
         (h, w) in [0, 1] where footprint <= max(best, 1).
     """
     if best is None:
         return footprint.clamp(max=1.0)
-    return footprint / best.clamp_min(1.0)
+    rel = footprint / best.clamp_min(1.0)
+    return (rel * knee).clamp(max=1.0) if knee > 1.0 else rel
 
 
 def level_noise(msd: torch.Tensor, count: torch.Tensor, floor: float) -> float:
