@@ -1,7 +1,8 @@
 """Fast checks of the cluster side that need no SLURM: both profiles parse with every key known
 to Snakemake 9 and the SLURM plugin (a dry run), and the SLURM-vs-local output comparison of
-tests/slurm/run_slurm_e2e.sh --real catches differences. The SLURM run itself is
-tests/slurm/run_slurm_e2e.sh (root, Debian; about 80 s)."""
+tests/slurm/run_slurm_e2e.sh --real catches differences, to a tolerance or (--tolerance 0, the
+--block run) byte for byte. The SLURM run itself is tests/slurm/run_slurm_e2e.sh (root, Debian;
+about 80 s; --block, the 100-polygon block through SLURM and locally, about 5 min on 2 cores)."""
 
 import importlib.util
 import shutil
@@ -86,3 +87,40 @@ def test_compare_partial_run(tmp_path):
     (tmp_path / "e1").mkdir()
     (tmp_path / "e2").mkdir()
     assert cmp.main([str(tmp_path / "e1"), str(tmp_path / "e2"), "--partial"]) == 1
+
+
+def test_compare_exact(tmp_path):
+    """--tolerance 0 (the --block run's mode): texture PNGs byte for byte, NPZ arrays equal."""
+    cmp = _compare_module()
+    rng = np.random.default_rng(1)
+    tex = rng.random((8, 6, 3), dtype=np.float32)
+    w = rng.random((2, 8, 6)).astype(np.float16)
+    a = _tree(tmp_path / "a", tex, w)
+    b = _tree(tmp_path / "b", tex, w)
+    assert cmp.main([str(a), str(b), "--tolerance", "0"]) == 0
+    assert cmp.main([str(a), str(b), "--exact"]) == 0
+
+    # one texel one 8-bit step off: within the default tolerance, not identical
+    tex2 = tex.copy()
+    tex2[0, 0, 0] = (np.round(tex[0, 0, 0] * 255) + (1 if tex[0, 0, 0] < 0.5 else -1)) / 255
+    c = _tree(tmp_path / "c", tex2, w)
+    assert cmp.main([str(a), str(c)]) == 0
+    assert cmp.main([str(a), str(c), "--tolerance", "0"]) == 1
+
+    # same texture, weights one float16 step apart: only the exact mode fails
+    w2 = w.copy()
+    w2[0, 0, 0] = np.nextafter(w[0, 0, 0], np.float16(2))
+    d = _tree(tmp_path / "d", tex, w2)
+    assert cmp.main([str(a), str(d)]) == 0
+    assert cmp.main([str(a), str(d), "--tolerance", "0"]) == 1
+
+
+def test_compare_exact_ignores_npz_text(tmp_path):
+    """A composite's JSON report (timings) differs between runs; its numeric arrays must not."""
+    cmp = _compare_module()
+    tex = np.full((4, 4, 3), 0.5, np.float32)
+    for name, report in (("a", '{"time_s": 0.1}'), ("b", '{"time_s": 0.25}')):
+        write_image(tmp_path / name / "results/s/textures/p0/texture.png", tex)
+        write_npz(tmp_path / name / "results/s/optimized/p0/composite.npz",
+                  rgb=np.ones((4, 4, 3), np.float32), report=np.array(report))
+    assert cmp.main([str(tmp_path / "a"), str(tmp_path / "b"), "--tolerance", "0"]) == 0
