@@ -1,7 +1,8 @@
 """How the whole workflow scales with the scene: generated districts at three sizes (issue #32).
 
     python evaluation/bench_scale.py --smoke                       # 1, 3, 10 buildings: minutes
-    python evaluation/bench_scale.py --buildings 12,36,120 --views 10   # about 100, 330, 1,100 polygons
+    python evaluation/bench_scale.py --buildings 12,36,120 --views 84 --work evaluation/out/bench_scale_10k
+        # about 100, 330, 1,100 polygons with 1,000, 3,000, 10,000 photos (evaluation/results/bench_scale.md)
 
 For every size, on the same machine and in this order:
 
