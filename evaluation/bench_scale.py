@@ -49,7 +49,8 @@ LIMITS = {
     "peak_rss_mb": (4000.0, "a job's peak RSS above the SLURM profile's default mem_mb (4,000 MB)"),
     "jobs": (10_000.0, "more than 10,000 jobs in one run (Snakemake's per-job bookkeeping and logs)"),
     "dag_s": (600.0, "DAG building (snakemake -n) over 10 minutes"),
-    "serial_s": (3600.0, "one job of the whole-scene stages (filter or visibility, a part or the merge) over 1 hour"),
+    "serial_s": (3600.0,
+                 "one job of the whole-scene stages (filter or visibility, a part or the merge) over 1 hour"),
     "overhead_s": (3600.0, "Snakemake's own overhead (no job running) over 1 hour"),
 }
 _STAMP = re.compile(r"^\[(\w{3} \w{3} +\d+ \d\d:\d\d:\d\d \d{4})\]$")
@@ -259,7 +260,8 @@ def write(stem: Path, rows: list[dict], ext: dict, mach: dict, args, note: str, 
          "whole-scene stages only; the per-polygon jobs are added to the DAG after the checkpoint, inside the run, "
          "and that time is in the overhead column.",
          "Exponent b of y = a work^b, least squares in log-log over the sizes (work: photos for the filter and "
-         "visibility stages, their parts and merges; polygons otherwise); at 10,000 polygons: the fit evaluated there with photos in the largest "
+         "visibility stages, their parts and merges; polygons otherwise); at 10,000 polygons: the fit evaluated "
+         "there with photos in the largest "
          "size's proportion. Fixed costs (interpreter and torch start-up) dominate small sizes and pull the "
          "exponents below their asymptotic values: the smoke sizes' extrapolation is a lower bound."])]
     lines += ["## Runs", "", "| polygons | photos | generate (s) | DAG -n (s) | wall (s) | CPU (s) | busy (s) | "

@@ -88,7 +88,8 @@ def test_failed_job_ends_the_console_with_its_error_line(scene, tmp_path):
     line = assert_console_error(r, "cameras.txt", "camera 1", "focal length 0")
     assert "img_" not in line  # the camera's fault, not a photo's
     lines = console_lines(r)
-    assert any(ln.startswith("difftex: 1 job failed; log: results/small/logs/filter/001-of-001.log") for ln in lines[-3:])
+    failed = "difftex: 1 job failed; log: results/small/logs/filter/001-of-001.log"
+    assert any(ln.startswith(failed) for ln in lines[-3:])
     assert not (work / photos_target()).exists() and B.temp_files(work / "results") == []
 
 

@@ -19,9 +19,9 @@ from difftex.errors import DifftexError
 from difftex.scene.partition import (
     chunk_bounds,
     image_files,
+    parse_part,
     part_name,
     part_spec,
-    parse_part,
     parts_for,
     photo_chunk,
     polygon_tiles,
@@ -127,7 +127,8 @@ def test_filter_chunks_merge_to_the_single_job_table(district, tmp_path):
     counts = [len(n) for n in names]
     assert sum(counts) == len(image_files(district / "images")) and max(counts) - min(counts) <= 1
     # merged in any order of the files
-    assert _cli("filter", "--quiet", "--scene", str(district), "--parts", *parts[::-1], "--out", str(tmp_path / "m.json")) == 0
+    merged = str(tmp_path / "m.json")
+    assert _cli("filter", "--quiet", "--scene", str(district), "--parts", *parts[::-1], "--out", merged) == 0
     assert _table(tmp_path / "m.json") == _table(tmp_path / "one.json")
     assert (tmp_path / "m.csv").read_text() == (tmp_path / "one.csv").read_text()
 
@@ -136,13 +137,14 @@ def test_a_missing_or_foreign_chunk_is_one_line(district, tmp_path, capsys):
     part = tmp_path / "p1.json"
     assert _cli("filter", "--quiet", "--scene", str(district), "--part", "1/2", "--out", str(part)) == 0
     capsys.readouterr()
-    assert _cli("filter", "--quiet", "--scene", str(district), "--parts", str(part), "--out", str(tmp_path / "m.json")) != 0
+    merged = str(tmp_path / "m.json")
+    assert _cli("filter", "--quiet", "--scene", str(district), "--parts", str(part), "--out", merged) != 0
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "rerun the filter stage" in err[0] and str(part) in err[0]
     assert not (tmp_path / "m.json").exists()
     other = tmp_path / "other.json"
     other.write_text(json.dumps({"polygons": {}}))
-    assert _cli("filter", "--quiet", "--scene", str(district), "--parts", str(other), "--out", str(tmp_path / "m.json")) != 0
+    assert _cli("filter", "--quiet", "--scene", str(district), "--parts", str(other), "--out", merged) != 0
     assert "not a chunk of the difftex filter stage" in capsys.readouterr().err
     assert _cli("filter", "--quiet", "--scene", str(district), "--part", "3/2", "--out", str(part)) != 0
     assert "PART must be between 1 and PARTS" in capsys.readouterr().err

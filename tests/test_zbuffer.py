@@ -125,3 +125,32 @@ def test_zbuffer_in_utm_coordinates():
     assert (a != b).mean() < 1e-3
     same = (a == b) & (a >= 0)
     np.testing.assert_allclose(da[same], db[same], rtol=1e-5)
+
+
+def test_pieces_beside_the_photo_change_nothing():
+    """The cull of pieces outside the photo (one array pass, not a call per piece) keeps every
+    piece that a ray could meet: a street of walls in front of the camera and another behind it,
+    most beside or behind the photo, gives the ids of the walls in view alone (re-indexed), at
+    the image's edges too."""
+    walls = []
+    for side, x in (("front", 10.0), ("back", -10.0)):
+        for k in range(-60, 60):
+            y0, y1 = 1.5 * k, 1.5 * k + 1.4
+            outline = [[x, y1, 0], [x, y0, 0], [x, y0, 3], [x, y1, 3]] if x > 0 else \
+                [[x, y0, 0], [x, y1, 0], [x, y1, 3], [x, y0, 3]]
+            walls.append(Polygon(f"{side}{k + 60}", np.array(outline, float)))
+    whole = Proxy(walls, Path("street.obj"))
+    photo = _photo([0, 0, 1.5], [10, 0, 1.5], f=200.0)
+    ids, dist = zbuffer(Pieces.of(whole), photo)
+    seen = np.unique(ids[ids >= 0])
+    assert 5 <= len(seen) < 30  # the rest of the 240 walls are beside or behind the camera
+    alone = Proxy([walls[i] for i in seen], Path("seen.obj"))
+    ids2, dist2 = zbuffer(Pieces.of(alone), photo)
+    assert np.array_equal(np.where(ids2 >= 0, seen[np.maximum(ids2, 0)], -1), ids)
+    assert np.array_equal(dist2, dist)
+    # and the walls in view are every wall the exact ray caster finds (the cull dropped none)
+    ref_ids, _ = id_buffer(ProxyCaster.build(whole, "numpy"), photo)
+    assert set(np.unique(ref_ids[ref_ids >= 0])) == set(seen) and (ids != ref_ids).mean() < 2e-3
+    # a polygon's normal and centroid are computed once and cannot be changed in place
+    w = walls[0]
+    assert w.normal is w.normal and not w.normal.flags.writeable and not w.centroid.flags.writeable

@@ -9,7 +9,8 @@ HELP = "Drop photos that see no polygon, blurry photos, and per polygon extremel
 def add_arguments(p) -> None:
     p.add_argument("--scene", required=True, help="scene folder (images/, sparse/0/, proxy.obj)")
     p.add_argument("--config", help="YAML config; section 'filter' is read")
-    p.add_argument("--out", required=True, help="output JSON table (a CSV is written beside it); with --part, the chunk's records")
+    p.add_argument("--out", required=True,
+                   help="output JSON table (a CSV is written beside it); with --part, the chunk's records")
     p.add_argument("--part", help="PART/PARTS: measure only this chunk of the scene's photos (difftex.scene.partition)")
     p.add_argument("--parts", nargs="+", help="merge these chunks' records (from --part runs) into the table")
     p.add_argument("--quiet", action="store_true")
@@ -79,7 +80,8 @@ def run(args) -> int:
         records = photo_records(scene.proxy, photos, cfg, progress=not args.quiet)
         secs = time.perf_counter() - t0
         write_json(out, {"part": args.part, "records": [r.__dict__ for r in records], "seconds": round(secs, 3)})
-        print(f"{scene.name}: photos {args.part}: {len(photos)} of {len(scene.photos)} measured in {secs:.1f} s -> {out}")
+        print(f"{scene.name}: photos {args.part}: {len(photos)} of {len(scene.photos)} measured in {secs:.1f} s "
+              f"-> {out}")
         return 0
     if args.parts:
         records, chunk_s = merged_records(scene, args.parts)

@@ -54,7 +54,8 @@ def merge_tiles(paths: list[str], out_dir) -> int:
         seconds += float(data.get("seconds", 0.0))
         rows += data["rows"]
     if sorted(r["index"] for r in rows) != list(range(len(rows))):
-        raise DifftexError(f"{paths[0]}: the visibility tiles do not hold every polygon once: rerun the visibility stage")
+        raise DifftexError(
+            f"{paths[0]}: the visibility tiles do not hold every polygon once: rerun the visibility stage")
     rows = [{k: v for k, v in r.items() if k != "index"} for r in sorted(rows, key=lambda r: r["index"])]
     out = Path(out_dir)
     write_json(out / "summary.json", {"scene": scene, "polygons": rows, "seconds": round(seconds, 2)})

@@ -240,13 +240,11 @@ def scene_visibility(
     caster = ProxyCaster.build(proxy)
     fallback = fallback or {}
     todo = list(range(len(proxy.polygons))) if only is None else sorted({int(i) for i in only})
-    probes = probe_masks = None
-    if cfg.mode == "auto":  # the probe frames of the polygons computed here (None elsewhere)
-        probes = [None] * len(proxy.polygons)
-        probe_masks = [None] * len(proxy.polygons)
-        for i in todo:
-            probes[i] = uv_frame(proxy.polygons[i], up, long_side=PROBE_LONG_SIDE)
-            probe_masks[i] = texel_mask(proxy.polygons[i], probes[i])
+    probes: dict[int, UVFrame] | None = None  # the probe frames of the polygons computed here
+    probe_masks: dict[int, np.ndarray] | None = None
+    if cfg.mode == "auto":
+        probes = {i: uv_frame(proxy.polygons[i], up, long_side=PROBE_LONG_SIDE) for i in todo}
+        probe_masks = {i: texel_mask(proxy.polygons[i], probes[i]) for i in todo}
     ids_todo = {proxy.polygons[i].id for i in todo}
     wanted = {
         pid: set(names) | set(fallback.get(pid, ())) for pid, names in candidates.items() if pid in ids_todo

@@ -17,6 +17,7 @@ camera's plane, are left to ray casting (``zbuffer`` returns None).
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 
@@ -50,6 +51,16 @@ class Pieces:
             owner.extend([i] * len(t))
         return cls(world, np.asarray(owner, np.int32))
 
+    @cached_property
+    def stacked(self) -> tuple[np.ndarray, np.ndarray]:
+        """(every piece's vertices (N, 3) in one array, the index of each piece's first vertex (J,)):
+        a photo transforms and culls all pieces with a few array operations, not one call per
+        piece (a district's thousands of pieces, most outside any one photo)."""
+        if not self.world:
+            return np.zeros((0, 3)), np.zeros(0, np.int64)
+        sizes = np.array([len(w) for w in self.world])
+        return np.concatenate(self.world), np.concatenate([[0], np.cumsum(sizes)[:-1]]).astype(np.int64)
+
 
 def _convex(xy: np.ndarray) -> bool:
     """Whether a closed 2D outline (n, 2) turns one way only (collinear vertices allowed)."""
@@ -82,17 +93,29 @@ def zbuffer(pieces: Pieces, photo: Photo, stride: int = 1) -> tuple[np.ndarray, 
     ys, xs = pixel_centres(photo.height, stride), pixel_centres(photo.width, stride)
     ids = np.full((len(ys), len(xs)), NO_POLYGON, np.int32)
     dist = np.full((len(ys), len(xs)), np.inf, np.float32)
-    cams = [photo.to_camera(w) for w in pieces.world]
-    front = [bool((P[:, 2] > _MIN_DEPTH).all()) for P in cams]
-    if any((P[:, 2] > _MIN_DEPTH).any() and not f for P, f in zip(cams, front)):
+    world, starts = pieces.stacked
+    if len(starts) == 0:
+        return ids, dist
+    allc = photo.to_camera(world)  # every piece's vertices in the camera frame, in one product
+    ends = np.append(starts[1:], len(allc))
+    z = allc[:, 2]
+    front = np.minimum.reduceat(z, starts) > _MIN_DEPTH
+    if ((np.maximum.reduceat(z, starts) > _MIN_DEPTH) & ~front).any():
         return None  # a piece crosses the camera's plane
     K = photo.K()
     fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
     # normalised image coordinates of the grid: the ray of cell (r, c) is (u[c], v[r], 1)
     u, v = (xs - cx) / fx, (ys - cy) / fy
+    # a piece in front of the camera projects inside its vertices' bounding box: one wholly
+    # beside the grid meets no ray (the test is conservative by a margin; _rows_inside decides)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        pu, pv = allc[:, 0] / z, allc[:, 1] / z
+    eu, ev = 1e-9 * (1.0 + abs(u[-1] - u[0])), 1e-9 * (1.0 + abs(v[-1] - v[0]))
+    seen = front & (np.maximum.reduceat(pu, starts) >= u[0] - eu) & (np.minimum.reduceat(pu, starts) <= u[-1] + eu)
+    seen &= (np.maximum.reduceat(pv, starts) >= v[0] - ev) & (np.minimum.reduceat(pv, starts) <= v[-1] + ev)
     norm: np.ndarray | None = None  # |(u, v, 1)| over the grid, made when a piece is in view
-    for j in np.flatnonzero(front):  # a piece wholly behind the camera meets no ray
-        span = _rows_inside(cams[j], u, v)
+    for j in np.flatnonzero(seen):  # a piece wholly behind the camera, or beside it, meets no ray
+        span = _rows_inside(allc[starts[j] : ends[j]], u, v)
         if span is None:
             continue
         r0, r1, lo, hi = span
@@ -101,7 +124,7 @@ def zbuffer(pieces: Pieces, photo: Photo, stride: int = 1) -> tuple[np.ndarray, 
             # float32 from the start: a float64 grid of a 24 Mpixel photo is 190 MB
             u32, v32 = u.astype(np.float32), v.astype(np.float32)
             norm = np.sqrt((u32 * u32)[None, :] + (v32 * v32 + np.float32(1.0))[:, None])
-        P = cams[j]
+        P = allc[starts[j] : ends[j]]
         normal = np.cross(P[1] - P[0], P[2] - P[0])
         h = float(normal @ P[0])  # plane: normal . X = h (camera frame)
         cols = np.arange(c0, c1)

@@ -11,6 +11,7 @@ from __future__ import annotations
 import logging
 import re
 from dataclasses import dataclass, field
+from functools import cached_property
 from pathlib import Path
 
 import numpy as np
@@ -37,13 +38,20 @@ class Polygon:
     semantic: str = ""  # CityJSON proxies: the surface's semantic type (WallSurface, RoofSurface...)
     building: str = ""  # CityJSON proxies: the building (topmost CityObject) the polygon belongs to
 
-    @property
+    # Computed once per polygon (the stages ask for every polygon's normal per photo: with a
+    # district's thousands of polygons, recomputing it was most of the photo filter's time), and
+    # read-only, so that no caller can change the cached value in place.
+    @cached_property
     def normal(self) -> np.ndarray:
-        return newell_normal(self.outer)
+        n = np.array(newell_normal(self.outer), dtype=np.float64)
+        n.flags.writeable = False
+        return n
 
-    @property
+    @cached_property
     def centroid(self) -> np.ndarray:
-        return self.outer.mean(axis=0)
+        c = np.array(self.outer.mean(axis=0), dtype=np.float64)
+        c.flags.writeable = False
+        return c
 
     @property
     def offset(self) -> float:
