@@ -16,9 +16,9 @@ import pytest
 
 from difftex.cli import main as cli_main
 from difftex.errors import DifftexError
+from difftex.scene.camera import image_files
 from difftex.scene.partition import (
     chunk_bounds,
-    image_files,
     parse_part,
     part_name,
     part_spec,

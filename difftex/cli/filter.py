@@ -18,9 +18,9 @@ def add_arguments(p) -> None:
 
 def chunk_photos(scene, part: str) -> list:
     """The scene's photos in chunk ``part`` (``PART/PARTS``) of its image files."""
-    from difftex.scene.camera import check_photo_file
+    from difftex.scene.camera import check_photo_file, image_files
     from difftex.scene.loading import find_sparse
-    from difftex.scene.partition import image_files, parse_part, photo_chunk
+    from difftex.scene.partition import parse_part, photo_chunk
 
     j, n = parse_part(part)
     images = scene.root / "images"
@@ -28,7 +28,7 @@ def chunk_photos(scene, part: str) -> list:
     photos = [ph for ph in scene.photos if ph.name in names]
     sparse = find_sparse(scene.root)
     for ph in photos:  # the scene was read without its files; this chunk's are checked here
-        check_photo_file(ph, sparse, ph.camera.camera_id)
+        check_photo_file(ph, sparse)
     if j == 0:  # and the first chunk warns once of photos the model does not list, as a whole-scene read does
         from difftex.scene.camera import model_file, read_reconstruction, warn_unlisted
 

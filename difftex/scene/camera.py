@@ -132,16 +132,25 @@ def model_file(sparse_dir: Path, stem: str) -> Path:
     return binary if binary.is_file() else sparse_dir / f"{stem}.txt"
 
 
+def image_files(images_dir: str | Path) -> list[Path]:
+    """The scene's photo files, in name order: every file under ``images_dir`` (searched
+    recursively, as COLMAP names may hold folders) with an image suffix; none when the folder is
+    not there. The workflow's inputs, the filter's photo chunks and the unlisted-photo warning all
+    list the photos with this, so they agree on them."""
+    root = Path(images_dir)
+    if not root.is_dir():
+        return []
+    return sorted(p for p in root.rglob("*") if p.suffix.lower() in IMAGE_SUFFIXES and p.is_file())
+
+
 def unlisted_photos(images_dir: Path, listed: set[str]) -> list[str]:
     """Photo files under ``images_dir`` (relative names, as COLMAP writes them) that the model
     does not list, sorted."""
-    if not images_dir.is_dir():
-        return []
-    names = (p.relative_to(images_dir).as_posix() for p in images_dir.rglob("*") if p.suffix.lower() in IMAGE_SUFFIXES)
-    return sorted(n for n in names if n not in listed and (images_dir / n).is_file())
+    names = (p.relative_to(images_dir).as_posix() for p in image_files(images_dir))
+    return sorted(n for n in names if n not in listed)
 
 
-def check_photo_file(photo: Photo, sparse_dir: str | Path, camera_id: int | str = "") -> None:
+def check_photo_file(photo: Photo, sparse_dir: str | Path) -> None:
     """Stop with one line naming the photo's file when it is missing or its size is not its
     camera's (the header only is read)."""
     from difftex.scene.files import image_size
@@ -153,7 +162,7 @@ def check_photo_file(photo: Photo, sparse_dir: str | Path, camera_id: int | str 
     size = image_size(path)
     if size != (photo.width, photo.height):
         raise DifftexError(
-            f"{path}: image is {size[0]}x{size[1]} but camera {camera_id} in "
+            f"{path}: image is {size[0]}x{size[1]} but camera {photo.camera.camera_id} in "
             f"{model_file(sparse_dir, 'cameras')} says {photo.width}x{photo.height}"
         )
 
@@ -192,17 +201,17 @@ def load_photos(
                 f"{images_file}: image '{image.name}': rotation is not a rotation (det {np.linalg.det(R):.3f})"
             )
         photo = Photo(
-                name=image.name,
-                image_path=path,
-                camera=cam,
-                R=R,
-                t=t,
-                width=int(cam.width),
-                height=int(cam.height),
-                model=str(cam.model_name),
-            )
+            name=image.name,
+            image_path=path,
+            camera=cam,
+            R=R,
+            t=t,
+            width=int(cam.width),
+            height=int(cam.height),
+            model=str(cam.model_name),
+        )
         if check_images:
-            check_photo_file(photo, sparse_dir, cam.camera_id)
+            check_photo_file(photo, sparse_dir)
         photos.append(photo)
     if not photos:
         raise DifftexError(f"{images_file}: COLMAP model has no registered images")

@@ -13,26 +13,10 @@ without a plan file.
 from __future__ import annotations
 
 import math
-from pathlib import Path
 
 import numpy as np
 
 from difftex.errors import DifftexError
-from difftex.scene.camera import IMAGE_SUFFIXES
-
-
-def image_files(images_dir: str | Path) -> list[Path]:
-    """The scene's photo files, in name order (the order the photo chunks are cut from).
-
-    Args:
-        images_dir: the scene's images/ folder (searched recursively, as COLMAP names may hold folders).
-    Returns:
-        Paths of every file with an image suffix, sorted.
-    """
-    root = Path(images_dir)
-    if not root.is_dir():
-        return []
-    return sorted(p for p in root.rglob("*") if p.suffix.lower() in IMAGE_SUFFIXES and p.is_file())
 
 
 def parts_for(count: int, per_job: int) -> int:
@@ -80,7 +64,7 @@ def chunk_bounds(count: int, part: int, parts: int) -> tuple[int, int]:
 
 
 def photo_chunk(names: list[str], part: int, parts: int) -> list[str]:
-    """The photo names of chunk ``part`` of ``parts`` (``names`` in the order of :func:`image_files`)."""
+    """The photo names of chunk ``part`` of ``parts`` (``names`` in the order of :func:`difftex.scene.camera.image_files`)."""
     a, b = chunk_bounds(len(names), part, parts)
     return names[a:b]
 

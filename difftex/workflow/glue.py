@@ -14,7 +14,7 @@ from typing import Any
 
 from difftex.errors import DifftexError
 from difftex.evaluation.report import stage_benchmarks
-from difftex.scene.camera import IMAGE_SUFFIXES
+from difftex.scene.camera import IMAGE_SUFFIXES, image_files  # noqa: F401 -- IMAGE_SUFFIXES: common.smk reads it here
 
 # Sections each stage command reads (docs/stages.md). A stage's config file holds only these,
 # so a change elsewhere leaves its file, and therefore its outputs, untouched.
@@ -221,7 +221,7 @@ def scene_inputs(scene: str | Path) -> list[str]:
     model = [sparse / f"{n}{ext}" for n in SPARSE_FILES for ext in (".bin", ".txt") if (sparse / f"{n}{ext}").is_file()]
     if not any(p.stem == "images" for p in model):
         raise DifftexError(f"{root}: no COLMAP model in sparse/0 (cameras/images .bin or .txt)")
-    images = sorted(p for p in (root / "images").rglob("*") if p.suffix.lower() in IMAGE_SUFFIXES and p.is_file())
+    images = image_files(root / "images")
     if not images:
         raise DifftexError(f"{root / 'images'}: no photos")
     return [str(p) for p in [proxies[0], *model, *images]]
