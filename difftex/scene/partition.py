@@ -64,7 +64,8 @@ def chunk_bounds(count: int, part: int, parts: int) -> tuple[int, int]:
 
 
 def photo_chunk(names: list[str], part: int, parts: int) -> list[str]:
-    """The photo names of chunk ``part`` of ``parts`` (``names`` in the order of :func:`difftex.scene.camera.image_files`)."""
+    """The photo names of chunk ``part`` of ``parts`` (``names`` in the order of
+    :func:`difftex.scene.camera.image_files`)."""
     a, b = chunk_bounds(len(names), part, parts)
     return names[a:b]
 
