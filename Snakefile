@@ -25,6 +25,7 @@ include: "workflow/rules/evaluate.smk"
 localrules:
     all,
     report,
+    compose,
     finish,
 
 

@@ -17,7 +17,10 @@ For every scene, in this order and on the same machine:
    at the first preset's texel sizes, in-process (no interpreter start-up per polygon).
 
 ``--subset N`` adds a copy of each scene with N of its photos (evenly spread), to show how the
-time grows with the photos at the same texels. Writes JSON and markdown with the machine.
+time grows with the photos at the same texels. ``--split both`` runs each preset with the
+per-polygon work as one ``texture`` job per polygon group (``run.split: false``) and as
+initialize/optimize/compose jobs (``run.split: true``), alternating, ``--repeats`` times each, and
+gives the split's wall against the one job's. Writes JSON and markdown with the machine.
 """
 
 from __future__ import annotations
@@ -73,6 +76,30 @@ def stage_lines(rows: list[dict]) -> list[str]:
     return lines
 
 
+def split_lines(rows: list[dict]) -> list[str]:
+    """Markdown: per scene and preset run both ways, the split's wall and CPU against the one job's
+    (medians over the repeats)."""
+    import statistics
+
+    lines = []
+    for row in rows:
+        by: dict[tuple[str, str], list[dict]] = {}
+        for run in row["runs"]:
+            by.setdefault((run["preset"].split(",")[0], run.get("split", "auto")), []).append(run)
+        for (preset, sp), runs in sorted(by.items()):
+            if sp != "true" or (preset, "false") not in by:
+                continue
+            one = by[(preset, "false")]
+            w1, w2 = (statistics.median(r["wall_s"] for r in rr) for rr in (one, runs))
+            c1, c2 = (statistics.median(r["cpu_s"] for r in rr) for rr in (one, runs))
+            lines.append(
+                f"- {Path(row['scene']).name} {preset}: split {w2:.1f} s against one job {w1:.1f} s wall "
+                f"({100 * (w2 / w1 - 1):+.0f} %), CPU {c2:.1f} s against {c1:.1f} s ({100 * (c2 / c1 - 1):+.0f} %); "
+                f"medians of {len(runs)} and {len(one)} runs"
+            )
+    return lines + [""] if lines else []
+
+
 def polygon_work(results: Path) -> dict:
     """Texels, slots and iterations of the run's texture stage (visibility summary, stats.json)."""
     from difftex.scene.files import read_json
@@ -100,11 +127,11 @@ def polygon_work(results: Path) -> dict:
             "texel_sizes": {p["id"]: p.get("texel_size") for p in vis}}
 
 
-def run_workflow(scene: Path, work: Path, preset: str, cores: int) -> dict:
+def run_workflow(scene: Path, work: Path, preset: str, cores: int, split: str = "auto") -> dict:
     work.mkdir(parents=True, exist_ok=True)
     bin_dir = Path(sys.executable).parent
     cmd = [str(bin_dir / "snakemake"), "-s", str(ROOT / "Snakefile"), "--directory", str(work), "--cores", str(cores),
-           "--config", f"scene={scene.resolve()}", f"preset={preset}", "run={evaluate: false}"]
+           "--config", f"scene={scene.resolve()}", f"preset={preset}", f"run={{evaluate: false, split: {split}}}"]
     env = dict(os.environ, PATH=f"{bin_dir}{os.pathsep}{os.environ.get('PATH', '')}")
     c0, t0 = children_cpu(), time.perf_counter()
     r = subprocess.run(cmd, capture_output=True, text=True, env=env)
@@ -115,7 +142,8 @@ def run_workflow(scene: Path, work: Path, preset: str, cores: int) -> dict:
 
     results = work / "results" / scene_name(scene)
     stages = read_benchmarks(results)
-    return {"preset": preset, "wall_s": wall, "cpu_s": cpu, "stages": stages,
+    label = preset + {"true": ", split", "false": ", one job"}.get(split, "")
+    return {"preset": label, "split": split, "wall_s": wall, "cpu_s": cpu, "stages": stages,
             "peak_rss_mb": max((d["max_rss_mb"] for d in stages.values()), default=0.0),
             **polygon_work(results), "results": str(results)}
 
@@ -179,6 +207,9 @@ def main(argv=None) -> int:
     ap.add_argument("--presets", default="fast,balanced")
     ap.add_argument("--subset", type=int, default=0, help="also a copy of each scene with this many photos")
     ap.add_argument("--cores", type=int, default=2)
+    ap.add_argument("--split", default="auto", choices=["auto", "true", "false", "both"],
+                    help="run.split of the workflow runs; both: each preset both ways, alternating")
+    ap.add_argument("--repeats", type=int, default=1, help="runs of each preset (and split), alternating")
     ap.add_argument("--work", default="evaluation/out/bench_speed")
     ap.add_argument("--out", default="evaluation/results/bench_speed")
     args = ap.parse_args(argv)
@@ -192,19 +223,22 @@ def main(argv=None) -> int:
     rows = []
     for scene in scenes:
         row: dict = {"scene": str(scene), "load_avg_start": os.getloadavg()}
-        presets = args.presets.split(",")
+        splits = ["false", "true"] if args.split == "both" else [args.split]
+        variants = [(p, sp) for p in args.presets.split(",") for sp in splits]
         row["runs"] = []
-        for p in presets:
-            wd = work / scene.name / p
-            if wd.exists():
-                shutil.rmtree(wd)
-            run = run_workflow(scene, wd, p, args.cores)
-            row["runs"].append(run)
-            print(
-                f"bench_speed: {scene.name} {p}: {run['wall_s']:.0f} s wall, {run['cpu_s']:.0f} s CPU, "
-                f"peak {run['peak_rss_mb']:.0f} MB, {run['texels'] / 1e6:.2f} M texels",
-                flush=True,
-            )
+        for rep in range(args.repeats):
+            for p, sp in variants:
+                wd = work / scene.name / "-".join([p] + ([f"split_{sp}"] if sp != "auto" else []) + [str(rep)])
+                if wd.exists():
+                    shutil.rmtree(wd)
+                run = run_workflow(scene, wd, p, args.cores, sp)
+                run["repeat"] = rep
+                row["runs"].append(run)
+                print(
+                    f"bench_speed: {scene.name} {run['preset']}: {run['wall_s']:.0f} s wall, {run['cpu_s']:.0f} s CPU, "
+                    f"peak {run['peak_rss_mb']:.0f} MB, {run['texels'] / 1e6:.2f} M texels",
+                    flush=True,
+                )
         first = Path(row["runs"][0]["results"])
         row["texrecon"] = run_texrecon(scene, work / scene.name, first)
         if "peer_s" in row["texrecon"]:
@@ -269,7 +303,7 @@ def write(stem: Path, rows: list[dict], mach: dict, args) -> None:
             if tw
             else f"| {sc.name} | {n_ph} | plain average | {av['wall_s']:.1f} | {av['cpu_s']:.1f} | | | | | n/a |"
         )
-    lines += ["", *stage_lines(rows)]
+    lines += ["", *split_lines(rows), *stage_lines(rows)]
     C.write_outputs(stem, "\n".join(lines) + "\n", {"machine": mach, "args": vars(args), "rows": rows})
 
 

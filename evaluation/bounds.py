@@ -66,7 +66,7 @@ def run(scene: Path, density_scale: float, max_long_side: int, preset: str, patc
         polygons: list[str] | None, tiles: tuple[int, ...] = ()) -> dict:
     import torch
 
-    from difftex.compose.composite import finish_texture
+    from difftex.compose.fill import finish_texture
     from difftex.compose.texturing import texture_polygon
     from difftex.config import TextureConfig
     from difftex.evaluation import metrics

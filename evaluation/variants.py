@@ -42,7 +42,7 @@ def run(
 ) -> dict:
     import torch
 
-    from difftex.compose.composite import finish_texture
+    from difftex.compose.fill import finish_texture
     from difftex.compose.texturing import texture_polygon
     from difftex.config import TextureConfig
     from difftex.evaluation import metrics

@@ -274,7 +274,7 @@ def test_cuda_matches_cpu():
 
 
 def test_fill_holes_fills_everything_and_keeps_known_texels():
-    from difftex.compose.composite import fill_holes
+    from difftex.compose.fill import fill_holes
 
     rng = np.random.default_rng(0)
     img = rng.random((40, 50, 3)).astype(np.float32)

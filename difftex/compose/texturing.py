@@ -1,10 +1,20 @@
-"""The per-polygon texturing stage: one pass over the photos, from candidates to texture maps.
+"""The per-polygon stages: one pass over the photos, from candidates to texture maps.
 
-For one polygon: decode its candidate photos once (difftex.sampling.photos.PhotoSet), map them at the
-first level, estimate their brightness transfers there (histogram matching, Sec. 4.3), run the
-coarse-to-fine optimization of the blend weights (difftex.method.loop), and compose the final
-texture from the last level's slots (no second pass over the photos). ``texture_polygon`` is
-the importable stage; the ``difftex texture`` command and the workflow's ``texture`` rule call it.
+For one polygon:
+
+1. initialization (``initialize_polygon``): decode its candidate photos once and crop them to
+   the polygon (difftex.sampling.photos.photo_crops);
+2. optimization (``optimize_photos``): build the crops' pyramids, sweep the relief when asked,
+   map the photos at the first level and estimate their brightness transfers there (histogram
+   matching, Sec. 4.3; the losses compare matched colours, so the transfers are an input of the
+   optimization, not a step after it), run the coarse-to-fine optimization of the blend weights
+   (difftex.method.loop) and sum U from the last level's slots (no second pass over the photos);
+3. composition (``compose_polygon``): fill the unseen texels, the report.
+
+``texture_polygon`` runs the three in one process (the workflow's ``texture`` rule with
+``run.split: false``, the baselines and benchmarks); the workflow's ``initialize``, ``optimize``
+and ``compose`` rules run them as three jobs that exchange the files of
+difftex.compose.stage_files.
 """
 
 from __future__ import annotations
@@ -16,14 +26,15 @@ from pathlib import Path
 
 import numpy as np
 
-from difftex.compose.composite import dominant_from_slots, finish_texture
+from difftex.compose.fill import dominant_from_slots
 from difftex.compose.histmatch import mapped_transfers
 from difftex.compose.outputs import write_composite
+from difftex.compose.stage_files import OptimizedPolygon, compose_polygon
 from difftex.geometry.frames import UVFrame, level_sides
 from difftex.method.config import ComputeConfig, OptimizeConfig
 from difftex.method.loop import optimize_polygon
 from difftex.method.relief import estimate_relief
-from difftex.sampling.photos import PhotoSet, PolygonInput, pick_device, with_transfer
+from difftex.sampling.photos import PhotoCrop, PhotoSet, PolygonInput, photo_crops, pick_device, with_transfer
 from difftex.sampling.texels import level_frame, resample_nearest
 from difftex.scene.files import decode_photo
 
@@ -64,26 +75,39 @@ def polygon_transfers(photos: PhotoSet, cfg: OptimizeConfig) -> tuple[UVFrame, d
     return match_frame, raw, transfers, ref
 
 
-def texture_polygon(
-    inp: PolygonInput,
+def initialize_polygon(
+    inp: PolygonInput, cfg: OptimizeConfig, decode: Callable[..., np.ndarray] = decode_photo
+) -> tuple[dict[int, PhotoCrop], dict]:
+    """The initialization stage: every candidate photo decoded once and cropped to the polygon.
+
+    Returns:
+        ({photo index: crop}, {"photo_reads", "time_read_photos_s"}); ``PhotoSet.from_crops``
+        turns the crops into the photo set that ``PhotoSet.load`` would have built.
+    """
+    t0 = time.perf_counter()
+    crops = dict(photo_crops(inp, None, cfg.exact_decode, decode, cfg.supersample, crop_relief_range(cfg)))
+    return crops, {"photo_reads": len(crops), "time_read_photos_s": time.perf_counter() - t0}
+
+
+def optimize_photos(
+    photos: PhotoSet,
     cfg: OptimizeConfig,
     compute: ComputeConfig = ComputeConfig(),
     progress: bool = False,
-    decode: Callable[..., np.ndarray] = decode_photo,
-) -> TexturedPolygon:
-    """Texture one polygon: transfers, optimization and composition from one decode per photo
-    (``decode``: ``decode_photo``, or a DecodeCache that several polygons of a job share)."""
+    read_stats: dict | None = None,
+) -> OptimizedPolygon:
+    """The optimization stage on decoded photos: relief sweep (``optimize.relief``), brightness
+    transfers, then the coarse-to-fine optimization of W and U = sum_k W_k sharp_k.
+
+    ``read_stats``: ``photo_reads``, ``time_read_photos_s`` of the stage that decoded the photos
+    (``PhotoSet.load`` in this process, or the initialization stage's file).
+    """
     t0 = time.perf_counter()
-    device = pick_device(compute.device)
-    photos = PhotoSet.load(
-        inp, device, exact_decode=cfg.exact_decode, decode=decode, supersample=cfg.supersample,
-        relief_range=cfg.relief_range if cfg.relief else (0.0, 0.0),
-    )
-    t_read = time.perf_counter() - t0
+    inp = photos.inp
     relief_stats = None
     if cfg.relief:
         photos.relief, relief_stats = estimate_relief(photos, cfg.relief_settings())
-        relief_stats["time_s"] = time.perf_counter() - t0 - t_read
+        relief_stats["time_s"] = time.perf_counter() - t0
     sides = level_sides(max(inp.frame.shape), cfg.long_side_start, cfg.coarse_to_fine, cfg.level_step)
     match_frame, raw, transfers, ref = polygon_transfers(photos, cfg)
     first = None
@@ -92,11 +116,9 @@ def texture_polygon(
             n: (with_transfer(mp, transfers[n] if transfers else None) if mp is not None else None)
             for n, mp in raw.items()
         }
-    t_match = time.perf_counter() - t0 - t_read - (relief_stats["time_s"] if relief_stats else 0.0)
+    t_match = time.perf_counter() - t0 - (relief_stats["time_s"] if relief_stats else 0.0)
     res = optimize_polygon(photos, cfg, compute, transfers, first=first, progress=progress)
-    wsum = res.W.sum(0)
-    U, fill = finish_texture(res.U, wsum, inp.texel_mask)
-    seen = (wsum > 0) & inp.texel_mask
+    read = {"photo_reads": photos.reads, "time_read_photos_s": 0.0, **(read_stats or {})}
     stats = dict(res.stats)
     stats.update(
         {
@@ -104,67 +126,83 @@ def texture_polygon(
             "histmatch_reference": ref,
             "histmatch_mode": cfg.histmatch_reference if cfg.histogram_matching else None,
             "photos_seeing": [inp.photos[n].name for n in sorted(photos.samplers)],
-            "photo_reads": photos.reads,
+            "photo_reads": read["photo_reads"],
             "decode_scale": {inp.photos[n].name: s for n, s in photos.decode_scale.items()},
             "photo_bytes": photos.nbytes(),
-            "time_read_photos_s": t_read,
+            "time_read_photos_s": read["time_read_photos_s"],
             "time_histmatch_s": t_match,
             "corrections": {
                 inp.photos[n].name: {"params": c.params.tolist(), "centre": list(c.centre), "scale": c.scale}
                 for n, c in photos.corrections.items()
             },
-            "time_stage_s": time.perf_counter() - t0,
+            "time_stage_s": time.perf_counter() - t0 + read["time_read_photos_s"],
             "relief": relief_stats,
         }
     )
-    report = {"polygon_id": inp.polygon_id, "method": "difftex", "histogram_matching": transfers is not None, **fill}
+    return OptimizedPolygon(
+        polygon_id=inp.polygon_id,
+        names=[p.name for p in inp.photos],
+        mask=inp.texel_mask,
+        frame=inp.frame,
+        U=res.U,
+        weight_sum=res.W.sum(0),
+        dominant=dominant_from_slots(res.idx, res.W),
+        stats=stats,
+        histmatch=transfers is not None,
+        heights=photos.relief.at(inp.frame) * inp.texel_mask if photos.relief is not None else None,
+        idx=res.idx,
+        W=res.W,
+        transfers=transfers,
+    )
+
+
+def texture_polygon(
+    inp: PolygonInput,
+    cfg: OptimizeConfig,
+    compute: ComputeConfig = ComputeConfig(),
+    progress: bool = False,
+    decode: Callable[..., np.ndarray] = decode_photo,
+) -> TexturedPolygon:
+    """Texture one polygon: the initialization (one decode per photo), optimization and
+    composition stages in one process (``decode``: ``decode_photo``, or a DecodeCache that several
+    polygons of a job share)."""
+    t0 = time.perf_counter()
+    photos = PhotoSet.load(
+        inp, pick_device(compute.device), exact_decode=cfg.exact_decode, decode=decode, supersample=cfg.supersample,
+        relief_range=crop_relief_range(cfg),
+    )
+    read = {"photo_reads": photos.reads, "time_read_photos_s": time.perf_counter() - t0}
+    opt = optimize_photos(photos, cfg, compute, progress=progress, read_stats=read)
+    U, seen, report = compose_polygon(opt)
+    assert opt.idx is not None and opt.W is not None
     return TexturedPolygon(
         inp=inp,
         texture=U,
         seen=seen,
-        dominant=dominant_from_slots(res.idx, res.W),
-        idx=res.idx,
-        W=res.W,
-        transfers=transfers,
-        stats=stats,
+        dominant=opt.dominant,
+        idx=opt.idx,
+        W=opt.W,
+        transfers=opt.transfers,
+        stats=opt.stats,
         report=report,
-        heights=photos.relief.at(inp.frame) * inp.texel_mask if photos.relief is not None else None,
+        heights=opt.heights,
     )
+
+
+def crop_relief_range(cfg: OptimizeConfig) -> tuple[float, float]:
+    """The heights along the normal that the photos' crops must hold (the relief sweep's range)."""
+    return cfg.relief_range if cfg.relief else (0.0, 0.0)
 
 
 def write_polygon(tp: TexturedPolygon, optimized_dir: str | Path) -> None:
     """weights.npz (slots, weights, transfers), stats.json and composite.npz (the float texture,
-    its source map and report; assembly writes the PNGs from it), each written atomically."""
-    import json
-
-    from difftex.sampling.colour import N_KNOTS, identity_transfer
-    from difftex.scene.files import write_json, write_npz
+    its source map and report; the finish stage writes the PNGs from it), each written atomically."""
+    from difftex.compose.stage_files import write_weights
+    from difftex.scene.files import write_json
 
     inp = tp.inp
-    H, W = inp.frame.shape
-    names = [p.name for p in inp.photos]
-    extra = {}
-    if tp.transfers is not None:
-        arr = (
-            np.stack([t if t is not None else identity_transfer() for t in tp.transfers])
-            if names
-            else np.zeros((0, 3, 2, N_KNOTS), np.float32)
-        )
-        extra = {
-            "transfers": arr.astype(np.float32),
-            "has_transfer": np.array([t is not None for t in tp.transfers], bool),
-        }
-    write_npz(
-        Path(optimized_dir) / "weights.npz",
-        polygon_id=np.array(inp.polygon_id),
-        photos=np.array(names, dtype=str),
-        frame=np.array(json.dumps(inp.frame.to_dict())),
-        shape=np.array([H, W]),
-        texel_mask=np.packbits(inp.texel_mask.ravel()),
-        idx=tp.idx.astype(np.int16),
-        W=tp.W.astype(np.float16),
-        **extra,
-    )
+    write_weights(Path(optimized_dir) / "weights.npz", inp.polygon_id, [p.name for p in inp.photos], inp.frame,
+                  inp.texel_mask, tp.idx, tp.W, tp.transfers)
     write_json(Path(optimized_dir) / "stats.json", tp.stats)
     write_composite(
         Path(optimized_dir) / "composite.npz",
@@ -172,7 +210,7 @@ def write_polygon(tp: TexturedPolygon, optimized_dir: str | Path) -> None:
         inp.texel_mask,
         tp.seen,
         tp.dominant,
-        names,
+        [p.name for p in inp.photos],
         dict(tp.report, optimize=tp.stats),
         relief=(tp.heights, inp.frame.texel_size) if tp.heights is not None else None,
     )

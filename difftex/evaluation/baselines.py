@@ -14,7 +14,8 @@ import time
 import numpy as np
 import torch
 
-from difftex.compose.composite import compose_from_photos, finish_texture
+from difftex.compose.composite import compose_from_photos
+from difftex.compose.fill import finish_texture
 from difftex.compose.outputs import write_texture_outputs
 from difftex.errors import DifftexError
 from difftex.sampling import SUPERSAMPLE

@@ -17,7 +17,7 @@ composition and the baselines above; they all sample photos through this module.
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -98,6 +98,21 @@ def polygon_input_from_visibility(vis, scene_photos: dict[str, Photo], load_imag
 # Decoding and pyramids
 
 
+@dataclass
+class PhotoCrop:
+    """One candidate photo as decoded and cropped to a polygon: what the initialization stage
+    writes and the optimization stage builds its pyramid from (no photo is decoded twice).
+
+    ``pixels`` (h, w, 3) as the file stores them (uint8 or uint16), decoded at 1/2^``base``;
+    (``x0``, ``y0``): the crop's corner in full-resolution pixels, a multiple of 2^``base``.
+    """
+
+    pixels: np.ndarray
+    x0: int
+    y0: int
+    base: int
+
+
 class PhotoSampler:
     """A photo cropped to the polygon, as a 2x box-filtered pyramid, sampled at pixel positions.
 
@@ -119,6 +134,19 @@ class PhotoSampler:
         crop = torch.from_numpy(
             np.ascontiguousarray(to_float(image[y0 // s : -(-y1 // s), x0 // s : -(-x1 // s)]))
         ).permute(2, 0, 1)
+        self._build(crop, device, min_side)
+
+    @classmethod
+    def from_crop(cls, crop: PhotoCrop, device: torch.device, min_side: int = 4) -> PhotoSampler:
+        """The sampler of a crop as ``photo_crops`` made it (the same pyramid, bit for bit, as
+        the constructor's on the whole decoded photo and the crop's box)."""
+        self = cls.__new__(cls)
+        self.x0, self.y0, self.base = int(crop.x0), int(crop.y0), int(crop.base)
+        self._build(torch.from_numpy(np.ascontiguousarray(to_float(crop.pixels))).permute(2, 0, 1), device, min_side)
+        return self
+
+    def _build(self, crop: torch.Tensor, device: torch.device, min_side: int) -> None:
+        """The 2x box pyramid of ``crop`` (3, h, w) float32."""
         self.device = device
         levels = [crop.to(device=device, dtype=torch.float16)]
         cur = crop.to(device)
@@ -290,56 +318,28 @@ class PhotoSet:
         and highest heights along the normal that the photos may be mapped through (a relief
         sweep's range): each crop also holds the polygon's rectangle shifted to both.
         """
-        device = pick_device(device)
-        finest = finest or inp.frame
-        probe = level_frame(inp.frame, min(PROBE_LONG_SIDE, max(inp.frame.shape)))
-        vis_probe = _any_pool(inp.texel_visible & inp.texel_mask[None], inp.frame, probe)
-        ps = cls(inp=inp, device=device, samplers={}, supersample=max(1, int(supersample)))
-        for n, ph in enumerate(inp.photos):
-            if not vis_probe[n].any():
-                continue
-            tm = texel_map(probe, ph, "cpu")
-            ok = vis_probe[n] & tm.valid.numpy()
-            if not ok.any():
-                continue
-            scale = probe.texel_size / finest.texel_size  # probe texel -> finest texels
-            fp_fine = tm.footprint.numpy()[ok] / scale
-            pix, fp = [tm.pix.numpy()[ok]], [tm.footprint.numpy()[ok]]
-            for h in {float(x) for x in relief_range} - {0.0}:
-                th = texel_map(shifted_frame(probe, h), ph, "cpu")
-                okh = vis_probe[n] & th.valid.numpy()
-                pix.append(th.pix.numpy()[okh])
-                fp.append(th.footprint.numpy()[okh])
-            box = _crop_box(
-                ph,
-                np.concatenate(pix),
-                np.concatenate(fp),
-                inp.a_bbox[n] if inp.a_bbox is not None and len(inp.a_bbox) > n else None,
-            )
-            if box is None:
-                continue
-            reduce = 1
-            if not exact_decode and inp.load_image is None:
-                finest_px = float(fp_fine.min()) / ps.supersample  # a sub-sample's footprint
-                reduce = 2 ** int(np.clip(np.floor(np.log2(max(finest_px, 1.0))), 0, 3))
-            s = reduce
-            box = (box[0] // s * s, box[1] // s * s, box[2], box[3])
-            if inp.load_image is not None:
-                img = inp.load_image(ph)
-                if img.shape[:2] != (ph.height, ph.width):
-                    raise DifftexError(
-                        f"{ph.image_path}: image is {img.shape[1]}x{img.shape[0]}, camera says {ph.width}x{ph.height}"
-                    )
-            else:
-                img = decode(ph.image_path, (ph.width, ph.height), reduce, as_stored=True)
+        ps = cls(inp=inp, device=pick_device(device), samplers={}, supersample=max(1, int(supersample)))
+        for n, crop in photo_crops(inp, finest, exact_decode, decode, ps.supersample, relief_range):
             ps.reads += 1
-            base = int(math.log2(reduce))
-            ps.samplers[n] = PhotoSampler(img, box, device, base=base)
-            ps.decode_scale[n] = reduce
-            del img
+            ps.add(n, crop)
             if progress is not None:
                 progress()
         return ps
+
+    @classmethod
+    def from_crops(
+        cls, inp: PolygonInput, crops: dict[int, PhotoCrop], device, supersample: int = SUPERSAMPLE
+    ) -> PhotoSet:
+        """The photo set of crops decoded earlier (``photo_crops``): no photo is decoded."""
+        ps = cls(inp=inp, device=pick_device(device), samplers={}, supersample=max(1, int(supersample)))
+        for n in sorted(crops):
+            ps.add(n, crops[n])
+        return ps
+
+    def add(self, n: int, crop: PhotoCrop) -> None:
+        """Photo ``n``'s sampler, from its crop."""
+        self.samplers[n] = PhotoSampler.from_crop(crop, self.device)
+        self.decode_scale[n] = 2**crop.base
 
     def nbytes(self) -> int:
         return int(sum(s.nbytes() for s in self.samplers.values()))
@@ -377,6 +377,63 @@ class PhotoSet:
         col = self.samplers[n].sample(tm.pix, tm.footprint, self.supersample if final else 1) * vis[None]
         mp = MappedPhoto(colour=col, visible=vis, view=tm.view, cos=tm.cos, footprint=tm.footprint)
         return with_transfer(mp, transfer)
+
+
+def photo_crops(
+    inp: PolygonInput,
+    finest: UVFrame | None = None,
+    exact_decode: bool = False,
+    decode: Callable[..., np.ndarray] = decode_photo,
+    supersample: int = SUPERSAMPLE,
+    relief_range: tuple[float, float] = (0.0, 0.0),
+) -> Iterator[tuple[int, PhotoCrop]]:
+    """(photo index, crop) of every candidate photo that sees a texel of ``inp``, one decode each,
+    one photo at a time (so one decoded photo is held at once). Arguments as ``PhotoSet.load``'s."""
+    finest = finest or inp.frame
+    supersample = max(1, int(supersample))
+    probe = level_frame(inp.frame, min(PROBE_LONG_SIDE, max(inp.frame.shape)))
+    vis_probe = _any_pool(inp.texel_visible & inp.texel_mask[None], inp.frame, probe)
+    for n, ph in enumerate(inp.photos):
+        if not vis_probe[n].any():
+            continue
+        tm = texel_map(probe, ph, "cpu")
+        ok = vis_probe[n] & tm.valid.numpy()
+        if not ok.any():
+            continue
+        scale = probe.texel_size / finest.texel_size  # probe texel -> finest texels
+        fp_fine = tm.footprint.numpy()[ok] / scale
+        pix, fp = [tm.pix.numpy()[ok]], [tm.footprint.numpy()[ok]]
+        for h in {float(x) for x in relief_range} - {0.0}:
+            th = texel_map(shifted_frame(probe, h), ph, "cpu")
+            okh = vis_probe[n] & th.valid.numpy()
+            pix.append(th.pix.numpy()[okh])
+            fp.append(th.footprint.numpy()[okh])
+        box = _crop_box(
+            ph,
+            np.concatenate(pix),
+            np.concatenate(fp),
+            inp.a_bbox[n] if inp.a_bbox is not None and len(inp.a_bbox) > n else None,
+        )
+        if box is None:
+            continue
+        reduce = 1
+        if not exact_decode and inp.load_image is None:
+            finest_px = float(fp_fine.min()) / supersample  # a sub-sample's footprint
+            reduce = 2 ** int(np.clip(np.floor(np.log2(max(finest_px, 1.0))), 0, 3))
+        s = reduce
+        x0, y0, x1, y1 = box[0] // s * s, box[1] // s * s, box[2], box[3]
+        if inp.load_image is not None:
+            img = inp.load_image(ph)
+            if img.shape[:2] != (ph.height, ph.width):
+                raise DifftexError(
+                    f"{ph.image_path}: image is {img.shape[1]}x{img.shape[0]}, camera says {ph.width}x{ph.height}"
+                )
+        else:
+            img = decode(ph.image_path, (ph.width, ph.height), reduce, as_stored=True)
+        # a copy, so the whole decoded photo is freed here (a cache may keep it)
+        pixels = img[y0 // s : -(-y1 // s), x0 // s : -(-x1 // s)].copy()
+        del img
+        yield n, PhotoCrop(pixels, int(x0), int(y0), int(math.log2(reduce)))
 
 
 def with_transfer(mp: MappedPhoto, transfer: np.ndarray | None) -> MappedPhoto:

@@ -106,8 +106,19 @@ def write_npz(path: str | os.PathLike, **arrays: np.ndarray) -> None:
     choose: on a polygon's weights (K x texels float16 + int16) level 1 took half the time for
     files 6 % larger.
     """
+    _write_npz(path, True, arrays)
+
+
+def write_npz_stored(path: str | os.PathLike, **arrays: np.ndarray) -> None:
+    """Uncompressed npz, written atomically: for decoded photos, which deflate shrinks little at
+    many times the time (docs/stage-split.md)."""
+    _write_npz(path, False, arrays)
+
+
+def _write_npz(path: str | os.PathLike, compress: bool, arrays: dict[str, np.ndarray]) -> None:
+    method = zipfile.ZIP_DEFLATED if compress else zipfile.ZIP_STORED
     with atomic_path(path, suffix=".npz") as tmp:
-        with zipfile.ZipFile(tmp, "w", zipfile.ZIP_DEFLATED, compresslevel=1) as zf:
+        with zipfile.ZipFile(tmp, "w", method, compresslevel=1 if compress else None) as zf:
             for name, value in arrays.items():
                 with zf.open(f"{name}.npy", "w", force_zip64=True) as fh:
                     np.lib.format.write_array(fh, np.asanyarray(value), allow_pickle=False)

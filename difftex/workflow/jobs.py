@@ -163,6 +163,26 @@ def pack_jobs(setting: int | str, local: bool, cores: int | None) -> int:
     return PACK_JOBS_FALLBACK
 
 
+def split_stages(setting: bool | str, gpu: int, local: bool) -> bool:
+    """``run.split`` as a boolean: whether a polygon's work runs as three jobs (initialize,
+    optimize, compose) or one (``texture``).
+
+    ``auto`` splits where the split buys something: a job that requests a GPU (only the
+    optimization then holds it) or a cluster run (the initializations run on CPU nodes while other
+    polygons optimize). A local CPU run keeps one job, which saves the second process start and
+    the crops' file (docs/stage-split.md measures both). The same answer in the main process and
+    in every cluster job's own Snakemake, as ``pack_jobs``.
+
+    Args:
+        setting: the config value, true, false or ``auto``.
+        gpu: ``run.gpu``.
+        local: whether the jobs run on this machine (no executor plugin, not inside a cluster job).
+    """
+    if setting == "auto":
+        return gpu > 0 or not local
+    return bool(setting)
+
+
 def texture_jobs(rows: list[dict], cfg: dict) -> dict[str, list[str]]:
     """Polygon ids per texture job, in a stable order.
 

@@ -60,7 +60,10 @@ try:
     _cores = workflow.cores
 except Exception:  # noqa: BLE001 -- not set (a dry run, a cluster job): the fallback
     _cores = None
-RUN["pack_jobs"] = jobs.pack_jobs(RUN["pack_jobs"], workflow.local_exec and not workflow.remote_exec, _cores)
+_local = workflow.local_exec and not workflow.remote_exec
+RUN["pack_jobs"] = jobs.pack_jobs(RUN["pack_jobs"], _local, _cores)
+# initialize -> optimize -> compose jobs, or one texture job per polygon group (jobs.split_stages)
+SPLIT = jobs.split_stages(RUN["split"], RUN["gpu"], _local)
 # One real run per working directory; a run killed earlier leaves stale locks that this one
 # clears (difftex/workflow/runguard.py). Called as an input function, when the kind of run is known.
 RUN_GUARD = runguard.RunGuard(R)
@@ -119,6 +122,17 @@ def get_assemble_mem_mb(wc, input):
     # asked before the checkpoint ran in a dry run
     rows = wf.polygons(input.summary) if Path(input.summary).is_file() else []
     return jobs.assemble_mem_mb(rows, config)
+
+
+def get_composed_job(wc):
+    # what the finish job reads: the compose job's list (split) or the texture job's
+    if SPLIT:
+        return f"{R}/optimized/jobs/{wc.job}.compose.json"
+    return f"{R}/optimized/jobs/{wc.job}.json"
+
+
+def get_job_init(wc):
+    return [f"{R}/init/{pid}/crops.npz" for pid in get_job_pids(wc)]
 
 
 def get_textures(wc):

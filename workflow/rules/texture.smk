@@ -1,9 +1,98 @@
-# Per-polygon stages: `texture` (brightness transfers, blend-weight optimization and composition,
-# one pass over each polygon's photos) and `finish` (the PNGs and report from the float texture,
-# in the output format; one per texture job). Polygon ids, sizes and candidate photos come from the visibility
-# checkpoint, so a cluster runs the polygons in parallel; polygons smaller than run.pack_seconds
-# share a texture job (difftex/workflow/jobs.py), named by its polygon or `group-<digest>`. `run.gpu` > 0 requests GPUs; the
-# `compute` section (device, torch.compile) changes no result, so changing it reruns nothing.
+# Per-polygon stages. Polygon ids, sizes and candidate photos come from the visibility checkpoint,
+# so a cluster runs the polygons in parallel; polygons smaller than run.pack_seconds share a job
+# (difftex/workflow/jobs.py), named by its polygon or `group-<digest>`, in every stage below.
+#
+# run.split (jobs.split_stages) chooses between
+#   initialize -> optimize -> compose: the photos decoded and cropped once (R/init/<pid>/crops.npz),
+#       the optimization from those crops (the only stage that requests run.gpu), the
+#       composition (numpy, local); a change of optimize.lr reruns optimize and what follows;
+#   texture: the three in one process (a local CPU run's default: one process start, no crops file).
+# Both write the same R/optimized/<pid>/composite.npz, byte for byte; `finish` writes the PNGs.
+# The `compute` section (device, torch.compile) changes no result, so changing it reruns nothing.
+
+
+rule initialize:
+    input:
+        scene=SCENE_MODEL,
+        vis=get_job_visibility,
+        photos=get_job_photos,
+        config=STAGE_CFG["initialize"],
+    output:
+        # the job's list of its polygons, written last (each R/init/<pid>/crops.npz atomically)
+        f"{R}/init/jobs/{{job}}.json",
+    params:
+        stage_config=STAGE_TEXT["initialize"],
+        scene=lambda wc, input: Path(input.scene[0]).parent,
+        outs=get_job_init,
+        decode_cache_mb=RUN["decode_cache_mb"],
+    conda:
+        "../envs/difftex.yaml"
+    log:
+        f"{R}/logs/initialize/{{job}}.log",
+    benchmark:
+        f"{R}/benchmarks/initialize/{{job}}.tsv"
+    threads: RUN["polygon_threads"]
+    priority: get_job_priority
+    resources:
+        mem_mb=get_job_mem_mb,
+        runtime=get_job_runtime,
+    shell:
+        "OMP_NUM_THREADS={threads} difftex initialize --threads {threads} --scene {params.scene:q} "
+        "--visibility {input.vis:q} --out {params.outs:q} --config {input.config:q} "
+        "--decode-cache-mb {params.decode_cache_mb} --done {output:q} > {log:q} 2>&1"
+
+
+rule optimize:
+    input:
+        scene=SCENE_MODEL,
+        vis=get_job_visibility,
+        init=f"{R}/init/jobs/{{job}}.json",
+        config=STAGE_CFG["texture"],
+        # device and compilation: read, but ancient() and a fixed name keep a change of them
+        # from rerunning anything (they change no result beyond float tolerance)
+        compute=ancient(f"{R}/config/compute.yaml"),
+    output:
+        # the job's list; each polygon's weights.npz, optimized.npz and stats.json are in
+        # R/optimized/<polygon>/ (written atomically)
+        f"{R}/optimized/jobs/{{job}}.optimize.json",
+    params:
+        stage_config=STAGE_TEXT["texture"],
+        scene=lambda wc, input: Path(input.scene[0]).parent,
+        crops=get_job_init,
+        out_dirs=get_job_out_dirs,
+    conda:
+        "../envs/difftex.yaml"
+    log:
+        f"{R}/logs/optimize/{{job}}.log",
+    benchmark:
+        f"{R}/benchmarks/optimize/{{job}}.tsv"
+    threads: RUN["polygon_threads"]
+    priority: get_job_priority
+    resources:
+        mem_mb=get_job_mem_mb,
+        runtime=get_job_runtime,
+        gpu=RUN["gpu"],
+    shell:
+        "OMP_NUM_THREADS={threads} difftex optimize --threads {threads} --no-progress --scene {params.scene:q} "
+        "--visibility {input.vis:q} --init {params.crops:q} --out-dir {params.out_dirs:q} "
+        "--config {input.config:q} --compute-config {input.compute:q} --done {output:q} > {log:q} 2>&1"
+
+
+rule compose:
+    input:
+        f"{R}/optimized/jobs/{{job}}.optimize.json",
+    output:
+        # the job's list; each polygon's composite.npz is in R/optimized/<polygon>/ (atomically)
+        f"{R}/optimized/jobs/{{job}}.compose.json",
+    params:
+        out_dirs=get_job_out_dirs,
+    log:
+        f"{R}/logs/compose/{{job}}.log",
+    conda:
+        "../envs/difftex.yaml"
+    # numpy only, no torch: a local job of a fraction of a second per polygon
+    shell:
+        "difftex compose --optimized {params.out_dirs:q} --done {output:q} > {log:q} 2>&1"
 
 
 rule texture:
@@ -12,8 +101,6 @@ rule texture:
         vis=get_job_visibility,
         photos=get_job_photos,
         config=STAGE_CFG["texture"],
-        # device and compilation: read, but ancient() and a fixed name keep a change of them
-        # from rerunning anything (they change no result beyond float tolerance)
         compute=ancient(f"{R}/config/compute.yaml"),
     output:
         # the job's list of its polygons, written last; each polygon's weights.npz, stats.json and
@@ -45,8 +132,8 @@ rule texture:
 
 rule finish:
     input:
-        # the texture job; it wrote R/optimized/<pid>/composite.npz of each of its polygons
-        job=f"{R}/optimized/jobs/{{job}}.json",
+        # the compose or texture job; it wrote R/optimized/<pid>/composite.npz of each of its polygons
+        job=get_composed_job,
         config=STAGE_CFG["output"],
     output:
         # the job's list of its polygons, written last; each polygon's texture.png, source.png,

@@ -201,7 +201,7 @@ def write_textures(
     fills its unseen texels (a polygon it did not texture at all stays mid-grey). ``sources``:
     per polygon the dominant photo index per texel (-1: unknown), for the source map.
     """
-    from difftex.compose.composite import finish_texture
+    from difftex.compose.fill import finish_texture
     from difftex.compose.outputs import write_texture_outputs
 
     rows = {}

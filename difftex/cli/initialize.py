@@ -1,0 +1,48 @@
+"""difftex initialize: the first per-polygon stage, each candidate photo decoded once and cropped."""
+
+from __future__ import annotations
+
+NAME = "initialize"
+HELP = ("decode and crop each polygon's candidate photos once, for the optimize stage "
+        "(R/init/<polygon>/crops.npz; the workflow's initialize rule)")
+
+
+def add_arguments(parser) -> None:
+    from difftex.cli._polygon import add_common
+
+    add_common(parser, many=True)
+    parser.add_argument("--out", required=True, nargs="+",
+                        help="the crops file to write per --visibility file (R/init/<polygon>/crops.npz)")
+    parser.add_argument("--done", help="after the last polygon, write this JSON listing them (the workflow's job file)")
+    parser.add_argument("--decode-cache-mb", type=float, default=512.0,
+                        help="with several polygons, keep up to this many MB of decoded photos for the next ones")
+
+
+def run(args) -> int:
+    import time
+
+    from difftex.cli._polygon import load_many
+    from difftex.compose.stage_files import write_init
+    from difftex.compose.texturing import initialize_polygon
+    from difftex.errors import DifftexError
+    from difftex.scene.files import DecodeCache, decode_photo, write_json
+
+    if len(args.out) != len(args.visibility):
+        raise DifftexError(f"initialize: {len(args.visibility)} --visibility files but {len(args.out)} --out files")
+    cfg, _, inputs = load_many(args, args.visibility)
+    shared = len(args.visibility) > 1 and args.decode_cache_mb > 0
+    decode = DecodeCache(args.decode_cache_mb) if shared else decode_photo
+    done = []
+    for n, (inp, out) in enumerate(zip(inputs, args.out, strict=True), 1):
+        t0 = time.perf_counter()
+        crops, stats = initialize_polygon(inp, cfg, decode)
+        write_init(out, inp.polygon_id, [p.name for p in inp.photos], crops, stats)
+        mpix = sum(c.pixels.shape[0] * c.pixels.shape[1] for c in crops.values()) / 1e6
+        print(f"initialize {inp.polygon_id} ({n}/{len(args.out)}): {stats['photo_reads']} photos read, "
+              f"{mpix:.1f} Mpixel of crops, {time.perf_counter() - t0:.1f}s", flush=True)
+        done.append({"polygon": inp.polygon_id, "out": str(out), "seconds": round(time.perf_counter() - t0, 3)})
+    if isinstance(decode, DecodeCache):
+        print(f"photos: {decode.decodes} decoded, {decode.hits} reused")
+    if args.done:
+        write_json(args.done, {"polygons": done})
+    return 0

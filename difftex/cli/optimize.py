@@ -1,0 +1,57 @@
+"""difftex optimize: the per-polygon optimization stage, from the initialization's crops."""
+
+from __future__ import annotations
+
+NAME = "optimize"
+HELP = ("optimize each polygon's blend weights from its crops (difftex initialize): pyramids, brightness "
+        "transfers, the coarse-to-fine optimization; decodes no photo (the workflow's optimize rule)")
+
+
+def add_arguments(parser) -> None:
+    from difftex.cli._polygon import add_common
+
+    add_common(parser, many=True)
+    parser.add_argument("--init", required=True, nargs="+",
+                        help="the crops file per --visibility file (difftex initialize)")
+    parser.add_argument("--out-dir", required=True, nargs="+",
+                        help="folder for weights.npz, optimized.npz and stats.json per --visibility file "
+                        "(R/optimized/<polygon>)")
+    parser.add_argument("--done", help="after the last polygon, write this JSON listing them (the workflow's job file)")
+    parser.add_argument("--no-progress", action="store_true")
+
+
+def run(args) -> int:
+    import time
+
+    from difftex.cli._polygon import load_many
+    from difftex.compose.stage_files import read_init, write_optimized
+    from difftex.compose.texturing import optimize_photos
+    from difftex.errors import DifftexError
+    from difftex.sampling.photos import PhotoSet, pick_device
+    from difftex.scene.files import write_json
+
+    if not len(args.init) == len(args.out_dir) == len(args.visibility):
+        raise DifftexError(f"optimize: {len(args.visibility)} --visibility files, {len(args.init)} --init files and "
+                           f"{len(args.out_dir)} --out-dir folders")
+    cfg, compute, inputs = load_many(args, args.visibility)
+    device = pick_device(compute.device)
+    done = []
+    for n, (inp, init, out_dir) in enumerate(zip(inputs, args.init, args.out_dir, strict=True), 1):
+        t0 = time.perf_counter()
+        crops, read_stats = read_init(init, inp.polygon_id, [p.name for p in inp.photos])
+        photos = PhotoSet.from_crops(inp, crops, device, cfg.supersample)
+        opt = optimize_photos(photos, cfg, compute, progress=not args.no_progress, read_stats=read_stats)
+        write_optimized(out_dir, opt)
+        st = opt.stats
+        lv = st["levels"]
+        print(
+            f"optimize {inp.polygon_id} ({n}/{len(args.out_dir)}): {inp.frame.width}x{inp.frame.height} texels, "
+            f"{len(crops)} photos, levels {[lvl['long_side'] for lvl in lv]} iterations "
+            f"{[lvl['iterations'] for lvl in lv]}, dropped {len(st['dropped'])}, "
+            f"{time.perf_counter() - t0:.1f}s on {st['device']}",
+            flush=True,
+        )
+        done.append({"polygon": inp.polygon_id, "out_dir": str(out_dir), "seconds": round(time.perf_counter() - t0, 3)})
+    if args.done:
+        write_json(args.done, {"polygons": done})
+    return 0

@@ -1,0 +1,196 @@
+"""The files the per-polygon stages hand on: initialization -> optimization -> composition.
+
+``R/init/<pid>/crops.npz`` (initialization): each candidate photo as decoded and cropped to the
+polygon (``PhotoCrop``), uncompressed, and the decode's figures. The optimization builds its
+pyramids from these crops, so no photo is decoded twice for a polygon.
+
+``R/optimized/<pid>/weights.npz`` and ``optimized.npz`` (optimization): the slots, weights and
+brightness transfers, and the composition's inputs (U before the fill, sum_k W_k, the dominant
+photo, the height field). ``stats.json`` beside them. Composition writes ``composite.npz``
+(difftex.compose.outputs.write_composite) from them, the same bytes as the one-process
+``texture`` stage writes.
+
+No torch at import (the photo crops' and transfers' modules are imported where they are
+used): the composition job reads and writes these files without it.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from difftex.compose.fill import finish_texture
+from difftex.compose.outputs import write_composite
+from difftex.errors import DifftexError
+from difftex.geometry.frames import UVFrame
+from difftex.scene.files import read_json, read_npz, write_json, write_npz, write_npz_stored
+
+if TYPE_CHECKING:
+    from difftex.sampling.photos import PhotoCrop
+
+INIT_VERSION = 1
+
+
+@dataclass
+class OptimizedPolygon:
+    """What the optimization stage hands to composition (arrays at the target frame).
+
+    ``U``: sum_k W_k sharp_k before the unseen texels are filled; ``idx``, ``W`` and ``transfers``
+    are kept in memory only (the stage writes them to weights.npz, composition does not read them).
+    """
+
+    polygon_id: str
+    names: list[str]  # the polygon's candidate photos, as indexed by ``dominant``
+    mask: np.ndarray  # (H, W) bool texels inside the polygon
+    frame: UVFrame  # the target frame
+    U: np.ndarray  # (H, W, 3) float32
+    weight_sum: np.ndarray  # (H, W) sum_k W_k
+    dominant: np.ndarray  # (H, W) int photo index with the largest weight, -1 none
+    stats: dict
+    histmatch: bool
+    heights: np.ndarray | None = None
+    idx: np.ndarray | None = None
+    W: np.ndarray | None = None
+    transfers: list | None = None
+
+
+def compose_polygon(opt: OptimizedPolygon) -> tuple[np.ndarray, np.ndarray, dict]:
+    """The composition stage: the texture with its unseen texels filled, the seen texels, and
+    the polygon's report (fill figures; the optimization's statistics under ``optimize``)."""
+    U, fill = finish_texture(opt.U, opt.weight_sum, opt.mask)
+    seen = (opt.weight_sum > 0) & opt.mask
+    report = {"polygon_id": opt.polygon_id, "method": "difftex", "histogram_matching": opt.histmatch, **fill}
+    return U, seen, report
+
+
+
+
+def write_init(path: str | Path, polygon_id: str, names: list[str], crops: dict[int, PhotoCrop], stats: dict) -> None:
+    """The initialization's file: ``crops`` (photo index -> crop), the photos' names (so a reader
+    can check it pairs the file with the right polygon) and ``stats`` (JSON-able)."""
+    arrays: dict[str, np.ndarray] = {
+        "version": np.array(INIT_VERSION),
+        "polygon_id": np.array(polygon_id),
+        "photos": np.array(names, dtype=str),
+        "stats": np.array(json.dumps(stats)),
+    }
+    for n, c in crops.items():
+        arrays[f"crop_{n}"] = c.pixels
+        arrays[f"box_{n}"] = np.array([c.x0, c.y0, c.base], np.int64)
+    write_npz_stored(path, **arrays)
+
+
+def read_init(path: str | Path, polygon_id: str, names: list[str]) -> tuple[dict[int, PhotoCrop], dict]:
+    """(crops, stats) of ``write_init``'s file; a file of another polygon or photo list is refused."""
+    d = read_npz(path)
+    if int(d.get("version", -1)) != INIT_VERSION:
+        raise DifftexError(f"{path}: not an initialization file of this difftex (version {d.get('version')})")
+    if str(d["polygon_id"]) != polygon_id or list(d["photos"]) != list(names):
+        raise DifftexError(f"{path}: made for polygon {d['polygon_id']} and other photos; rerun the initialization")
+    crops = {}
+    from difftex.sampling.photos import PhotoCrop
+
+    for key in d:
+        if key.startswith("crop_"):
+            n = int(key[5:])
+            x0, y0, base = (int(v) for v in d[f"box_{n}"])
+            crops[n] = PhotoCrop(d[key], x0, y0, base)
+    return crops, json.loads(str(d["stats"]))
+
+
+def write_weights(
+    path: str | Path,
+    polygon_id: str,
+    names: list[str],
+    frame: UVFrame,
+    mask: np.ndarray,
+    idx: np.ndarray,
+    W: np.ndarray,
+    transfers: list | None,
+) -> None:
+    """weights.npz: the last level's slots and weights (float16) and the brightness transfers."""
+    from difftex.sampling.colour import N_KNOTS, identity_transfer
+
+    H, Wd = frame.shape
+    extra = {}
+    if transfers is not None:
+        arr = (
+            np.stack([t if t is not None else identity_transfer() for t in transfers])
+            if names
+            else np.zeros((0, 3, 2, N_KNOTS), np.float32)
+        )
+        extra = {
+            "transfers": arr.astype(np.float32),
+            "has_transfer": np.array([t is not None for t in transfers], bool),
+        }
+    write_npz(
+        path,
+        polygon_id=np.array(polygon_id),
+        photos=np.array(names, dtype=str),
+        frame=np.array(json.dumps(frame.to_dict())),
+        shape=np.array([H, Wd]),
+        texel_mask=np.packbits(mask.ravel()),
+        idx=idx.astype(np.int16),
+        W=W.astype(np.float16),
+        **extra,
+    )
+
+
+def write_optimized(out_dir: str | Path, opt: OptimizedPolygon) -> None:
+    """The optimization stage's files: weights.npz, optimized.npz (composition's inputs) and
+    stats.json, each atomically."""
+    out_dir = Path(out_dir)
+    assert opt.idx is not None and opt.W is not None
+    write_weights(out_dir / "weights.npz", opt.polygon_id, opt.names, opt.frame, opt.mask, opt.idx, opt.W,
+                  opt.transfers)
+    extra = {"heights": np.asarray(opt.heights, np.float32)} if opt.heights is not None else {}
+    write_npz(
+        out_dir / "optimized.npz",
+        U=np.asarray(opt.U, np.float32),
+        weight_sum=np.asarray(opt.weight_sum, np.float32),
+        dominant=opt.dominant.astype(np.int32),
+        histmatch=np.array(opt.histmatch),
+        **extra,
+    )
+    write_json(out_dir / "stats.json", opt.stats)
+
+
+def read_optimized(out_dir: str | Path) -> OptimizedPolygon:
+    """``write_optimized``'s files, as composition needs them (no slots or weights)."""
+    out_dir = Path(out_dir)
+    meta = read_npz(out_dir / "weights.npz")
+    shape = tuple(int(v) for v in meta["shape"])
+    mask = np.unpackbits(meta["texel_mask"])[: shape[0] * shape[1]].reshape(shape).astype(bool)
+    d = read_npz(out_dir / "optimized.npz")
+    return OptimizedPolygon(
+        polygon_id=str(meta["polygon_id"]),
+        names=[str(n) for n in meta["photos"]],
+        mask=mask,
+        frame=UVFrame.from_dict(json.loads(str(meta["frame"]))),
+        U=d["U"],
+        weight_sum=d["weight_sum"],
+        dominant=d["dominant"],
+        stats=read_json(out_dir / "stats.json"),
+        histmatch=bool(d["histmatch"]),
+        heights=d.get("heights"),
+    )
+
+
+def write_composed(path: str | Path, opt: OptimizedPolygon) -> dict:
+    """The composition stage's file, composite.npz; returns the polygon's report."""
+    U, seen, report = compose_polygon(opt)
+    write_composite(
+        path,
+        U,
+        opt.mask,
+        seen,
+        opt.dominant,
+        opt.names,
+        dict(report, optimize=opt.stats),
+        relief=(opt.heights, opt.frame.texel_size) if opt.heights is not None else None,
+    )
+    return report

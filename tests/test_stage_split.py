@@ -1,0 +1,219 @@
+"""The per-polygon stages as separate jobs (run.split): initialize -> optimize -> compose.
+
+Checked: the files they hand on round-trip; a photo is decoded once per polygon (in the
+initialization; the optimization decodes none); the split workflow writes the same textures as
+the one-job ``texture`` stage; a change of an optimization key reruns the optimization and what
+follows but not the initialization, a change of what fixes the crops reruns the initialization.
+"""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+from test_workflow import job_counts, snakemake
+
+from difftex.compose.stage_files import (
+    OptimizedPolygon,
+    compose_polygon,
+    read_init,
+    read_optimized,
+    write_composed,
+    write_init,
+    write_optimized,
+)
+from difftex.errors import DifftexError
+from difftex.geometry.frames import UVFrame
+from difftex.sampling.photos import PhotoCrop
+from difftex.workflow import jobs
+
+
+def test_split_auto_splits_for_a_gpu_or_a_cluster_only():
+    assert jobs.split_stages("auto", 0, local=True) is False
+    assert jobs.split_stages("auto", 1, local=True) is True
+    assert jobs.split_stages("auto", 0, local=False) is True
+    assert jobs.split_stages(True, 0, local=True) is True
+    assert jobs.split_stages(False, 2, local=False) is False
+
+
+def test_crops_file_round_trips_and_refuses_another_polygons(tmp_path):
+    rng = np.random.default_rng(0)
+    crops = {
+        0: PhotoCrop(rng.integers(0, 255, (5, 7, 3), dtype=np.uint8), 8, 16, 3),
+        2: PhotoCrop(rng.integers(0, 65535, (1, 1, 3), dtype=np.uint16), 0, 0, 0),
+    }
+    path = tmp_path / "crops.npz"
+    write_init(path, "wall", ["a.jpg", "b.jpg", "c.jpg"], crops, {"photo_reads": 2, "time_read_photos_s": 0.5})
+    back, stats = read_init(path, "wall", ["a.jpg", "b.jpg", "c.jpg"])
+    assert stats == {"photo_reads": 2, "time_read_photos_s": 0.5}
+    assert set(back) == {0, 2}
+    for n, c in crops.items():
+        assert back[n].pixels.dtype == c.pixels.dtype and np.array_equal(back[n].pixels, c.pixels)
+        assert (back[n].x0, back[n].y0, back[n].base) == (c.x0, c.y0, c.base)
+    with pytest.raises(DifftexError, match="rerun the initialization"):
+        read_init(path, "roof", ["a.jpg", "b.jpg", "c.jpg"])
+    with pytest.raises(DifftexError, match="rerun the initialization"):
+        read_init(path, "wall", ["a.jpg", "c.jpg"])
+    path.write_bytes(b"not a zip")
+    with pytest.raises(DifftexError, match="crops.npz"):
+        read_init(path, "wall", ["a.jpg"])
+
+
+def _optimized(rng, heights: bool) -> OptimizedPolygon:
+    H, W, K = 6, 9, 2
+    mask = np.ones((H, W), bool)
+    mask[0, 0] = False
+    wsum = rng.random((H, W)).astype(np.float32)
+    wsum[2:4, 3:6] = 0  # unseen texels to fill
+    return OptimizedPolygon(
+        polygon_id="wall",
+        names=["a.jpg", "b.jpg"],
+        mask=mask,
+        frame=UVFrame(origin=np.zeros(3), e_u=np.array([1.0, 0, 0]), e_v=np.array([0, -1.0, 0]),
+                      normal=np.array([0, 0, 1.0]), texel_size=0.1, width=W, height=H),
+        U=rng.random((H, W, 3)).astype(np.float32) * (wsum > 0)[..., None],
+        weight_sum=wsum,
+        dominant=rng.integers(-1, 2, (H, W)),
+        stats={"levels": [{"long_side": 9, "time_s": 0.1}], "photo_reads": 2},
+        histmatch=True,
+        heights=rng.random((H, W)).astype(np.float32) if heights else None,
+        idx=rng.integers(0, 2, (K, H, W)),
+        W=rng.random((K, H, W)).astype(np.float32),
+        transfers=None,
+    )
+
+
+@pytest.mark.parametrize("heights", [False, True])
+def test_optimized_files_round_trip_to_the_same_composite(tmp_path, heights):
+    opt = _optimized(np.random.default_rng(1), heights)
+    write_optimized(tmp_path, opt)
+    back = read_optimized(tmp_path)
+    for key in ("U", "weight_sum", "dominant", "mask"):
+        assert np.array_equal(getattr(back, key), getattr(opt, key)), key
+    assert back.names == opt.names and back.stats == opt.stats and back.histmatch
+    assert back.frame.to_dict() == opt.frame.to_dict()
+    assert (back.heights is None) == (not heights)
+    write_composed(tmp_path / "a.npz", opt)
+    write_composed(tmp_path / "b.npz", back)
+    a, b = np.load(tmp_path / "a.npz"), np.load(tmp_path / "b.npz")
+    assert a.files == b.files and all(np.array_equal(a[k], b[k]) for k in a.files)
+    U, seen, report = compose_polygon(back)
+    assert report["filled_texels"] == 6 and not seen[2:4, 3:6].any() and np.isfinite(U).all()
+
+
+# ---------------------------------------------------------------------------------------------
+# The workflow on the tiny synthetic scene
+
+SMALL = (
+    "preset=fast",
+    "texture={long_side: 128}",
+    "optimize={long_side_start: 64, max_iters_per_level: [15, 8]}",
+)
+
+
+@pytest.fixture(scope="module")
+def runs(tmp_path_factory):
+    from difftex.synth import generate
+
+    scene = tmp_path_factory.mktemp("synth") / "tiny"
+    generate("tiny", scene, progress=False)
+    out = {"scene": scene}
+    for split in ("true", "false"):
+        work = tmp_path_factory.mktemp(f"split_{split}")
+        args = ("--cores", "2", "--config", f"scene={scene}", *SMALL, f"run={{evaluate: false, split: {split}}}")
+        r = snakemake(work, *args)
+        assert r.returncode == 0, r.stdout[-3000:] + r.stderr[-3000:]
+        out[split] = (work / "results" / "tiny", args, work)
+    return out
+
+
+def _without_times(report: dict) -> dict:
+    if isinstance(report, dict):
+        return {k: _without_times(v) for k, v in report.items() if not k.startswith("time_")}
+    if isinstance(report, list):
+        return [_without_times(v) for v in report]
+    return report
+
+
+@pytest.mark.slow
+def test_split_stages_write_the_one_jobs_textures(runs):
+    R_split, R_one = runs["true"][0], runs["false"][0]
+    composites = sorted(R_one.glob("optimized/*/composite.npz"))
+    assert composites and len(composites) == len(list(R_split.glob("optimized/*/composite.npz")))
+    for path in composites:
+        a, b = np.load(path), np.load(R_split / path.relative_to(R_one))
+        assert a.files == b.files
+        for k in a.files:
+            if k == "report":  # equal but for the stages' timings
+                assert _without_times(json.loads(str(a[k]))) == _without_times(json.loads(str(b[k])))
+            else:
+                assert np.array_equal(a[k], b[k]), (path, k)
+        png = R_one / "textures" / path.parent.name / "texture.png"
+        assert png.read_bytes() == (R_split / png.relative_to(R_one)).read_bytes()
+    # the split run's stages each left their jobs and logs; the one-job run has no crops
+    assert list(R_split.glob("init/*/crops.npz")) and not (R_one / "init").exists()
+    for stage in ("initialize", "optimize", "compose"):
+        assert list((R_split / "logs" / stage).glob("*.log")), stage
+
+
+@pytest.mark.slow
+def test_an_optimization_change_reruns_optimize_not_initialize(runs):
+    R, args, work = runs["true"]
+    n_jobs = len(list((R / "init" / "jobs").glob("*.json")))
+    assert n_jobs >= 1
+    rules = snakemake(work, "--list-rules", *args[2:]).stdout.split()
+    assert {"filter", "visibility", "initialize", "optimize", "compose", "finish", "assemble", "evaluate"} <= set(rules)
+    counts = job_counts(snakemake(work, "-n", *args, "optimize={lr: 0.01}").stdout)
+    assert counts.get("optimize") == counts.get("compose") == counts.get("finish") == n_jobs, counts
+    assert "initialize" not in counts and "texture" not in counts and "visibility" not in counts
+    # ... while what fixes the photos' crops reruns the initialization too
+    counts = job_counts(snakemake(work, "-n", *args, "optimize={supersample: 1}").stdout)
+    assert counts.get("initialize") == counts.get("optimize") == n_jobs, counts
+    # and nothing is left to do
+    again = snakemake(work, "-n", *args)
+    assert "Nothing to be done" in again.stdout, again.stdout[-2000:]
+
+
+@pytest.mark.slow
+def test_a_photo_is_decoded_once_per_polygon_and_the_optimization_decodes_none(runs, monkeypatch):
+    import difftex.sampling.photos as photos_mod
+    import difftex.scene.files as files_mod
+    from difftex.compose.texturing import initialize_polygon, optimize_photos, texture_polygon
+    from difftex.config import section
+    from difftex.geometry.visibility import load_visibility
+    from difftex.method.config import ComputeConfig, OptimizeConfig
+    from difftex.sampling.photos import PhotoSet, polygon_input_from_visibility
+    from difftex.scene.loading import load_scene
+
+    R = runs["true"][0]
+    cfg = section(str(sorted((R / "config").glob("texture-*.yaml"))[0]), "optimize", OptimizeConfig)
+    scene = load_scene(runs["scene"], check_images=False)
+    photos = {p.name: p for p in scene.photos}
+    vis = sorted((R / "visibility").glob("*.npz"), key=lambda p: -p.stat().st_size)[0]
+    inp = polygon_input_from_visibility(load_visibility(vis), photos)
+    calls: list[str] = []
+
+    def counting(path, *a, **kw):
+        calls.append(str(path))
+        return files_mod.decode_photo(path, *a, **kw)
+
+    crops, stats = initialize_polygon(inp, cfg, counting)
+    assert len(crops) >= 2 and len(calls) == len(crops) == stats["photo_reads"]
+    assert len(set(calls)) == len(calls)  # each photo once
+
+    def refuse(*a, **kw):
+        raise AssertionError("the optimization decoded a photo")
+
+    reference = texture_polygon(inp, cfg, ComputeConfig(device="cpu"))
+    monkeypatch.setattr(files_mod, "decode_photo", refuse)
+    monkeypatch.setattr(photos_mod, "decode_photo", refuse)
+    ps = PhotoSet.from_crops(inp, crops, "cpu", cfg.supersample)
+    opt = optimize_photos(ps, cfg, ComputeConfig(device="cpu"), read_stats=stats)
+    assert opt.stats["photo_reads"] == len(crops)
+    assert np.array_equal(compose_polygon(opt)[0], reference.texture)
+    assert np.array_equal(opt.W, reference.W) and np.array_equal(opt.idx, reference.idx)
+    # the file written by the workflow's initialize holds the same crops
+    on_disk, _ = read_init(R / "init" / inp.polygon_id / "crops.npz", inp.polygon_id, [p.name for p in inp.photos])
+    assert set(on_disk) == set(crops) and all(np.array_equal(on_disk[n].pixels, crops[n].pixels) for n in crops)
+
