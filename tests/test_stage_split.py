@@ -179,7 +179,8 @@ def test_an_optimization_change_reruns_optimize_not_initialize(runs):
 def test_a_photo_is_decoded_once_per_polygon_and_the_optimization_decodes_none(runs, monkeypatch):
     import difftex.sampling.photos as photos_mod
     import difftex.scene.files as files_mod
-    from difftex.compose.texturing import initialize_polygon, optimize_photos, texture_polygon
+    from difftex.compose.stage_files import initialize_polygon
+    from difftex.compose.texturing import optimize_photos, texture_polygon
     from difftex.config import section
     from difftex.geometry.visibility import load_visibility
     from difftex.method.config import ComputeConfig, OptimizeConfig

@@ -29,20 +29,21 @@ def load(args):
     return cfg, compute, next(inputs)
 
 
-def load_many(args, visibility: list[str]):
+def load_many(args, visibility: list[str], torch_threads: bool = True):
     """(OptimizeConfig, ComputeConfig, iterator of PolygonInput): the scene is read once, each
-    polygon's visibility file when the iterator reaches it (so one polygon's inputs are held at a time)."""
+    polygon's visibility file when the iterator reaches it (so one polygon's inputs are held at a time).
+    ``torch_threads``: set torch's threads from ``--threads`` (False: a command that imports no torch)."""
     import dataclasses
-
-    import torch
 
     from difftex.config import section
     from difftex.geometry.visibility import load_visibility
     from difftex.method.config import ComputeConfig, OptimizeConfig
-    from difftex.sampling.photos import polygon_input_from_visibility
+    from difftex.sampling.crops import polygon_input_from_visibility
     from difftex.scene.loading import load_scene
 
-    if args.threads and args.threads > 0:
+    if torch_threads and args.threads and args.threads > 0:
+        import torch
+
         torch.set_num_threads(args.threads)
     path = getattr(args, "config", None)
     cfg = section(path, "optimize", OptimizeConfig)

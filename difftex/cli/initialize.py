@@ -22,14 +22,14 @@ def run(args) -> int:
     import time
 
     from difftex.cli._polygon import load_many
-    from difftex.compose.stage_files import write_init
-    from difftex.compose.texturing import initialize_polygon
+    from difftex.compose.stage_files import initialize_polygon, write_init
     from difftex.errors import DifftexError
     from difftex.scene.files import DecodeCache, decode_photo, write_json
 
     if len(args.out) != len(args.visibility):
         raise DifftexError(f"initialize: {len(args.visibility)} --visibility files but {len(args.out)} --out files")
-    cfg, _, inputs = load_many(args, args.visibility)
+    # no torch in this process: importing it would cost more than a small polygon's crops
+    cfg, _, inputs = load_many(args, args.visibility, torch_threads=False)
     shared = len(args.visibility) > 1 and args.decode_cache_mb > 0
     decode = DecodeCache(args.decode_cache_mb) if shared else decode_photo
     done = []

@@ -10,13 +10,16 @@ photo, the height field). ``stats.json`` beside them. Composition writes ``compo
 (difftex.compose.outputs.write_composite) from them, the same bytes as the one-process
 ``texture`` stage writes.
 
-No torch at import (the photo crops' and transfers' modules are imported where they are
-used): the composition job reads and writes these files without it.
+``initialize_polygon`` is the initialization stage itself. Nothing here imports torch (the
+transfers' module is imported where it is used): the initialization and composition jobs run
+without it.
 """
 
 from __future__ import annotations
 
 import json
+import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -27,10 +30,11 @@ from difftex.compose.fill import finish_texture
 from difftex.compose.outputs import write_composite
 from difftex.errors import DifftexError
 from difftex.geometry.frames import UVFrame
-from difftex.scene.files import read_json, read_npz, write_json, write_npz, write_npz_stored
+from difftex.scene.files import decode_photo, read_json, read_npz, write_json, write_npz, write_npz_stored
 
 if TYPE_CHECKING:
-    from difftex.sampling.photos import PhotoCrop
+    from difftex.method.config import OptimizeConfig
+    from difftex.sampling.crops import PhotoCrop, PolygonInput
 
 INIT_VERSION = 1
 
@@ -67,6 +71,25 @@ def compose_polygon(opt: OptimizedPolygon) -> tuple[np.ndarray, np.ndarray, dict
     return U, seen, report
 
 
+def initialize_polygon(
+    inp: PolygonInput, cfg: OptimizeConfig, decode: Callable[..., np.ndarray] = decode_photo
+) -> tuple[dict[int, PhotoCrop], dict]:
+    """The initialization stage: every candidate photo decoded once and cropped to the polygon.
+
+    Returns:
+        ({photo index: crop}, {"photo_reads", "time_read_photos_s"}); ``PhotoSet.from_crops``
+        turns the crops into the photo set that ``PhotoSet.load`` would have built.
+    """
+    t0 = time.perf_counter()
+    from difftex.sampling.crops import photo_crops
+
+    crops = dict(photo_crops(inp, None, cfg.exact_decode, decode, cfg.supersample, crop_relief_range(cfg)))
+    return crops, {"photo_reads": len(crops), "time_read_photos_s": time.perf_counter() - t0}
+
+
+def crop_relief_range(cfg: OptimizeConfig) -> tuple[float, float]:
+    """The heights along the normal that the photos' crops must hold (the relief sweep's range)."""
+    return cfg.relief_range if cfg.relief else (0.0, 0.0)
 
 
 def write_init(path: str | Path, polygon_id: str, names: list[str], crops: dict[int, PhotoCrop], stats: dict) -> None:
@@ -92,7 +115,7 @@ def read_init(path: str | Path, polygon_id: str, names: list[str]) -> tuple[dict
     if str(d["polygon_id"]) != polygon_id or list(d["photos"]) != list(names):
         raise DifftexError(f"{path}: made for polygon {d['polygon_id']} and other photos; rerun the initialization")
     crops = {}
-    from difftex.sampling.photos import PhotoCrop
+    from difftex.sampling.crops import PhotoCrop
 
     for key in d:
         if key.startswith("crop_"):

@@ -2,8 +2,8 @@
 
 For one polygon:
 
-1. initialization (``initialize_polygon``): decode its candidate photos once and crop them to
-   the polygon (difftex.sampling.photos.photo_crops);
+1. initialization (``initialize_polygon`` in difftex.compose.stage_files, no torch): decode its
+   candidate photos once and crop them to the polygon (difftex.sampling.crops.photo_crops);
 2. optimization (``optimize_photos``): build the crops' pyramids, sweep the relief when asked,
    map the photos at the first level and estimate their brightness transfers there (histogram
    matching, Sec. 4.3; the losses compare matched colours, so the transfers are an input of the
@@ -29,12 +29,12 @@ import numpy as np
 from difftex.compose.fill import dominant_from_slots
 from difftex.compose.histmatch import mapped_transfers
 from difftex.compose.outputs import write_composite
-from difftex.compose.stage_files import OptimizedPolygon, compose_polygon
+from difftex.compose.stage_files import OptimizedPolygon, compose_polygon, crop_relief_range
 from difftex.geometry.frames import UVFrame, level_sides
 from difftex.method.config import ComputeConfig, OptimizeConfig
 from difftex.method.loop import optimize_polygon
 from difftex.method.relief import estimate_relief
-from difftex.sampling.photos import PhotoCrop, PhotoSet, PolygonInput, photo_crops, pick_device, with_transfer
+from difftex.sampling.photos import PhotoSet, PolygonInput, pick_device, with_transfer
 from difftex.sampling.texels import level_frame, resample_nearest
 from difftex.scene.files import decode_photo
 
@@ -73,20 +73,6 @@ def polygon_transfers(photos: PhotoSet, cfg: OptimizeConfig) -> tuple[UVFrame, d
             model=cfg.histmatch_model,
         )
     return match_frame, raw, transfers, ref
-
-
-def initialize_polygon(
-    inp: PolygonInput, cfg: OptimizeConfig, decode: Callable[..., np.ndarray] = decode_photo
-) -> tuple[dict[int, PhotoCrop], dict]:
-    """The initialization stage: every candidate photo decoded once and cropped to the polygon.
-
-    Returns:
-        ({photo index: crop}, {"photo_reads", "time_read_photos_s"}); ``PhotoSet.from_crops``
-        turns the crops into the photo set that ``PhotoSet.load`` would have built.
-    """
-    t0 = time.perf_counter()
-    crops = dict(photo_crops(inp, None, cfg.exact_decode, decode, cfg.supersample, crop_relief_range(cfg)))
-    return crops, {"photo_reads": len(crops), "time_read_photos_s": time.perf_counter() - t0}
 
 
 def optimize_photos(
@@ -187,11 +173,6 @@ def texture_polygon(
         report=report,
         heights=opt.heights,
     )
-
-
-def crop_relief_range(cfg: OptimizeConfig) -> tuple[float, float]:
-    """The heights along the normal that the photos' crops must hold (the relief sweep's range)."""
-    return cfg.relief_range if cfg.relief else (0.0, 0.0)
 
 
 def write_polygon(tp: TexturedPolygon, optimized_dir: str | Path) -> None:

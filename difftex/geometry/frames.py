@@ -5,6 +5,7 @@ See docs/conventions.md for the frame definition; everything here follows it exa
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 from math import ceil
 
@@ -315,3 +316,14 @@ def level_sides(target_long: int, start: int, coarse_to_fine: bool, step: float 
         sides.pop()
     sides.append(target_long)
     return sides
+
+
+def level_frame(frame: UVFrame, long_side: int) -> UVFrame:
+    """The same rectangle as ``frame`` with ``long_side`` texels on its longer side."""
+    return frame if long_side == max(frame.shape) else frame.resized(long_side)
+
+
+def shifted_frame(frame: UVFrame, h: float) -> UVFrame:
+    """``frame`` moved by ``h`` along its normal: its texel (tx, ty) is X(tx, ty) at height h."""
+    origin = np.asarray(frame.origin, np.float64) + float(h) * np.asarray(frame.normal, np.float64)
+    return dataclasses.replace(frame, origin=origin)

@@ -17,7 +17,7 @@ composition and the baselines above; they all sample photos through this module.
 from __future__ import annotations
 
 import math
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -28,9 +28,19 @@ from difftex.errors import DifftexError
 from difftex.geometry.frames import UVFrame
 from difftex.sampling import SUPERSAMPLE
 from difftex.sampling.colour import apply_transfer_torch
-from difftex.sampling.relief import Relief, shifted_frame, texel_map_relief
-from difftex.sampling.texels import Region, level_frame, resample_nearest, texel_map
-from difftex.scene.camera import Photo
+
+# the torch-free part (the initialization stage's), re-exported: callers import the polygon's input here
+from difftex.sampling.crops import (  # noqa: F401
+    CROP_ALIGN,
+    PROBE_LONG_SIDE,
+    PhotoCrop,
+    PolygonInput,
+    crop_box,
+    photo_crops,
+    polygon_input_from_visibility,
+)
+from difftex.sampling.relief import Relief, texel_map_relief
+from difftex.sampling.texels import Region, resample_nearest, texel_map
 from difftex.scene.files import decode_photo, to_float
 
 
@@ -49,68 +59,8 @@ def pick_device(name: str | torch.device) -> torch.device:
 # One polygon's input
 
 
-@dataclass(eq=False)
-class PolygonInput:
-    """What texturing one polygon needs (built from a visibility file or by a test)."""
-
-    polygon_id: str
-    frame: UVFrame  # target resolution
-    texel_mask: np.ndarray  # (H, W) bool
-    photos: list[Photo]  # candidate photos
-    texel_visible: np.ndarray  # (N, H, W) bool
-    load_image: Callable[[Photo], np.ndarray] | None = None  # float32 RGB (h, w, 3); None: decode_photo
-    a_bbox: np.ndarray | None = None  # (N, 4) x0, y0, x1, y1 of a_k^i (render mode)
-    a_masks: list[np.ndarray] | None = None  # N crops of a_k^i
-
-    def __post_init__(self):
-        N = len(self.photos)
-        if self.texel_visible.shape != (N, *self.frame.shape):
-            raise DifftexError(
-                f"polygon '{self.polygon_id}': visibility is {self.texel_visible.shape}, expected "
-                f"{(N, *self.frame.shape)}"
-            )
-        if self.texel_mask.shape != self.frame.shape:
-            raise DifftexError(
-                f"polygon '{self.polygon_id}': texel mask shape {self.texel_mask.shape} != frame {self.frame.shape}"
-            )
-
-
-def polygon_input_from_visibility(vis, scene_photos: dict[str, Photo], load_image=None) -> PolygonInput:
-    """PolygonInput from a difftex.geometry.visibility.PolygonVisibility and the scene's photos by name."""
-    missing = [n for n in vis.photos if n not in scene_photos]
-    if missing:
-        raise DifftexError(
-            f"polygon '{vis.polygon_id}': visibility names photo(s) not in the scene: {', '.join(missing[:3])}"
-        )
-    return PolygonInput(
-        polygon_id=vis.polygon_id,
-        frame=vis.frame,
-        texel_mask=vis.texel_mask,
-        photos=[scene_photos[n] for n in vis.photos],
-        texel_visible=vis.texel_visible,
-        load_image=load_image,
-        a_bbox=vis.a_bbox,
-        a_masks=vis.a_masks,
-    )
-
-
 # --------------------------------------------------------------------------------------------
 # Decoding and pyramids
-
-
-@dataclass
-class PhotoCrop:
-    """One candidate photo as decoded and cropped to a polygon: what the initialization stage
-    writes and the optimization stage builds its pyramid from (no photo is decoded twice).
-
-    ``pixels`` (h, w, 3) as the file stores them (uint8 or uint16), decoded at 1/2^``base``;
-    (``x0``, ``y0``): the crop's corner in full-resolution pixels, a multiple of 2^``base``.
-    """
-
-    pixels: np.ndarray
-    x0: int
-    y0: int
-    base: int
 
 
 class PhotoSampler:
@@ -265,11 +215,6 @@ class Correction:
         return pix + self.displacement(pix)
 
 
-PROBE_LONG_SIDE = 64  # texels of the probe level that sizes crops and decode scales
-# Crop origins are multiples of 2^CROP_ALIGN pixels, so the box-filter pyramid's pixels fall on
-# the same image blocks whatever the crop (for levels <= CROP_ALIGN): sampled colours then do
-# not depend on how far the polygon's visible region happens to extend.
-CROP_ALIGN = 7
 
 
 @dataclass
@@ -379,63 +324,6 @@ class PhotoSet:
         return with_transfer(mp, transfer)
 
 
-def photo_crops(
-    inp: PolygonInput,
-    finest: UVFrame | None = None,
-    exact_decode: bool = False,
-    decode: Callable[..., np.ndarray] = decode_photo,
-    supersample: int = SUPERSAMPLE,
-    relief_range: tuple[float, float] = (0.0, 0.0),
-) -> Iterator[tuple[int, PhotoCrop]]:
-    """(photo index, crop) of every candidate photo that sees a texel of ``inp``, one decode each,
-    one photo at a time (so one decoded photo is held at once). Arguments as ``PhotoSet.load``'s."""
-    finest = finest or inp.frame
-    supersample = max(1, int(supersample))
-    probe = level_frame(inp.frame, min(PROBE_LONG_SIDE, max(inp.frame.shape)))
-    vis_probe = _any_pool(inp.texel_visible & inp.texel_mask[None], inp.frame, probe)
-    for n, ph in enumerate(inp.photos):
-        if not vis_probe[n].any():
-            continue
-        tm = texel_map(probe, ph, "cpu")
-        ok = vis_probe[n] & tm.valid.numpy()
-        if not ok.any():
-            continue
-        scale = probe.texel_size / finest.texel_size  # probe texel -> finest texels
-        fp_fine = tm.footprint.numpy()[ok] / scale
-        pix, fp = [tm.pix.numpy()[ok]], [tm.footprint.numpy()[ok]]
-        for h in {float(x) for x in relief_range} - {0.0}:
-            th = texel_map(shifted_frame(probe, h), ph, "cpu")
-            okh = vis_probe[n] & th.valid.numpy()
-            pix.append(th.pix.numpy()[okh])
-            fp.append(th.footprint.numpy()[okh])
-        box = _crop_box(
-            ph,
-            np.concatenate(pix),
-            np.concatenate(fp),
-            inp.a_bbox[n] if inp.a_bbox is not None and len(inp.a_bbox) > n else None,
-        )
-        if box is None:
-            continue
-        reduce = 1
-        if not exact_decode and inp.load_image is None:
-            finest_px = float(fp_fine.min()) / supersample  # a sub-sample's footprint
-            reduce = 2 ** int(np.clip(np.floor(np.log2(max(finest_px, 1.0))), 0, 3))
-        s = reduce
-        x0, y0, x1, y1 = box[0] // s * s, box[1] // s * s, box[2], box[3]
-        if inp.load_image is not None:
-            img = inp.load_image(ph)
-            if img.shape[:2] != (ph.height, ph.width):
-                raise DifftexError(
-                    f"{ph.image_path}: image is {img.shape[1]}x{img.shape[0]}, camera says {ph.width}x{ph.height}"
-                )
-        else:
-            img = decode(ph.image_path, (ph.width, ph.height), reduce, as_stored=True)
-        # a copy, so the whole decoded photo is freed here (a cache may keep it)
-        pixels = img[y0 // s : -(-y1 // s), x0 // s : -(-x1 // s)].copy()
-        del img
-        yield n, PhotoCrop(pixels, int(x0), int(y0), int(math.log2(reduce)))
-
-
 def with_transfer(mp: MappedPhoto, transfer: np.ndarray | None) -> MappedPhoto:
     """The mapped photo with its colours through a brightness transfer (difftex.sampling.colour)."""
     if transfer is None:
@@ -444,41 +332,3 @@ def with_transfer(mp: MappedPhoto, transfer: np.ndarray | None) -> MappedPhoto:
     return MappedPhoto(colour=col, visible=mp.visible, view=mp.view, cos=mp.cos, footprint=mp.footprint)
 
 
-def _any_pool(masks: np.ndarray, src: UVFrame, dst: UVFrame) -> np.ndarray:
-    """(N, h, w) bool: a coarse texel is set when any fine texel it covers is set."""
-    if masks.shape[-2:] == dst.shape:
-        return masks
-    t = torch.from_numpy(masks.astype(np.float32))[:, None]
-    out = (
-        F.adaptive_max_pool2d(t, dst.shape)
-        if dst.height <= src.height and dst.width <= src.width
-        else F.interpolate(t, size=dst.shape, mode="nearest")
-    )
-    return out[:, 0].numpy() > 0
-
-
-def _crop_box(
-    photo: Photo, pix: np.ndarray, footprint: np.ndarray, a_box=None, pad: int = 16
-) -> tuple[int, int, int, int] | None:
-    """Pixel box holding the polygon's visible (probe) texels and a_k^i, padded, inside the image.
-
-    A probe texel covers ``footprint`` pixels around its centre: the box grows by that much.
-    """
-    boxes: list[tuple[float, ...]] = []
-    if len(pix):
-        r = footprint[:, None]
-        lo, hi = pix - r, pix + r
-        boxes.append((lo[:, 0].min(), lo[:, 1].min(), hi[:, 0].max(), hi[:, 1].max()))
-    if a_box is not None and a_box[2] > a_box[0] and a_box[3] > a_box[1]:
-        boxes.append(tuple(float(v) for v in a_box))
-    if not boxes:
-        return None
-    b = np.array(boxes)
-    a = 2**CROP_ALIGN
-    x0 = max(0, int(math.floor(b[:, 0].min())) - pad) // a * a
-    y0 = max(0, int(math.floor(b[:, 1].min())) - pad) // a * a
-    x1 = min(photo.width, int(math.ceil(b[:, 2].max())) + pad)
-    y1 = min(photo.height, int(math.ceil(b[:, 3].max())) + pad)
-    if x1 <= x0 or y1 <= y0:
-        return None
-    return x0, y0, x1, y1

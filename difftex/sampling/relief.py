@@ -26,7 +26,6 @@ Layer: sampling (difftex.sampling.photos maps photos through these when a polygo
 
 from __future__ import annotations
 
-import dataclasses
 import math
 from dataclasses import dataclass
 
@@ -34,7 +33,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from difftex.geometry.frames import UVFrame, texel_homography
+from difftex.geometry.frames import UVFrame, shifted_frame, texel_homography  # noqa: F401  (shifted_frame: re-exported)
 from difftex.sampling.texels import Region, TexelMap, resample_nearest, texel_map
 from difftex.scene.camera import Photo
 
@@ -75,12 +74,6 @@ class Relief:
         if self.hidden is None:
             return None
         return ~resample_nearest(self.hidden[n], self.frame, frame, region)
-
-
-def shifted_frame(frame: UVFrame, h: float) -> UVFrame:
-    """``frame`` moved by ``h`` along its normal: its texel (tx, ty) is X(tx, ty) at height h."""
-    origin = np.asarray(frame.origin, np.float64) + float(h) * np.asarray(frame.normal, np.float64)
-    return dataclasses.replace(frame, origin=origin)
 
 
 def quantise_heights(heights: np.ndarray, max_steps: int = MAX_STEPS) -> np.ndarray:

@@ -13,7 +13,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from difftex.geometry.frames import UVFrame, texel_homography
+from difftex.geometry.frames import UVFrame, level_frame, texel_homography  # noqa: F401  (level_frame: re-exported)
 from difftex.scene.camera import Photo
 
 # Texel spacing of the exact projections that the distortion displacement is interpolated from
@@ -23,11 +23,6 @@ DISTORTION_GRID = 8
 
 # --------------------------------------------------------------------------------------------
 # Resolution levels of one UV frame
-
-
-def level_frame(frame: UVFrame, long_side: int) -> UVFrame:
-    """The same rectangle as ``frame`` with ``long_side`` texels on its longer side."""
-    return frame if long_side == max(frame.shape) else frame.resized(long_side)
 
 
 def resample_nearest(arr: np.ndarray, src: UVFrame, dst: UVFrame, region: Region | None = None) -> np.ndarray:
