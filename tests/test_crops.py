@@ -72,6 +72,8 @@ def test_the_initialization_imports_no_torch():
         "import sys\n"
         "import difftex.cli.initialize, difftex.compose.stage_files, difftex.cli._polygon\n"
         "from difftex.compose.stage_files import initialize_polygon\n"
+        "from difftex.method.config import OptimizeConfig\n"
+        "OptimizeConfig(relief=True).relief_settings()\n"
         "assert not [m for m in sys.modules if m.split('.')[0] == 'torch'], 'torch imported'\n"
     )
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,

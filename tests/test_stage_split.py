@@ -218,3 +218,25 @@ def test_a_photo_is_decoded_once_per_polygon_and_the_optimization_decodes_none(r
     on_disk, _ = read_init(R / "init" / inp.polygon_id / "crops.npz", inp.polygon_id, [p.name for p in inp.photos])
     assert set(on_disk) == set(crops) and all(np.array_equal(on_disk[n].pixels, crops[n].pixels) for n in crops)
 
+
+
+@pytest.mark.slow
+def test_the_initialize_command_imports_no_torch(runs, tmp_path):
+    import subprocess
+    import sys
+
+    R = runs["true"][0]
+    vis = sorted((R / "visibility").glob("*.npz"))[0]
+    config = sorted((R / "config").glob("initialize-*.yaml"))[0]
+    code = (
+        "import sys\n"
+        "from difftex.cli import main\n"
+        f"rc = main(['initialize', '--threads', '1', '--scene', {str(runs['scene'])!r}, '--visibility', {str(vis)!r}, "
+        f"'--out', {str(tmp_path / 'crops.npz')!r}, '--config', {str(config)!r}])\n"
+        "assert rc == 0\n"
+        "assert 'torch' not in sys.modules, 'torch imported'\n"
+    )
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    assert r.returncode == 0, r.stdout + r.stderr
+    crops, stats = read_init(tmp_path / "crops.npz", vis.stem, [str(x) for x in np.load(vis)["photos"]])
+    assert crops and stats["photo_reads"] == len(crops)

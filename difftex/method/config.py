@@ -39,6 +39,34 @@ def _check_choice(name: str, value, choices: tuple) -> None:
 
 
 @dataclass(frozen=True)
+class ReliefSettings:
+    """How the sweep runs (the ``optimize.relief_*`` keys)."""
+
+    lo: float  # lowest height (scene units, < 0: into the facade)
+    hi: float  # highest height (> 0: out of it)
+    long_side: int = 512  # texels of the sweep's frame, at most
+    window: int = 15  # ZNCC window, texels of that frame (odd)
+    max_photos: int = 16
+    min_cos: float = 0.5  # photos seen within arccos(min_cos) of the normal
+    margin: float = 0.15  # least cost gain over the plane for a height to be kept
+    smooth: int = 9  # mode filter, texels (odd; 1: off)
+    max_heights: int = 49  # most planes swept
+    # heights beyond this share of the polygon's shorter side are not swept: a scene in other units
+    # than metres (COLMAP's are arbitrary unless scaled), or a small polygon, gets a range in scale
+    max_share: float = 0.2
+
+    def __post_init__(self):
+        if not self.lo <= 0 <= self.hi or self.lo == self.hi:
+            raise ValueError(f"relief range must hold 0 and not be empty, got [{self.lo}, {self.hi}]")
+        if self.window < 3 or self.window % 2 == 0 or self.smooth < 1 or self.smooth % 2 == 0:
+            raise ValueError("relief window must be odd and >= 3, smooth odd and >= 1")
+        if self.max_photos < 2 or not 0 <= self.min_cos < 1 or self.margin < 0 or self.max_heights < 3:
+            raise ValueError("relief max_photos >= 2, min_cos in [0, 1), margin >= 0, max_heights >= 3")
+        if self.max_share <= 0:
+            raise ValueError(f"relief max_share must be > 0, got {self.max_share}")
+
+
+@dataclass(frozen=True)
 class OptimizeConfig:
     """Parameters of the ``optimize:`` config section: the project's defaults. The published
     method's values are :data:`PUBLISHED` (``config/presets/paper.yaml``); :meth:`departures`
@@ -213,9 +241,7 @@ class OptimizeConfig:
         return [k for k, v in PUBLISHED.items() if getattr(self, k) != v]
 
     def relief_settings(self):
-        """The relief sweep's settings (difftex.method.relief.ReliefSettings)."""
-        from difftex.method.relief import ReliefSettings
-
+        """The relief sweep's settings (:class:`ReliefSettings`)."""
         lo, hi = self.relief_range
         return ReliefSettings(
             lo=lo, hi=hi, long_side=self.relief_long_side, window=self.relief_window, max_photos=self.relief_photos,

@@ -30,13 +30,13 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from dataclasses import dataclass
 
 import numpy as np
 import torch
 import torch.nn.functional as F
 
 from difftex.geometry.frames import UVFrame
+from difftex.method.config import ReliefSettings  # noqa: F401  (defined beside OptimizeConfig, re-exported)
 from difftex.sampling.photos import PhotoSet
 from difftex.sampling.relief import GreySweep, Relief, relief_visibility
 from difftex.sampling.texels import level_frame, resample_nearest, texel_map
@@ -48,34 +48,6 @@ MIN_PHOTOS = 5
 # A field with more flat steps than this off the plane is not a facade's relief (recesses,
 # balconies, a cornice) but the sweep following noise or a curved surface: the plane is kept.
 MAX_STEPS = 4
-
-
-@dataclass(frozen=True)
-class ReliefSettings:
-    """How the sweep runs (the ``optimize.relief_*`` keys)."""
-
-    lo: float  # lowest height (scene units, < 0: into the facade)
-    hi: float  # highest height (> 0: out of it)
-    long_side: int = 512  # texels of the sweep's frame, at most
-    window: int = 15  # ZNCC window, texels of that frame (odd)
-    max_photos: int = 16
-    min_cos: float = 0.5  # photos seen within arccos(min_cos) of the normal
-    margin: float = 0.15  # least cost gain over the plane for a height to be kept
-    smooth: int = 9  # mode filter, texels (odd; 1: off)
-    max_heights: int = 49  # most planes swept
-    # heights beyond this share of the polygon's shorter side are not swept: a scene in other units
-    # than metres (COLMAP's are arbitrary unless scaled), or a small polygon, gets a range in scale
-    max_share: float = 0.2
-
-    def __post_init__(self):
-        if not self.lo <= 0 <= self.hi or self.lo == self.hi:
-            raise ValueError(f"relief range must hold 0 and not be empty, got [{self.lo}, {self.hi}]")
-        if self.window < 3 or self.window % 2 == 0 or self.smooth < 1 or self.smooth % 2 == 0:
-            raise ValueError("relief window must be odd and >= 3, smooth odd and >= 1")
-        if self.max_photos < 2 or not 0 <= self.min_cos < 1 or self.margin < 0 or self.max_heights < 3:
-            raise ValueError("relief max_photos >= 2, min_cos in [0, 1), margin >= 0, max_heights >= 3")
-        if self.max_share <= 0:
-            raise ValueError(f"relief max_share must be > 0, got {self.max_share}")
 
 
 def sweep_photos(photos: PhotoSet, frame: UVFrame, mask: np.ndarray, min_cos: float, max_photos: int) -> list[int]:
