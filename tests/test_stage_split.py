@@ -9,6 +9,7 @@ follows but not the initialization, a change of what fixes the crops reruns the 
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -35,6 +36,15 @@ def test_split_auto_splits_for_a_gpu_or_a_cluster_only():
     assert jobs.split_stages("auto", 0, local=False) is True
     assert jobs.split_stages(True, 0, local=True) is True
     assert jobs.split_stages(False, 2, local=False) is False
+
+
+def test_a_cluster_run_is_known_from_its_command_line():
+    profile = Path(__file__).resolve().parents[1] / "workflow" / "profiles" / "slurm"
+    assert jobs.cli_executor(["--executor", "slurm", "--jobs", "2"]) == "slurm"
+    assert jobs.cli_executor(["--profile", str(profile), "--config", "scene=x"]) == "slurm"
+    assert jobs.cli_executor(["--cores", "2"]) is None
+    assert jobs.cli_executor(["-n", "--executor", "dryrun"]) is None
+    assert jobs.cli_executor(["-q", "tests/", "--no-such-flag"]) is None  # not snakemake's: local
 
 
 def test_crops_file_round_trips_and_refuses_another_polygons(tmp_path):

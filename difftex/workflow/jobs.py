@@ -163,6 +163,29 @@ def pack_jobs(setting: int | str, local: bool, cores: int | None) -> int:
     return PACK_JOBS_FALLBACK
 
 
+def cli_executor(argv: list[str]) -> str | None:
+    """The executor a Snakemake command line (with its profiles) asks for, or None: local.
+
+    While the Snakefile is read, Snakemake has not attached its executor plugin yet
+    (``workflow.local_exec`` is True in a SLURM run's main process too), so the choice is read
+    from the command line the way Snakemake reads it. A run started another way (the API) is
+    taken as local.
+    """
+    import contextlib
+    import io
+
+    try:
+        from snakemake.cli import parse_args
+
+        # (quiet: Snakemake prints which profile it uses once itself)
+        with contextlib.redirect_stdout(io.StringIO()), contextlib.redirect_stderr(io.StringIO()):
+            _, args = parse_args(list(argv))
+    except (SystemExit, Exception):  # noqa: BLE001 -- not a snakemake command line
+        return None
+    executor = getattr(args, "executor", None)
+    return None if executor in (None, "local", "dryrun", "touch") else str(executor)
+
+
 def split_stages(setting: bool | str, gpu: int, local: bool) -> bool:
     """``run.split`` as a boolean: whether a polygon's work runs as three jobs (initialize,
     optimize, compose) or one (``texture``).

@@ -60,7 +60,8 @@ try:
     _cores = workflow.cores
 except Exception:  # noqa: BLE001 -- not set (a dry run, a cluster job): the fallback
     _cores = None
-_local = workflow.local_exec and not workflow.remote_exec
+# a cluster's main process reads the Snakefile before its executor is attached: the command line says
+_local = workflow.local_exec and not workflow.remote_exec and jobs.cli_executor(sys.argv[1:]) is None
 RUN["pack_jobs"] = jobs.pack_jobs(RUN["pack_jobs"], _local, _cores)
 # initialize -> optimize -> compose jobs, or one texture job per polygon group (jobs.split_stages)
 SPLIT = jobs.split_stages(RUN["split"], RUN["gpu"], _local)
