@@ -26,7 +26,8 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 METHODS = ("difftex", "average", "frontal", "mrf", "texrecon", "meshlab-face", "meshlab-blend")
-LABELS = {"difftex": "DiffTex (ours)", "average": "Averaging (view blending)", "frontal": "Most frontal photo",
+LABELS = {"difftex": "DiffTex (ours)", "difftex-paper": "DiffTex as published (preset `paper`, same texel sizes)",
+          "average": "Averaging (view blending)", "frontal": "Most frontal photo",
           "mrf": "MRF view selection + leveling (LTBC-style)", "texrecon": "texrecon (mvs-texturing)",
           "meshlab-face": "MeshLab per-face raster parameterization", "meshlab-blend": "MeshLab per-texel raster blend"}
 

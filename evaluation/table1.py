@@ -44,7 +44,10 @@ def main(argv=None) -> int:
     ap.add_argument(
         "--preset", default="fast", help="difftex preset (config/presets/<name>.yaml; default: the workflow defaults)"
     )
-    ap.add_argument("--methods", default="difftex,average,frontal,mrf,texrecon,meshlab-face,meshlab-blend")
+    ap.add_argument(
+        "--methods", default="difftex,difftex-paper,average,frontal,mrf,texrecon,meshlab-face,meshlab-blend",
+        help="difftex-paper: preset paper's optimize section (the published method) at the same texel sizes",
+    )
     ap.add_argument("--optimize", default=None, help="JSON of optimize: overrides (ablations)")
     C.add_table_args(ap, "table1")
     args = ap.parse_args(argv)
@@ -66,6 +69,9 @@ def main(argv=None) -> int:
                 skipped.append(f"{C.LABELS[m]}: not run ({r['missing']})")
                 rows.append({"method": m, "run": r, "missing": r["missing"]})
                 continue
+        elif m == "difftex-paper":  # the published method at the same texel sizes as every other row
+            paper = C.base_config(args.long_side, "paper")
+            r = C.run_method("difftex", scene, work / m, common, dict(cfg, optimize=paper["optimize"]))
         else:
             r = C.run_method(m, scene, work / m, common)
         ev = C.evaluate(scene, Path(r["results"]), args.lpips)
