@@ -33,9 +33,9 @@ rule all:
     input:
         # the run guard first: it takes the run lock in real runs (and adds no input)
         lambda wc: RUN_GUARD(workflow),
-        f"{R}/model/summary.json",
-        f"{R}/report.md",
-        f"{R}/report/index.html",
+        str(RES.model_summary),
+        str(RES.report_md),
+        str(RES.report_html),
     default_target: True
 
 

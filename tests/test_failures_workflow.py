@@ -10,6 +10,7 @@ full-disk cases run the whole workflow on a 3-polygon copy of the small syntheti
 
 from __future__ import annotations
 
+import glob
 import json
 import os
 import shutil
@@ -20,6 +21,8 @@ import time
 from pathlib import Path
 
 import pytest
+
+from difftex.layout import Results
 
 from tests import breakage as B
 
@@ -74,7 +77,7 @@ def scene(small_synth_scene, tmp_path) -> Path:
 
 
 def photos_target(name: str = "small") -> str:
-    return f"results/{name}/photos.json"
+    return str(Results(f"results/{name}").photos_json)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -150,9 +153,10 @@ def test_read_only_results_folder(scene, tmp_path):
 def test_scene_path_with_spaces_and_accents(small_synth_scene, tmp_path):
     scene = B.copy_scene(small_synth_scene, tmp_path / "Kölner Dom (west)")
     work = tmp_path / "work dir"
-    r = snakemake(work, "results/Kölner_Dom_west/visibility/summary.json", "--config", f"scene={scene}", *QUICK)
+    target = Results("results/Kölner_Dom_west").visibility_summary
+    r = snakemake(work, str(target), "--config", f"scene={scene}", *QUICK)
     assert r.returncode == 0, r.stdout[-3000:]
-    summary = json.loads((work / "results/Kölner_Dom_west/visibility/summary.json").read_text())
+    summary = json.loads((work / target).read_text())
     assert len(summary["polygons"]) == 6
 
 
@@ -198,7 +202,7 @@ def reference_run(resume_scene, tmp_path_factory) -> Path:
 
 
 def textures(results: Path) -> dict[str, bytes]:
-    return {str(p.relative_to(results)): p.read_bytes() for p in sorted((results / "textures").rglob("*.png"))}
+    return {str(p.relative_to(results)): p.read_bytes() for p in sorted(Results(results).textures_dir.rglob("*.png"))}
 
 
 def wait_for(cond, proc, what: str, timeout: float = 600):
@@ -212,7 +216,7 @@ def wait_for(cond, proc, what: str, timeout: float = 600):
 
 
 def n_textures(work: Path) -> int:
-    return len(list((work / "results/small/textures").glob("*/texture.png")))
+    return len(glob.glob(str(Results(work / "results/small").texture("*"))))
 
 
 def start(work: Path, log: Path, *args: str, extra_env: dict | None = None) -> subprocess.Popen:

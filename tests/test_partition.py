@@ -5,6 +5,7 @@ block its merged outputs equal the single-job run's."""
 
 from __future__ import annotations
 
+import glob
 import json
 import os
 import subprocess
@@ -16,6 +17,7 @@ import pytest
 
 from difftex.cli import main as cli_main
 from difftex.errors import DifftexError
+from difftex.layout import Results
 from difftex.scene.camera import image_files
 from difftex.scene.partition import (
     chunk_bounds,
@@ -212,19 +214,19 @@ def test_block_scene_stages_in_parts_equal_one_job(tmp_path):
         work = tmp_path / name
         work.mkdir()
         args = ["--cores", "2", "--config", f"scene={scene}", "preset=fast", f"run={run}",
-                "--", f"results/{scene.name}/visibility/summary.json"]
+                "--", str(Results(f"results/{scene.name}").visibility_summary)]
         r = _snakemake(work, *args)
         assert r.returncode == 0, r.stderr[-3000:]
-        runs[name] = work / "results" / scene.name
+        runs[name] = Results(work / "results" / scene.name)
     one, parts = runs["one"], runs["parts"]
-    assert len(list((parts / "filter").glob("photos-*-of-004.json"))) == 4
-    assert len(list((parts / "visibility" / "tiles").glob("*-of-004.json"))) == 4
-    assert len(list((one / "visibility" / "tiles").glob("*.json"))) == 1
-    assert _table(parts / "photos.json") == _table(one / "photos.json")
-    assert _table(parts / "visibility" / "summary.json") == _table(one / "visibility" / "summary.json")
-    npz = sorted(p.name for p in (one / "visibility").glob("*.npz"))
-    assert len(npz) >= 100 and npz == sorted(p.name for p in (parts / "visibility").glob("*.npz"))
-    assert all(_npz_equal(one / "visibility" / n, parts / "visibility" / n) for n in npz)
+    assert len(glob.glob(str(parts.filter_part("*-of-004")))) == 4
+    assert len(glob.glob(str(parts.visibility_tile("*-of-004")))) == 4
+    assert len(glob.glob(str(one.visibility_tile("*")))) == 1
+    assert _table(parts.photos_json) == _table(one.photos_json)
+    assert _table(parts.visibility_summary) == _table(one.visibility_summary)
+    npz = sorted(p.name for p in one.visibility_dir.glob("*.npz"))
+    assert len(npz) >= 100 and npz == sorted(p.name for p in parts.visibility_dir.glob("*.npz"))
+    assert all(_npz_equal(one.visibility_dir / n, parts.visibility_dir / n) for n in npz)
 
 
 def test_a_chunk_checks_its_own_photo_files_only(district, tmp_path, capsys):

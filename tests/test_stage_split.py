@@ -8,6 +8,7 @@ follows but not the initialization, a change of what fixes the crops reruns the 
 
 from __future__ import annotations
 
+import glob
 import json
 from pathlib import Path
 
@@ -26,6 +27,7 @@ from difftex.compose.stage_files import (
 )
 from difftex.errors import DifftexError
 from difftex.geometry.frames import UVFrame
+from difftex.layout import Results
 from difftex.sampling.photos import PhotoCrop
 from difftex.workflow import jobs
 
@@ -159,18 +161,18 @@ def test_split_stages_write_the_one_jobs_textures(runs):
                 assert _without_times(json.loads(str(a[k]))) == _without_times(json.loads(str(b[k])))
             else:
                 assert np.array_equal(a[k], b[k]), (path, k)
-        png = R_one / "textures" / path.parent.name / "texture.png"
-        assert png.read_bytes() == (R_split / png.relative_to(R_one)).read_bytes()
+        pid = path.parent.name
+        assert Results(R_one).texture(pid).read_bytes() == Results(R_split).texture(pid).read_bytes()
     # the split run's stages each left their jobs and logs; the one-job run has no crops
-    assert list(R_split.glob("init/*/crops.npz")) and not (R_one / "init").exists()
+    assert glob.glob(str(Results(R_split).crops("*"))) and not Results(R_one).init_dir.exists()
     for stage in ("initialize", "optimize", "compose"):
-        assert list((R_split / "logs" / stage).glob("*.log")), stage
+        assert glob.glob(str(Results(R_split).log(stage, "*"))), stage
 
 
 @pytest.mark.slow
 def test_an_optimization_change_reruns_optimize_not_initialize(runs):
     R, args, work = runs["true"]
-    n_jobs = len(list((R / "init" / "jobs").glob("*.json")))
+    n_jobs = len(glob.glob(str(Results(R).job_file("initialize", "*"))))
     assert n_jobs >= 1
     rules = snakemake(work, "--list-rules", *args[2:]).stdout.split()
     assert {"filter", "visibility", "initialize", "optimize", "compose", "finish", "assemble", "evaluate"} <= set(rules)
@@ -225,7 +227,7 @@ def test_a_photo_is_decoded_once_per_polygon_and_the_optimization_decodes_none(r
     assert np.array_equal(compose_polygon(opt)[0], reference.texture)
     assert np.array_equal(opt.W, reference.W) and np.array_equal(opt.idx, reference.idx)
     # the file written by the workflow's initialize holds the same crops
-    on_disk, _ = read_init(R / "init" / inp.polygon_id / "crops.npz", inp.polygon_id, [p.name for p in inp.photos])
+    on_disk, _ = read_init(Results(R).crops(inp.polygon_id), inp.polygon_id, [p.name for p in inp.photos])
     assert set(on_disk) == set(crops) and all(np.array_equal(on_disk[n].pixels, crops[n].pixels) for n in crops)
 
 

@@ -4,6 +4,7 @@ optimization-only change reruns only optimization and what follows)."""
 
 from __future__ import annotations
 
+import glob
 import importlib.util
 import math
 import os
@@ -16,6 +17,7 @@ import pytest
 
 from difftex.cli import main as cli_main
 from difftex.errors import DifftexError
+from difftex.layout import Results
 from difftex.workflow import glue as wf
 from difftex.workflow import jobs
 
@@ -180,9 +182,8 @@ def test_workflow_end_to_end(tiny_scene, tmp_path):
     args = ("--cores", "2", "--config", f"scene={tiny_scene}", "preset=fast", *small)
     r = snakemake(work, *args)
     assert r.returncode == 0, r.stdout[-3000:] + r.stderr[-3000:]
-    R = work / "results" / "tiny"
-    model = R / "model"
-    glb, obj = model / "model.glb", model / "model.obj"
+    R = Results(work / "results" / "tiny")
+    glb, obj = R.model_file(".glb"), R.model_file(".obj")
     assert glb.is_file() and obj.is_file()
     assert str(glb.relative_to(work)) in r.stdout + r.stderr  # the end-of-run summary names the GLB
     # ... the device that textured the polygons and each polygon's texel size in scene units
@@ -197,21 +198,21 @@ def test_workflow_end_to_end(tiny_scene, tmp_path):
     mesh = trimesh.load(obj, force="mesh")
     assert mesh.area == pytest.approx(sum(p.area for p in proxy.polygons), rel=1e-5)
 
-    summary = read_json(model / "summary.json")
-    vis = {p["id"]: p for p in read_json(R / "visibility/summary.json")["polygons"]}
+    summary = read_json(R.model_summary)
+    vis = {p["id"]: p for p in read_json(R.visibility_summary)["polygons"]}
     for row in summary["polygons"]:
         seen = vis[row["id"]]["coverage"] > 0 and vis[row["id"]]["photos"]
         assert row["textured"] == bool(seen), row
     assert summary["textured_area_share"] > 0.5
     assert summary["check"]["max_color_error"] < 0.02
-    metrics = read_json(R / "evaluation" / "metrics.json")
+    metrics = read_json(R.metrics)
     assert metrics["textured_polygons"] == len(proxy.ids) and "maps" in metrics
     # the rendered view of the reloaded GLB looks like the photo
     assert summary["view_check"]["mean_abs_diff"] < 0.25
     texture = np.asarray(scene.geometry[summary["polygons"][0]["id"]].visual.material.baseColorTexture)
     assert texture.std() > 0.01  # not a blank atlas
     # the HTML report shows the scene's view metrics (not n/a) and every polygon's maps
-    page = (R / "report" / "index.html").read_text()
+    page = R.report_html.read_text()
     assert f"{metrics['views']['overall']['ssim']:.4f}" in page
     assert all(f"<h3 id='{pid}'>" in page for pid in proxy.ids)
 
@@ -222,9 +223,9 @@ def test_workflow_end_to_end(tiny_scene, tmp_path):
     # an optimization-only change reruns texturing and what follows, not filter/visibility
     n_tex = len([p for p in summary["polygons"] if p["textured"]])
     # the tiny scene's polygons are small: they share texture jobs, each polygon's files apart
-    n_jobs = len(list((R / "optimized" / "jobs").glob("*.json")))
+    n_jobs = len(glob.glob(str(R.job_file("texture", "*"))))
     assert 1 <= n_jobs < n_tex
-    assert len(list((R / "optimized").glob("*/composite.npz"))) == n_tex
+    assert sum(R.composite(p["id"]).is_file() for p in summary["polygons"]) == n_tex
     changed = snakemake(work, "-n", *args, "optimize={lr: 0.01}")
     counts = job_counts(changed.stdout)
     assert counts.get("texture", 0) == n_jobs

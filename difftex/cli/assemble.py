@@ -8,6 +8,8 @@ HELP = "pack per-polygon textures into atlas pages and write the textured model 
 
 
 def add_arguments(parser) -> None:
+    from difftex.layout import MODEL_NAME
+
     parser.add_argument("--scene", required=True, help="scene folder (its proxy model is written unchanged)")
     parser.add_argument("--textures", required=True, help="folder with <polygon id>/texture.png")
     parser.add_argument(
@@ -18,7 +20,7 @@ def add_arguments(parser) -> None:
     parser.add_argument(
         "--out-dir", required=True, help="output folder (model.obj/.mtl, atlas PNGs, model.glb, summary.json)"
     )
-    parser.add_argument("--name", default="model", help="base name of the output files (default: model)")
+    parser.add_argument("--name", default=MODEL_NAME, help=f"base name of the output files (default: {MODEL_NAME})")
     parser.add_argument(
         "--tileset",
         action="store_true",
@@ -129,6 +131,7 @@ def run(args) -> int:
     from difftex.config import section
     from difftex.errors import DifftexError
     from difftex.export.assemble import AssembleConfig, PolygonTexture, assemble
+    from difftex.layout import NORMAL, SUMMARY, TEXTURE, TILESET_DIR, Results, visibility_file
     from difftex.scene.files import read_image, read_json, write_json
     from difftex.scene.loading import find_proxy
     from difftex.scene.proxy import load_proxy
@@ -141,11 +144,12 @@ def run(args) -> int:
     if not scene.is_dir():
         raise DifftexError(f"{scene}: scene folder not found")
     textures = Path(args.textures)
-    vis_dir = Path(args.visibility) if args.visibility else textures.parent / "visibility"
+    # the layout of a results folder: R/textures beside R/visibility
+    vis_dir = Path(args.visibility) if args.visibility else Results(textures.parent).visibility_dir
     proxy = load_proxy(find_proxy(scene))
 
     info = {}
-    vsum = vis_dir / "summary.json"
+    vsum = vis_dir / SUMMARY
     if vsum.is_file():
         for p in read_json(vsum).get("polygons", []):
             info[str(p["id"])] = p
@@ -158,11 +162,11 @@ def run(args) -> int:
         meta = info.get(poly.id, {})
         coverage = float(meta.get("coverage", 0.0))
         n_photos = len(meta.get("photos", []))
-        npz = vis_dir / f"{poly.id}.npz"
+        npz = visibility_file(vis_dir, poly.id)
         frame = mask = tex = None
         if npz.is_file():
             frame, mask = _read_frame_and_mask(npz)
-        png = textures / poly.id / "texture.png"
+        png = textures / poly.id / TEXTURE
         if frame is not None and png.is_file() and coverage > 0:
             tex = read_image(png)
             if tex.shape[:2] != mask.shape:
@@ -172,7 +176,7 @@ def run(args) -> int:
                 mask = mask[np.minimum(iy.astype(int), mask.shape[0] - 1)][
                     :, np.minimum(ix.astype(int), mask.shape[1] - 1)
                 ]
-        normal_png = textures / poly.id / "normal.png"
+        normal_png = textures / poly.id / NORMAL
         items.append(
             PolygonTexture(
                 polygon=poly,
@@ -196,8 +200,8 @@ def run(args) -> int:
 
         with console.status("writing the 3D Tiles tileset"):
             up = _scene_up(scene) if cfg.tileset_georef is None else None
-            tiles = write_tileset(items, out_dir / "tileset", cfg, generator=f"difftex {__version__}", up=up)
-        summary["tileset"] = {**tiles, "file": f"tileset/{tiles['file']}"}
+            tiles = write_tileset(items, out_dir / TILESET_DIR, cfg, generator=f"difftex {__version__}", up=up)
+        summary["tileset"] = {**tiles, "file": f"{TILESET_DIR}/{tiles['file']}"}
     if cfg.glb and cfg.verify:
         with console.status("rendering a view of the model"):
             summary["view_check"] = _view_check(
@@ -209,7 +213,7 @@ def run(args) -> int:
         **summary,
         "seconds": round(time.time() - t0, 2),
     }
-    write_json(out_dir / "summary.json", summary)
+    write_json(out_dir / SUMMARY, summary)
 
     n_tex = sum(1 for p in summary["polygons"] if p["textured"])
     console.print(f"{n_tex}/{len(items)} polygons textured, {len(summary['atlas_pages'])} atlas page(s)")

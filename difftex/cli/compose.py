@@ -18,12 +18,13 @@ def run(args) -> int:
     from pathlib import Path
 
     from difftex.compose.stage_files import read_optimized, write_composed
+    from difftex.layout import COMPOSITE
     from difftex.scene.files import write_json
 
     done = []
     for folder in args.optimized:
         opt = read_optimized(folder)
-        report = write_composed(Path(folder) / "composite.npz", opt)
+        report = write_composed(Path(folder) / COMPOSITE, opt)
         done.append(opt.polygon_id)
         print(f"compose {opt.polygon_id}: coverage {report['coverage']:.3f}, {report['filled_texels']} texels filled")
     if args.done:

@@ -43,6 +43,7 @@ def merge_tiles(paths: list[str], out_dir) -> int:
     from pathlib import Path
 
     from difftex.errors import DifftexError
+    from difftex.layout import SUMMARY
     from difftex.scene.files import read_json, write_json
 
     rows, seconds, scene = [], 0.0, None
@@ -58,8 +59,8 @@ def merge_tiles(paths: list[str], out_dir) -> int:
             f"{paths[0]}: the visibility tiles do not hold every polygon once: rerun the visibility stage")
     rows = [{k: v for k, v in r.items() if k != "index"} for r in sorted(rows, key=lambda r: r["index"])]
     out = Path(out_dir)
-    write_json(out / "summary.json", {"scene": scene, "polygons": rows, "seconds": round(seconds, 2)})
-    print(f"visibility of {len(rows)} polygons from {len(paths)} tile(s) -> {out / 'summary.json'}")
+    write_json(out / SUMMARY, {"scene": scene, "polygons": rows, "seconds": round(seconds, 2)})
+    print(f"visibility of {len(rows)} polygons from {len(paths)} tile(s) -> {out / SUMMARY}")
     return 0
 
 
@@ -72,6 +73,7 @@ def run(args) -> int:
     from difftex.config import TextureConfig, VisibilityConfig, job_threads, read_config, section
     from difftex.errors import DifftexError
     from difftex.geometry.visibility import save_visibility, scene_visibility
+    from difftex.layout import SUMMARY, visibility_file
     from difftex.scene.files import read_json, write_json
     from difftex.scene.loading import load_scene
 
@@ -129,7 +131,7 @@ def run(args) -> int:
     rows = []
     index = {p.id: i for i, p in enumerate(scene.proxy.polygons)}
     for v in vis:
-        save_visibility(out / f"{v.polygon_id}.npz", v)
+        save_visibility(visibility_file(out, v.polygon_id), v)
         ts = v.texel_size or {}
         rows.append(
             {
@@ -162,6 +164,6 @@ def run(args) -> int:
                                "photos_read": len(read & {ph.name for ph in scene.photos})})
         print(f"{scene.name}: visibility of tile {args.tile} ({len(vis)} polygons) in {secs:.1f} s -> {args.rows}")
         return 0
-    write_json(out / "summary.json", {"scene": str(scene.root), "polygons": rows, "seconds": round(secs, 2)})
+    write_json(out / SUMMARY, {"scene": str(scene.root), "polygons": rows, "seconds": round(secs, 2)})
     print(f"{scene.name}: visibility of {len(vis)} polygons in {secs:.1f} s -> {out}")
     return 0

@@ -13,6 +13,8 @@ from pathlib import Path
 
 import numpy as np
 
+from difftex.layout import COVERAGE, HEIGHT, NORMAL, REPORT, SOURCE_NPZ, SOURCE_PNG, TEXTURE, TEXTURE_EXR
+
 FILLED_GREY = 0.5  # source map: texels no photo sees, filled from their neighbours
 
 # matplotlib's ``tab10`` (Tableau 10) as 8-bit values: importing matplotlib for these ten colours
@@ -113,19 +115,19 @@ def write_texture_outputs(
     from difftex.scene.files import write_image, write_json, write_npz
 
     out_dir = Path(out_dir)
-    write_image(out_dir / "texture.png", np.clip(U, 0, 1), bits=bits)
+    write_image(out_dir / TEXTURE, np.clip(U, 0, 1), bits=bits)
     if exr:
-        write_image(out_dir / "texture.exr", U)
+        write_image(out_dir / TEXTURE_EXR, U)
     colours = source_colours(dominant, names)
-    write_image(out_dir / "source.png", source_map(dominant, names, mask, mask & ~seen, colours))
+    write_image(out_dir / SOURCE_PNG, source_map(dominant, names, mask, mask & ~seen, colours))
     dom = np.where(mask & seen, dominant, -1)
-    write_npz(out_dir / "source.npz", dominant=dom.astype(np.int16), photos=np.array(names, dtype=str))
-    write_image(out_dir / "coverage.png", coverage_image(mask, seen))
+    write_npz(out_dir / SOURCE_NPZ, dominant=dom.astype(np.int16), photos=np.array(names, dtype=str))
+    write_image(out_dir / COVERAGE, coverage_image(mask, seen))
     report = dict(report)
     report["source_colours"] = {
         n: "#{:02x}{:02x}{:02x}".format(*(int(round(255 * v)) for v in c)) for n, c in colours.items()
     }
-    write_json(out_dir / "report.json", report)
+    write_json(out_dir / REPORT, report)
 
 
 @dataclass(frozen=True)
@@ -175,12 +177,12 @@ def finish_polygon(composite: str | Path, out_dir: str | Path, cfg: OutputConfig
     relief = read_relief(composite)
     out_dir = Path(out_dir)
     if relief is None:
-        for stale in ("height.exr", "normal.png"):  # of an earlier run with a relief
+        for stale in (HEIGHT, NORMAL):  # of an earlier run with a relief
             (out_dir / stale).unlink(missing_ok=True)
         return report
     heights, texel_size = relief
-    write_image(out_dir / "height.exr", heights[..., None].astype(np.float32))
-    write_image(out_dir / "normal.png", normal_map(heights, texel_size), bits=8)
+    write_image(out_dir / HEIGHT, heights[..., None].astype(np.float32))
+    write_image(out_dir / NORMAL, normal_map(heights, texel_size), bits=8)
     return report
 
 

@@ -30,6 +30,7 @@ from difftex.compose.fill import finish_texture
 from difftex.compose.outputs import write_composite
 from difftex.errors import DifftexError
 from difftex.geometry.frames import UVFrame
+from difftex.layout import OPTIMIZED, STATS, WEIGHTS
 from difftex.scene.files import decode_photo, read_json, read_npz, write_json, write_npz, write_npz_stored
 
 if TYPE_CHECKING:
@@ -168,27 +169,27 @@ def write_optimized(out_dir: str | Path, opt: OptimizedPolygon) -> None:
     stats.json, each atomically."""
     out_dir = Path(out_dir)
     assert opt.idx is not None and opt.W is not None
-    write_weights(out_dir / "weights.npz", opt.polygon_id, opt.names, opt.frame, opt.mask, opt.idx, opt.W,
+    write_weights(out_dir / WEIGHTS, opt.polygon_id, opt.names, opt.frame, opt.mask, opt.idx, opt.W,
                   opt.transfers)
     extra = {"heights": np.asarray(opt.heights, np.float32)} if opt.heights is not None else {}
     write_npz(
-        out_dir / "optimized.npz",
+        out_dir / OPTIMIZED,
         U=np.asarray(opt.U, np.float32),
         weight_sum=np.asarray(opt.weight_sum, np.float32),
         dominant=opt.dominant.astype(np.int32),
         histmatch=np.array(opt.histmatch),
         **extra,
     )
-    write_json(out_dir / "stats.json", opt.stats)
+    write_json(out_dir / STATS, opt.stats)
 
 
 def read_optimized(out_dir: str | Path) -> OptimizedPolygon:
     """``write_optimized``'s files, as composition needs them (no slots or weights)."""
     out_dir = Path(out_dir)
-    meta = read_npz(out_dir / "weights.npz")
+    meta = read_npz(out_dir / WEIGHTS)
     shape = tuple(int(v) for v in meta["shape"])
     mask = np.unpackbits(meta["texel_mask"])[: shape[0] * shape[1]].reshape(shape).astype(bool)
-    d = read_npz(out_dir / "optimized.npz")
+    d = read_npz(out_dir / OPTIMIZED)
     return OptimizedPolygon(
         polygon_id=str(meta["polygon_id"]),
         names=[str(n) for n in meta["photos"]],
@@ -197,7 +198,7 @@ def read_optimized(out_dir: str | Path) -> OptimizedPolygon:
         U=d["U"],
         weight_sum=d["weight_sum"],
         dominant=d["dominant"],
-        stats=read_json(out_dir / "stats.json"),
+        stats=read_json(out_dir / STATS),
         histmatch=bool(d["histmatch"]),
         heights=d.get("heights"),
     )

@@ -31,6 +31,7 @@ from difftex.compose.histmatch import mapped_transfers
 from difftex.compose.outputs import write_composite
 from difftex.compose.stage_files import OptimizedPolygon, compose_polygon, crop_relief_range
 from difftex.geometry.frames import UVFrame, level_sides
+from difftex.layout import COMPOSITE, STATS, WEIGHTS
 from difftex.method.config import ComputeConfig, OptimizeConfig
 from difftex.method.loop import optimize_polygon
 from difftex.method.relief import estimate_relief
@@ -182,11 +183,12 @@ def write_polygon(tp: TexturedPolygon, optimized_dir: str | Path) -> None:
     from difftex.scene.files import write_json
 
     inp = tp.inp
-    write_weights(Path(optimized_dir) / "weights.npz", inp.polygon_id, [p.name for p in inp.photos], inp.frame,
+    out_dir = Path(optimized_dir)
+    write_weights(out_dir / WEIGHTS, inp.polygon_id, [p.name for p in inp.photos], inp.frame,
                   inp.texel_mask, tp.idx, tp.W, tp.transfers)
-    write_json(Path(optimized_dir) / "stats.json", tp.stats)
+    write_json(out_dir / STATS, tp.stats)
     write_composite(
-        Path(optimized_dir) / "composite.npz",
+        out_dir / COMPOSITE,
         tp.texture,
         inp.texel_mask,
         tp.seen,

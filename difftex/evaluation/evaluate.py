@@ -40,6 +40,7 @@ from difftex.evaluation.results import (  # noqa: F401  (re-exported)
     visibility_dir,
 )
 from difftex.geometry.frames import UVFrame
+from difftex.layout import ERROR_MAPS, SOURCE_NPZ, VIEWS, Results, error_map_file, visibility_file
 
 log = logging.getLogger(__name__)
 
@@ -113,7 +114,7 @@ def view_weights(pt: PolygonTexture, results: Path) -> tuple[list[str], np.ndarr
     from difftex.scene.files import read_npz
 
     method = pt.report.get("method", "")
-    wpath = results / "optimized" / pt.polygon_id / "weights.npz"
+    wpath = Results(results).weights(pt.polygon_id)
     if method == "difftex" and wpath.is_file():
         wz = read_npz(wpath)
         names = [str(x) for x in wz["photos"]]
@@ -126,9 +127,9 @@ def view_weights(pt: PolygonTexture, results: Path) -> tuple[list[str], np.ndarr
             )
             return names, dense, "blend weights"
     if method == "average":
-        vis = load_visibility(visibility_dir(results) / f"{pt.polygon_id}.npz")
+        vis = load_visibility(visibility_file(visibility_dir(results), pt.polygon_id))
         return list(vis.photos), vis.texel_visible.astype(np.float32), "equal weights of visible photos"
-    src = pt.folder / "source.npz"
+    src = pt.folder / SOURCE_NPZ
     if not src.is_file():  # a results folder written before source.npz: its source.png is only colours
         return [], np.zeros((0, *pt.frame.shape), np.float32), "none"
     d = read_npz(src)
@@ -225,7 +226,7 @@ def evaluate_maps(
         if error_dir is not None and cfg.error_maps:
             em = np.clip(e / math.sqrt(3.0) * 3.0, 0, 1)  # x3 so that typical errors are visible
             em[~gmask] = 0
-            write_image(error_dir / f"{pid}.png", em)
+            write_image(error_map_file(error_dir, pid), em)
         rows.append(row)
     if not rows:
         raise DifftexError(f"{gt}: no ground-truth frame matches a textured polygon")
@@ -301,7 +302,7 @@ def evaluate_results(
             "aggregation": "texel-weighted mean over polygons",
         }
     if (scene / "ground_truth" / "frames").is_dir():
-        res["maps"] = evaluate_maps(scene, textures, cfg, out_dir / "error_maps" if out_dir else None, progress)
+        res["maps"] = evaluate_maps(scene, textures, cfg, out_dir / ERROR_MAPS if out_dir else None, progress)
     if cfg.views:
         from difftex.evaluation.views import evaluate_views  # it imports this module's types
 
@@ -311,14 +312,14 @@ def evaluate_results(
             orig = load_scene(info["original_scene"], check_images=False)
             photos = [p for p in orig.photos if p.name in set(info["held_out"])]
             res["views"] = evaluate_views(
-                photos, sc.proxy, textures, cfg, out_dir / "views" if out_dir else None, progress
+                photos, sc.proxy, textures, cfg, out_dir / VIEWS if out_dir else None, progress
             )
             res["views"]["held_out"] = info["held_out"]
         elif (scene / "ground_truth" / "views" / "sparse" / "0").is_dir():
             vdir = scene / "ground_truth" / "views"
             photos = load_photos(vdir / "sparse" / "0", vdir / "images")
             res["views"] = evaluate_views(
-                photos, sc.proxy, textures, cfg, out_dir / "views" if out_dir else None, progress
+                photos, sc.proxy, textures, cfg, out_dir / VIEWS if out_dir else None, progress
             )
     res["time_s"] = time.perf_counter() - t0
     return res

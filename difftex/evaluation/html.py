@@ -10,6 +10,7 @@ import html
 import os
 from pathlib import Path
 
+from difftex.layout import SOURCE_PNG, TEXTURE, Results
 from difftex.scene.files import read_json, write_text
 
 CSS = """body{font-family:sans-serif;font-size:15px;margin:1.5em;max-width:1500px;color:#222}
@@ -137,19 +138,18 @@ def comparison_page(
         markdown_table_html(table_md),
         "<h2>Reports per method</h2><ul>",
     ]
-    for m, r in runs.items():
-        parts.append(f"<li><a href='{_rel(Path(r) / 'report' / 'index.html', base)}'>{html.escape(m)}</a></li>")
+    res = {m: Results(r) for m, r in runs.items()}
+    for m, rs in res.items():
+        parts.append(f"<li><a href='{_rel(rs.report_html, base)}'>{html.escape(m)}</a></li>")
     parts.append("</ul><h2>Textures side by side</h2>")
-    pids = sorted(
-        {p.name for r in runs.values() for p in (Path(r) / "textures").glob("*") if (p / "texture.png").is_file()}
-    )
+    pids = sorted({p.name for rs in res.values() for p in rs.textures_dir.glob("*") if (p / TEXTURE).is_file()})
     for pid in pids:
         figs = []
         if scene is not None:
             figs.append(_fig(Path(scene) / "ground_truth" / "maps" / f"{pid}.png", base, "ground truth"))
-        for m, r in runs.items():
-            figs.append(_fig(Path(r) / "textures" / pid / "texture.png", base, m))
-            figs.append(_fig(Path(r) / "textures" / pid / "source.png", base, f"{m} sources"))
+        for m, rs in res.items():
+            figs.append(_fig(rs.texture(pid), base, m))
+            figs.append(_fig(rs.polygon_textures(pid) / SOURCE_PNG, base, f"{m} sources"))
         parts.append(f"<h3>{html.escape(pid)}</h3>" + "".join(f for f in figs if f))
     parts.append("</body></html>")
     write_text(out, "\n".join(parts))

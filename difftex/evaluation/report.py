@@ -19,6 +19,7 @@ import numpy as np
 
 from difftex.evaluation.html import CSS, _esc, _fig, _html, _num, _read, _table
 from difftex.evaluation.losscurve import LOSS_COLOURS, loss_curve
+from difftex.layout import COVERAGE, MODEL_NAME, REPORT, SOURCE_NPZ, SOURCE_PNG, SUMMARY, TEXTURE, Results
 from difftex.scene.files import write_text
 
 BOUND = {  # difftex.geometry.density.TexelSize.bound: what set a polygon's texel size
@@ -56,7 +57,7 @@ def _share(x: float) -> str:
 def _legend(colours: dict, tdir: Path) -> str:
     """Colour swatch, photo name and share of the polygon's seen texels, for its source map."""
     shares = {}
-    npz = tdir / "source.npz"
+    npz = tdir / SOURCE_NPZ
     if npz.is_file():
         try:
             with np.load(npz, allow_pickle=False) as d:
@@ -289,23 +290,24 @@ def _photos_section(photos: dict, vis: dict) -> list[str]:
 def write_report(results: str | Path, out: str | Path | None = None, scene: str | Path | None = None) -> Path:
     """R/report/index.html (or ``out``) for results folder R; returns its path."""
     results = Path(results)
-    out = Path(out) if out is not None else results / "report" / "index.html"
+    res = Results(results)
+    out = Path(out) if out is not None else res.report_html
     base = out.parent
     base.mkdir(parents=True, exist_ok=True)
-    tdir = results / "textures"
+    tdir = res.textures_dir
     from difftex.evaluation.evaluate import (
         visibility_dir,  # R/visibility, or the shared one an evaluation's method folder names
     )
 
-    vis_rows = [r for r in _read(visibility_dir(results) / "summary.json").get("polygons", []) if isinstance(r, dict)]
+    vis_rows = [r for r in _read(visibility_dir(results) / SUMMARY).get("polygons", []) if isinstance(r, dict)]
     vis = {str(r.get("id")): r for r in vis_rows}
-    model = _read(results / "model" / "summary.json")
-    photos = _read(results / "photos.json")
-    metrics = _read(results / "evaluation" / "metrics.json")
-    textured = sorted(p.name for p in tdir.iterdir() if (p / "texture.png").is_file()) if tdir.is_dir() else []
+    model = _read(res.model_summary)
+    photos = _read(res.photos_json)
+    metrics = _read(res.metrics)
+    textured = sorted(p.name for p in tdir.iterdir() if (p / TEXTURE).is_file()) if tdir.is_dir() else []
     pids = list(vis) + [p for p in textured if p not in vis]
-    reports = {pid: _read(tdir / pid / "report.json") for pid in pids}
-    stats = {pid: _read(results / "optimized" / pid / "stats.json") for pid in pids}
+    reports = {pid: _read(res.polygon_textures(pid) / REPORT) for pid in pids}
+    stats = {pid: _read(res.stats(pid)) for pid in pids}
     methods = sorted({r.get("method") for r in reports.values() if r.get("method")})
     parts = [
         f"<!doctype html><html><head><meta charset='utf-8'><title>difftex report: {_esc(results.name)}</title>"
@@ -335,7 +337,7 @@ def write_report(results: str | Path, out: str | Path | None = None, scene: str 
         )
     # --- the model
     view = model.get("view_check") or {}
-    mv = results / "model" / str(view.get("image") or "model_view.png")
+    mv = res.model_dir / str(view.get("image") or f"{MODEL_NAME}_view.png")
     if mv.is_file():
         parts.append(
             "<h2>Model</h2>"
@@ -362,13 +364,12 @@ def write_report(results: str | Path, out: str | Path | None = None, scene: str 
         )
     scene = Path(scene) if scene else (Path(metrics["scene"]) if metrics.get("scene") else None)
     for pid in [p for p in pids if p in textured]:
+        pdir = res.polygon_textures(pid)
         figs = [
-            _fig(tdir / pid / "texture.png", base, "texture", "map"),
-            _fig(tdir / pid / "source.png", base, "texel source map: dominant photo per texel (grey: filled)", "map"),
-            _fig(tdir / pid / "coverage.png", base, "coverage (white: seen by a photo, grey: filled)", "map"),
-            _fig(
-                results / "evaluation" / "error_maps" / f"{pid}.png", base, "error x3 against the ground truth", "map"
-            ),
+            _fig(pdir / TEXTURE, base, "texture", "map"),
+            _fig(pdir / SOURCE_PNG, base, "texel source map: dominant photo per texel (grey: filled)", "map"),
+            _fig(pdir / COVERAGE, base, "coverage (white: seen by a photo, grey: filled)", "map"),
+            _fig(res.error_map(pid), base, "error x3 against the ground truth", "map"),
         ]
         if scene is not None:
             figs.append(_fig(scene / "ground_truth" / "maps" / f"{pid}.png", base, "ground truth", "map"))
@@ -397,7 +398,7 @@ def write_report(results: str | Path, out: str | Path | None = None, scene: str 
         ]
         parts.append(
             f"<h3 id='{_esc(pid)}'>{_esc(pid)}</h3>{''.join(f for f in figs if f)}"
-            + _legend(reports.get(pid, {}).get("source_colours") or {}, tdir / pid)
+            + _legend(reports.get(pid, {}).get("source_colours") or {}, pdir)
             + (f"<p class=small>{_esc('; '.join(f for f in facts if f))}</p>" if any(facts) else "")
             + "<div class=row>"
             + (
@@ -409,17 +410,16 @@ def write_report(results: str | Path, out: str | Path | None = None, scene: str 
         )
     parts += _photos_section(photos, vis)
     # --- held-out views
-    vdir = results / "evaluation" / "views"
-    if vdir.is_dir():
+    if res.views_dir.is_dir():
         parts.append("<h2>Held-out views (render | photo | error x3)</h2>")
         for r in (metrics.get("views") or {}).get("views", []):
-            stem = Path(str(r.get("photo"))).stem
+            photo = str(r.get("photo"))
             parts.append(
                 f"<div><b>{_esc(r.get('photo'))}</b> SSIM {_num(r.get('ssim'), '.4f')} LPIPS "
                 f"{_num(r.get('lpips'), '.4f')} PSNR {_num(r.get('psnr'), '.2f')}<br>"
-                + _fig(vdir / f"{stem}_render.png", base, "render")
-                + _fig(vdir / f"{stem}_photo.png", base, "photo")
-                + _fig(vdir / f"{stem}_error.png", base, "error")
+                + _fig(res.view(photo, "render"), base, "render")
+                + _fig(res.view(photo, "photo"), base, "photo")
+                + _fig(res.view(photo, "error"), base, "error")
                 + "</div>"
             )
     # --- timings of the workflow, when it ran
@@ -445,7 +445,7 @@ def stage_benchmarks(results: Path) -> dict[str, dict]:
     cpu_time is sampled from the job's processes and misses most of a long texture job's CPU
     (15 of 41 s per job on archive at `balanced`): a lower bound, not summed into any report."""
     out: dict[str, dict] = {}
-    root = results / "benchmarks"
+    root = Results(results).benchmarks_dir
     if not root.is_dir():
         return out
     for tsv in sorted(root.rglob("*.tsv")):

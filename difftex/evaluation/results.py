@@ -16,6 +16,7 @@ import numpy as np
 
 from difftex.errors import DifftexError
 from difftex.geometry.frames import UVFrame
+from difftex.layout import REPORT, TEXTURE, Results, visibility_file
 
 log = logging.getLogger(__name__)
 
@@ -56,11 +57,10 @@ class PolygonTexture:
 
 def visibility_dir(results: Path) -> Path:
     """R/visibility, or the folder named by R/visibility.txt (method folders share one)."""
-    results = Path(results)
-    link = results / "visibility.txt"
-    if link.is_file():
-        return Path(link.read_text().strip())
-    return results / "visibility"
+    res = Results(results)
+    if res.visibility_link.is_file():
+        return Path(res.visibility_link.read_text().strip())
+    return res.visibility_dir
 
 
 def load_textures(results: str | Path) -> dict[str, PolygonTexture]:
@@ -69,26 +69,26 @@ def load_textures(results: str | Path) -> dict[str, PolygonTexture]:
     from difftex.scene.files import read_image, read_json
 
     results = Path(results)
-    tdir = results / "textures"
+    tdir = Results(results).textures_dir
     if not tdir.is_dir():
         raise DifftexError(f"{results}: no textures/ folder (run the workflow or a baseline first)")
     vdir = visibility_dir(results)
     out = {}
-    for sub in sorted(p for p in tdir.iterdir() if (p / "texture.png").is_file()):
-        vpath = vdir / f"{sub.name}.npz"
+    for sub in sorted(p for p in tdir.iterdir() if (p / TEXTURE).is_file()):
+        vpath = visibility_file(vdir, sub.name)
         if not vpath.is_file():
             raise DifftexError(f"{vpath}: visibility file of textured polygon '{sub.name}' is missing")
         vis = load_visibility(vpath)
-        tex = read_image(sub / "texture.png")
+        tex = read_image(sub / TEXTURE)
         if tex.shape[:2] != vis.frame.shape:
             raise DifftexError(
-                f"{sub / 'texture.png'}: {tex.shape[1]}x{tex.shape[0]} texels, its frame says "
+                f"{sub / TEXTURE}: {tex.shape[1]}x{tex.shape[0]} texels, its frame says "
                 f"{vis.frame.width}x{vis.frame.height}"
             )
-        rep = read_json(sub / "report.json") if (sub / "report.json").is_file() else {}
+        rep = read_json(sub / REPORT) if (sub / REPORT).is_file() else {}
         out[sub.name] = PolygonTexture(sub.name, tex, vis.frame, vis.texel_mask, rep, sub)
     if not out:
-        raise DifftexError(f"{tdir}: no polygon textures (texture.png) in it")
+        raise DifftexError(f"{tdir}: no polygon textures ({TEXTURE}) in it")
     return out
 
 

@@ -12,6 +12,7 @@ from pathlib import Path
 import numpy as np
 
 from difftex.evaluation.results import EvaluateConfig, PolygonTexture, _lpips_plan
+from difftex.layout import view_file
 
 log = logging.getLogger(__name__)
 
@@ -124,13 +125,12 @@ def evaluate_views(
         else:
             row["lpips"] = None
         if out_dir is not None:
-            stem = Path(ph.name).stem
             shown = np.where(mask[..., None], ren, ref * 0.25)
-            write_image(out_dir / f"{stem}_render.png", shown)
-            write_image(out_dir / f"{stem}_photo.png", ref)
+            write_image(view_file(out_dir, ph.name, "render"), shown)
+            write_image(view_file(out_dir, ph.name, "photo"), ref)
             err = np.clip(metrics.texel_error(ren, ref) / math.sqrt(3) * 3, 0, 1)
             err[~mask] = 0
-            write_image(out_dir / f"{stem}_error.png", err)
+            write_image(view_file(out_dir, ph.name, "error"), err)
         rows.append(row)
     scored = [r for r in rows if "ssim" in r]
 

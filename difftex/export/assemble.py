@@ -24,6 +24,7 @@ import numpy as np
 
 from difftex.errors import DifftexError
 from difftex.geometry.frames import UVFrame
+from difftex.layout import MODEL_NAME
 from difftex.scene.proxy import Polygon, triangulate
 
 log = logging.getLogger(__name__)
@@ -282,7 +283,7 @@ def _fmt(a: np.ndarray) -> str:
 
 
 def write_obj(
-    out_dir: Path, items: list[PolygonTexture], atlas: Atlas, page_names: list[str], pad: int, name: str = "model"
+    out_dir: Path, items: list[PolygonTexture], atlas: Atlas, page_names: list[str], pad: int, name: str = MODEL_NAME
 ) -> tuple[Path, Path]:
     from difftex.scene.files import write_text
 
@@ -375,7 +376,7 @@ def assemble(
     items: list[PolygonTexture],
     out_dir: str | Path,
     cfg: AssembleConfig = AssembleConfig(),
-    name: str = "model",
+    name: str = MODEL_NAME,
     bits: int = 8,
 ) -> dict:
     """Write atlas pages, OBJ + MTL and GLB for ``items`` into ``out_dir``; return the summary."""

@@ -38,6 +38,7 @@ import numpy as np
 
 from difftex.errors import DifftexError
 from difftex.export.assemble import AssembleConfig, PolygonTexture, build_atlas, write_glb
+from difftex.layout import TILES_DIR, TILESET
 from difftex.scene.proxy import Polygon
 
 TILESET_VERSION = "1.1"
@@ -261,12 +262,12 @@ def write_tileset(
     if transform is None and up is not None:
         transform = level_rotation(up).T.reshape(-1).tolist()
     out_dir = Path(out_dir)
-    (out_dir / "tiles").mkdir(parents=True, exist_ok=True)
+    (out_dir / TILES_DIR).mkdir(parents=True, exist_ok=True)
     groups = building_groups([it.polygon for it in items])
     children, rows = [], []
     for name, idx in groups.items():
         sub = [items[i] for i in idx]
-        uri = f"tiles/{name}.glb"
+        uri = f"{TILES_DIR}/{name}.glb"
         pages = _write_tile(out_dir / uri, sub, cfg)
         polys = {it.polygon.id: it.polygon.semantic for it in sub}
         children.append(
@@ -282,10 +283,10 @@ def write_tileset(
         root["transform"] = transform
     root["children"] = children
     asset = {"version": TILESET_VERSION, **({"generator": generator} if generator else {})}
-    write_json(out_dir / "tileset.json", {"asset": asset, "geometricError": error, "root": root})
+    write_json(out_dir / TILESET, {"asset": asset, "geometricError": error, "root": root})
     listed = {out_dir / r["file"] for r in rows}
-    for stale in (out_dir / "tiles").glob("*.glb"):
+    for stale in (out_dir / TILES_DIR).glob("*.glb"):
         if stale not in listed:
             stale.unlink()
     georef = cfg.tileset_georef is not None
-    return {"file": "tileset.json", "georeferenced": georef, "levelled": not georef and up is not None, "tiles": rows}
+    return {"file": TILESET, "georeferenced": georef, "levelled": not georef and up is not None, "tiles": rows}

@@ -14,6 +14,7 @@ from typing import Any
 
 from difftex.errors import DifftexError
 from difftex.evaluation.report import stage_benchmarks
+from difftex.layout import STATS, Results
 from difftex.scene.camera import IMAGE_SUFFIXES, image_files  # noqa: F401 -- IMAGE_SUFFIXES: common.smk reads it here
 
 # Sections each stage command reads (docs/stages.md). A stage's config file holds only these,
@@ -184,8 +185,9 @@ def stage_config_paths(results: str | Path, texts: dict[str, str]) -> dict[str, 
     """
     import hashlib
 
+    res = Results(results)
     return {
-        stage: str(Path(results) / "config" / f"{stage}-{hashlib.sha256(text.encode()).hexdigest()[:12]}.yaml")
+        stage: str(res.stage_config(stage, hashlib.sha256(text.encode()).hexdigest()[:12]))
         for stage, text in texts.items()
     }
 
@@ -289,11 +291,11 @@ def run_summary(results: str | Path) -> dict:
     """Everything the end-of-run message and the report show."""
     from difftex.scene.files import read_json
 
-    results = Path(results)
-    model = results / "model"
-    summary = read_json(model / "summary.json")
+    res = Results(results)
+    model = res.model_dir
+    summary = read_json(res.model_summary)
     out = {
-        "results": str(results),
+        "results": str(res.root),
         "model": {
             **{k: str(model / summary[k]) for k in ("glb", "obj", "mtl") if k in summary},
             **({"tileset": str(model / summary["tileset"]["file"])} if "tileset" in summary else {}),
@@ -305,25 +307,23 @@ def run_summary(results: str | Path) -> dict:
         "untextured_reasons": summary.get("untextured_reasons", {}),
         "textured_from_oblique": summary.get("textured_from_oblique", {}),
         "check": summary.get("check"),
-        "stages": stage_benchmarks(results),
-        "texels": _texel_sizes(results),
-        "devices": _devices(results),
-        "blurry": _blurry_photos(results),
+        "stages": stage_benchmarks(res.root),
+        "texels": _texel_sizes(res),
+        "devices": _devices(res),
+        "blurry": _blurry_photos(res),
     }
-    metrics = results / "evaluation" / "metrics.json"
-    if metrics.is_file():
-        out["evaluation"] = str(metrics)
-    html = results / "report" / "index.html"
-    if html.is_file():
-        out["html_report"] = str(html)
+    if res.metrics.is_file():
+        out["evaluation"] = str(res.metrics)
+    if res.report_html.is_file():
+        out["html_report"] = str(res.report_html)
     return out
 
 
-def _texel_sizes(results: Path) -> dict:
+def _texel_sizes(res: Results) -> dict:
     """Per polygon id: its texel size (scene units) and what set it, from the visibility summary."""
     from difftex.scene.files import read_json
 
-    path = results / "visibility" / "summary.json"
+    path = res.visibility_summary
     if not path.is_file():
         return {}
     try:
@@ -333,12 +333,12 @@ def _texel_sizes(results: Path) -> dict:
     return {r["id"]: (r.get("texel_size"), r.get("texel_size_bound")) for r in rows if "id" in r}
 
 
-def _blurry_photos(results: Path) -> dict:
+def _blurry_photos(res: Results) -> dict:
     """The photos the filter dropped as blurry, least sharp first, from R/photos.json:
     {"blur_ratio": ..., "photos": {name: sharpness / median}}; {} when none or no table."""
     from difftex.scene.files import read_json
 
-    path = results / "photos.json"
+    path = res.photos_json
     if not path.is_file():
         return {}
     try:
@@ -353,10 +353,10 @@ def _blurry_photos(results: Path) -> dict:
     return {"blur_ratio": ratio, "photos": {r["name"]: r.get("sharpness_rel") for r in rows}}
 
 
-def _devices(results: Path) -> dict[str, int]:
+def _devices(res: Results) -> dict[str, int]:
     """How many polygons each torch device textured (from the texture stage's stats)."""
     out: dict[str, int] = {}
-    for st in sorted((results / "optimized").glob("*/stats.json")):
+    for st in sorted(res.optimized_dir.glob(f"*/{STATS}")):
         try:
             dev = json.loads(st.read_text()).get("device")
         except (OSError, ValueError):
@@ -442,7 +442,7 @@ def format_summary(s: dict) -> str:
 
 def print_summary(results: str | Path) -> None:
     """The onsuccess message; silent when the model is not there (a partial target was run)."""
-    path = Path(results) / "model" / "summary.json"
+    path = Results(results).model_summary
     if not path.is_file():
         return
     try:

@@ -14,6 +14,7 @@ import sys
 from pathlib import Path
 
 from difftex.errors import ERROR_PREFIX, WARNING_PREFIX, one_line
+from difftex.layout import Results
 
 # a log's last lines hold its error; no need to read a long optimizer log whole
 TAIL_BYTES = 64 * 1024
@@ -84,7 +85,7 @@ def recent_error_logs(results: Path, since: float) -> list[tuple[str, str, list[
     """Fallback when the scheduler's failed jobs are not available: logs under R/logs changed
     since ``since`` (epoch seconds) that hold an error line."""
     out = []
-    root = Path(results) / "logs"
+    root = Results(results).logs_dir
     if root.is_dir():
         for log in sorted(root.rglob("*.log")):
             try:
@@ -101,7 +102,7 @@ def warnings(results: str | Path) -> list[str]:
     """The distinct ``difftex: warning:`` lines of the job logs under R/logs, in first-seen order
     (the logs of the jobs that made the current results, rerun or not)."""
     seen: dict[str, None] = {}
-    root = Path(results) / "logs"
+    root = Results(results).logs_dir
     if root.is_dir():
         for log in sorted(root.rglob("*.log")):
             try:

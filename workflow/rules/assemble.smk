@@ -8,28 +8,28 @@
 rule assemble:
     input:
         scene=SCENE_MODEL,
-        summary=f"{R}/visibility/summary.json",
+        summary=str(RES.visibility_summary),
         textures=get_textures,
         config=STAGE_CFG["assemble"],
     output:
-        summary=f"{R}/model/summary.json",
-        obj=f"{R}/model/model.obj",
-        mtl=f"{R}/model/model.mtl",
-        **({"glb": f"{R}/model/model.glb"} if config["assemble"]["glb"] else {}),
+        summary=str(RES.model_summary),
+        obj=str(RES.model_file(".obj")),
+        mtl=str(RES.model_file(".mtl")),
+        **({"glb": str(RES.model_file(".glb"))} if config["assemble"]["glb"] else {}),
         # 3D Tiles 1.1 (with its tiles/<building>.glb beside it; docs/tiles.md)
-        **({"tileset": f"{R}/model/tileset/tileset.json"} if config["assemble"]["tileset"] else {}),
+        **({"tileset": str(RES.tileset)} if config["assemble"]["tileset"] else {}),
     params:
         stage_config=STAGE_TEXT["assemble"],
         scene=lambda wc, input: Path(input.scene[0]).parent,
-        textures=f"{R}/textures",
-        visibility=lambda wc, input: Path(input.summary).parent,
-        out_dir=lambda wc, output: Path(output.summary).parent,
+        textures=str(RES.textures_dir),
+        visibility=RES.visibility_dir,
+        out_dir=RES.model_dir,
     conda:
         "../envs/difftex.yaml"
     log:
-        f"{R}/logs/assemble.log",
+        str(RES.log("assemble")),
     benchmark:
-        f"{R}/benchmarks/assemble/assemble.tsv"
+        str(RES.benchmark("assemble", "assemble"))
     threads: 1
     resources:
         mem_mb=get_assemble_mem_mb,
@@ -41,16 +41,16 @@ rule assemble:
 
 rule report:
     input:
-        model=f"{R}/model/summary.json",
-        metrics=[f"{R}/evaluation/metrics.json"] if EVALUATE else [],
+        model=str(RES.model_summary),
+        metrics=[str(RES.metrics)] if EVALUATE else [],
     output:
-        f"{R}/report.md",
+        str(RES.report_md),
     params:
-        results=lambda wc, output: Path(output[0]).parent,
+        results=RES.root,
     conda:
         "../envs/difftex.yaml"
     log:
-        f"{R}/logs/report.log",
+        str(RES.log("report")),
     threads: 1
     resources:
         mem_mb=500,
@@ -61,21 +61,21 @@ rule report:
 
 rule html_report:
     input:
-        summary=f"{R}/visibility/summary.json",
-        photos=f"{R}/photos.json",
+        summary=str(RES.visibility_summary),
+        photos=str(RES.photos_json),
         textures=get_textures,
         # the untextured polygons' reasons and the model view
-        model=f"{R}/model/summary.json",
-        metrics=[f"{R}/evaluation/metrics.json"] if EVALUATE else [],
+        model=str(RES.model_summary),
+        metrics=[str(RES.metrics)] if EVALUATE else [],
     output:
-        f"{R}/report/index.html",
+        str(RES.report_html),
     params:
-        results=lambda wc, input: Path(input.summary).parent.parent,
+        results=RES.root,
         scene=SCENE,
     conda:
         "../envs/difftex.yaml"
     log:
-        f"{R}/logs/html_report.log",
+        str(RES.log("html_report")),
     threads: 1
     resources:
         mem_mb=2000,

@@ -16,6 +16,7 @@ import difftex.scene.partition as partition
 import difftex.workflow.jobs as jobs
 from difftex.workflow import runguard, runlog
 from difftex.errors import DifftexError
+from difftex.layout import Results
 
 
 try:
@@ -31,6 +32,11 @@ try:
     EXAMPLE = not config["scene"]
     SCENE = wf.EXAMPLE_SCENE if EXAMPLE else config["scene"]
     R = f"{config['results']}/{wf.scene_name(SCENE)}"
+    # Every path in the results folder (difftex/layout.py). The rules pass wildcards ("{job}")
+    # and get their patterns back, and give paths as str, as Snakemake records a str parameter
+    # (a changed one reruns the job); those it never recorded (folders it used to derive from an
+    # input or output) stay Paths, so the results of an earlier version need no rerun.
+    RES = Results(R)
     # The example's inputs are the generator's outputs (they do not exist before it runs);
     # a given scene's are its proxy, COLMAP model and every photo.
     SCENE_INPUTS = (
@@ -96,11 +102,11 @@ def get_job_rows(wc):
 
 
 def get_job_visibility(wc):
-    return [f"{R}/visibility/{pid}.npz" for pid in get_job_pids(wc)]
+    return [str(RES.visibility(pid)) for pid in get_job_pids(wc)]
 
 
 def get_job_out_dirs(wc):
-    return [f"{R}/optimized/{pid}" for pid in get_job_pids(wc)]
+    return [str(RES.polygon_optimized(pid)) for pid in get_job_pids(wc)]
 
 
 def get_job_photos(wc):
@@ -128,14 +134,14 @@ def get_assemble_mem_mb(wc, input):
 def get_composed_job(wc):
     # what the finish job reads: the compose job's list (split) or the texture job's
     if SPLIT:
-        return f"{R}/optimized/jobs/{wc.job}.compose.json"
-    return f"{R}/optimized/jobs/{wc.job}.json"
+        return str(RES.job_file("compose", wc.job))
+    return str(RES.job_file("texture", wc.job))
 
 
 def get_job_init(wc):
-    return [f"{R}/init/{pid}/crops.npz" for pid in get_job_pids(wc)]
+    return [str(RES.crops(pid)) for pid in get_job_pids(wc)]
 
 
 def get_textures(wc):
     # the finish jobs' lists; each wrote its polygons' R/textures/<pid>/ (the stages read the folder)
-    return expand(f"{R}/textures/jobs/{{job}}.json", job=wf.texture_jobs(get_summary(), config))
+    return expand(str(RES.job_file("finish", "{job}")), job=wf.texture_jobs(get_summary(), config))

@@ -6,21 +6,21 @@ rule evaluate:
     input:
         scene=SCENE_MODEL,
         # the textures and their frames, not the assembled model: assembly settings do not matter
-        summary=f"{R}/visibility/summary.json",
+        summary=str(RES.visibility_summary),
         textures=get_textures,
         config=STAGE_CFG["evaluate"],
     output:
-        f"{R}/evaluation/metrics.json",
+        str(RES.metrics),
     params:
         stage_config=STAGE_TEXT["evaluate"],
         scene=lambda wc, input: Path(input.scene[0]).parent,
-        results=lambda wc, input: Path(input.summary).parent.parent,
+        results=RES.root,
     conda:
         "../envs/difftex.yaml"
     log:
-        f"{R}/logs/evaluate.log",
+        str(RES.log("evaluate")),
     benchmark:
-        f"{R}/benchmarks/evaluate/evaluate.tsv"
+        str(RES.benchmark("evaluate", "evaluate"))
     threads: RUN["scene_threads"]
     resources:
         mem_mb=8000,

@@ -8,7 +8,7 @@ rule filter_part:
         photos=lambda wc: FILTER_PARTS[wc.part],
         config=STAGE_CFG["filter"],
     output:
-        f"{R}/filter/photos-{{part}}.json",
+        str(RES.filter_part("{part}")),
     params:
         stage_config=STAGE_TEXT["filter"],
         scene=lambda wc, input: Path(input.model[0]).parent,
@@ -16,9 +16,9 @@ rule filter_part:
     conda:
         "../envs/difftex.yaml"
     log:
-        f"{R}/logs/filter/{{part}}.log",
+        str(RES.log("filter", "{part}")),
     benchmark:
-        f"{R}/benchmarks/filter_part/{{part}}.tsv"
+        str(RES.benchmark("filter_part", "{part}"))
     threads: RUN["scene_threads"]
     resources:
         mem_mb=lambda wc, input: jobs.scene_mem_mb(list(input.photos), RUN),
@@ -31,20 +31,20 @@ rule filter_part:
 rule filter:
     input:
         model=SCENE_MODEL,
-        parts=expand(f"{R}/filter/photos-{{part}}.json", part=FILTER_PARTS),
+        parts=expand(str(RES.filter_part("{part}")), part=FILTER_PARTS),
         config=STAGE_CFG["filter"],
     output:
-        table=f"{R}/photos.json",
-        csv=f"{R}/photos.csv",
+        table=str(RES.photos_json),
+        csv=str(RES.photos_csv),
     params:
         stage_config=STAGE_TEXT["filter"],
         scene=lambda wc, input: Path(input.model[0]).parent,
     conda:
         "../envs/difftex.yaml"
     log:
-        f"{R}/logs/filter.log",
+        str(RES.log("filter")),
     benchmark:
-        f"{R}/benchmarks/filter/filter.tsv"
+        str(RES.benchmark("filter", "filter"))
     resources:
         mem_mb=jobs.gather_mem_mb(len(SCENE_INPUTS), RUN),
         runtime=60,

@@ -27,11 +27,11 @@ rule stage_config:
         # no inputs: the hook takes the run lock (and clears a crashed run's) in real runs
         lambda wc: RUN_GUARD(workflow),
     output:
-        f"{R}/config/{{stage}}-{{digest}}.yaml",
+        str(RES.stage_config("{stage}", "{digest}")),
     params:
         text=lambda wc: STAGE_TEXT[wc.stage],
     log:
-        f"{R}/logs/stage_config/{{stage}}-{{digest}}.log",
+        str(RES.log("stage_config", "{stage}-{digest}")),
     localrule: True
     conda:
         "../envs/difftex.yaml"
@@ -42,11 +42,11 @@ rule stage_config:
 
 rule compute_config:
     output:
-        f"{R}/config/compute.yaml",
+        str(RES.compute_config),
     params:
         text=STAGE_TEXT["compute"],
     log:
-        f"{R}/logs/stage_config/compute.log",
+        str(RES.log("stage_config", "compute")),
     localrule: True
     conda:
         "../envs/difftex.yaml"

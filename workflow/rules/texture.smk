@@ -19,7 +19,7 @@ rule initialize:
         config=STAGE_CFG["initialize"],
     output:
         # the job's list of its polygons, written last (each R/init/<pid>/crops.npz atomically)
-        f"{R}/init/jobs/{{job}}.json",
+        str(RES.job_file("initialize", "{job}")),
     params:
         stage_config=STAGE_TEXT["initialize"],
         scene=lambda wc, input: Path(input.scene[0]).parent,
@@ -28,9 +28,9 @@ rule initialize:
     conda:
         "../envs/difftex.yaml"
     log:
-        f"{R}/logs/initialize/{{job}}.log",
+        str(RES.log("initialize", "{job}")),
     benchmark:
-        f"{R}/benchmarks/initialize/{{job}}.tsv"
+        str(RES.benchmark("initialize", "{job}"))
     threads: RUN["polygon_threads"]
     priority: get_job_priority
     resources:
@@ -46,15 +46,15 @@ rule optimize:
     input:
         scene=SCENE_MODEL,
         vis=get_job_visibility,
-        init=f"{R}/init/jobs/{{job}}.json",
+        init=str(RES.job_file("initialize", "{job}")),
         config=STAGE_CFG["texture"],
         # device and compilation: read, but ancient() and a fixed name keep a change of them
         # from rerunning anything (they change no result beyond float tolerance)
-        compute=ancient(f"{R}/config/compute.yaml"),
+        compute=ancient(str(RES.compute_config)),
     output:
         # the job's list; each polygon's weights.npz, optimized.npz and stats.json are in
         # R/optimized/<polygon>/ (written atomically)
-        f"{R}/optimized/jobs/{{job}}.optimize.json",
+        str(RES.job_file("optimize", "{job}")),
     params:
         stage_config=STAGE_TEXT["texture"],
         scene=lambda wc, input: Path(input.scene[0]).parent,
@@ -63,9 +63,9 @@ rule optimize:
     conda:
         "../envs/difftex.yaml"
     log:
-        f"{R}/logs/optimize/{{job}}.log",
+        str(RES.log("optimize", "{job}")),
     benchmark:
-        f"{R}/benchmarks/optimize/{{job}}.tsv"
+        str(RES.benchmark("optimize", "{job}"))
     threads: RUN["polygon_threads"]
     priority: get_job_priority
     resources:
@@ -80,14 +80,14 @@ rule optimize:
 
 rule compose:
     input:
-        f"{R}/optimized/jobs/{{job}}.optimize.json",
+        str(RES.job_file("optimize", "{job}")),
     output:
         # the job's list; each polygon's composite.npz is in R/optimized/<polygon>/ (atomically)
-        f"{R}/optimized/jobs/{{job}}.compose.json",
+        str(RES.job_file("compose", "{job}")),
     params:
         out_dirs=get_job_out_dirs,
     log:
-        f"{R}/logs/compose/{{job}}.log",
+        str(RES.log("compose", "{job}")),
     conda:
         "../envs/difftex.yaml"
     # numpy only, no torch: a local job of a fraction of a second per polygon
@@ -101,11 +101,11 @@ rule texture:
         vis=get_job_visibility,
         photos=get_job_photos,
         config=STAGE_CFG["texture"],
-        compute=ancient(f"{R}/config/compute.yaml"),
+        compute=ancient(str(RES.compute_config)),
     output:
         # the job's list of its polygons, written last; each polygon's weights.npz, stats.json and
         # composite.npz are in R/optimized/<polygon>/ (written atomically, one polygon at a time)
-        f"{R}/optimized/jobs/{{job}}.json",
+        str(RES.job_file("texture", "{job}")),
     params:
         stage_config=STAGE_TEXT["texture"],
         scene=lambda wc, input: Path(input.scene[0]).parent,
@@ -114,9 +114,9 @@ rule texture:
     conda:
         "../envs/difftex.yaml"
     log:
-        f"{R}/logs/texture/{{job}}.log",
+        str(RES.log("texture", "{job}")),
     benchmark:
-        f"{R}/benchmarks/texture/{{job}}.tsv"
+        str(RES.benchmark("texture", "{job}"))
     threads: RUN["polygon_threads"]
     # the longest jobs first (estimated seconds), the short ones around them
     priority: get_job_priority
@@ -138,13 +138,13 @@ rule finish:
     output:
         # the job's list of its polygons, written last; each polygon's texture.png, source.png,
         # source.npz, coverage.png and report.json are in R/textures/<polygon>/ (written atomically)
-        f"{R}/textures/jobs/{{job}}.json",
+        str(RES.job_file("finish", "{job}")),
     params:
         stage_config=STAGE_TEXT["output"],
-        composites=lambda wc: [f"{R}/optimized/{pid}/composite.npz" for pid in get_job_pids(wc)],
-        out_dirs=lambda wc: [f"{R}/textures/{pid}" for pid in get_job_pids(wc)],
+        composites=lambda wc: [str(RES.composite(pid)) for pid in get_job_pids(wc)],
+        out_dirs=lambda wc: [str(RES.polygon_textures(pid)) for pid in get_job_pids(wc)],
     log:
-        f"{R}/logs/finish/{{job}}.log",
+        str(RES.log("finish", "{job}")),
     conda:
         "../envs/difftex.yaml"
     # a shell job that imports no torch (0.2 s), one per texture job (not per polygon: a

@@ -6,21 +6,21 @@
 rule visibility_tile:
     input:
         model=SCENE_MODEL,
-        photos=f"{R}/photos.json",
+        photos=str(RES.photos_json),
         config=STAGE_CFG["visibility"],
     output:
-        rows=f"{R}/visibility/tiles/{{tile}}.json",
+        rows=str(RES.visibility_tile("{tile}")),
     params:
         stage_config=STAGE_TEXT["visibility"],
         scene=lambda wc, input: Path(input.model[0]).parent,
         tile=lambda wc: partition.part_spec(wc.tile),
-        out_dir=lambda wc, output: Path(output.rows).parent.parent,
+        out_dir=RES.visibility_dir,
     conda:
         "../envs/difftex.yaml"
     log:
-        f"{R}/logs/visibility/{{tile}}.log",
+        str(RES.log("visibility", "{tile}")),
     benchmark:
-        f"{R}/benchmarks/visibility_tile/{{tile}}.tsv"
+        str(RES.benchmark("visibility_tile", "{tile}"))
     threads: RUN["scene_threads"]
     resources:
         mem_mb=jobs.scene_mem_mb(SCENE_INPUTS, RUN, factor=8.0),
@@ -33,17 +33,17 @@ rule visibility_tile:
 
 checkpoint visibility:
     input:
-        tiles=expand(f"{R}/visibility/tiles/{{tile}}.json", tile=VISIBILITY_TILES),
+        tiles=expand(str(RES.visibility_tile("{tile}")), tile=VISIBILITY_TILES),
     output:
-        summary=f"{R}/visibility/summary.json",
+        summary=str(RES.visibility_summary),
     params:
-        out_dir=lambda wc, output: Path(output.summary).parent,
+        out_dir=RES.visibility_dir,
     conda:
         "../envs/difftex.yaml"
     log:
-        f"{R}/logs/visibility.log",
+        str(RES.log("visibility")),
     benchmark:
-        f"{R}/benchmarks/visibility/visibility.tsv"
+        str(RES.benchmark("visibility", "visibility"))
     resources:
         mem_mb=jobs.gather_mem_mb(len(SCENE_INPUTS), RUN),
         runtime=30,

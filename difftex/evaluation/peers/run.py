@@ -32,6 +32,7 @@ import numpy as np
 
 from difftex.errors import DifftexError
 from difftex.evaluation.peers.measure import Phase, measure_self
+from difftex.layout import Results, visibility_file
 
 PEERS = ("texrecon", "meshlab-face", "meshlab-blend")
 LABELS = {"texrecon": "texrecon (mvs-texturing)", "meshlab-face": "MeshLab per-face raster parameterization",
@@ -154,7 +155,7 @@ def frames_for(
         if not vdir.is_dir():
             raise DifftexError(f"{vdir}: visibility folder not found")
         for pid in polygons or ids:
-            path = vdir / f"{pid}.npz"
+            path = visibility_file(vdir, pid)
             if not path.is_file():
                 if polygons:
                     raise DifftexError(f"{path}: visibility file of polygon '{pid}' is missing")
@@ -179,7 +180,7 @@ def write_frames(folder: Path, fr: Frames) -> None:
 
     for pid, frame in fr.frames.items():
         save_visibility(
-            folder / f"{pid}.npz",
+            visibility_file(folder, pid),
             PolygonVisibility(
                 polygon_id=pid,
                 frame=frame,
@@ -205,6 +206,7 @@ def write_textures(
     from difftex.compose.outputs import write_texture_outputs
 
     rows = {}
+    res = Results(out)
     for pid, (tex, cov) in imported.items():
         mask = fr.masks[pid]
         U, fill = finish_texture(tex, cov.astype(np.float32), mask)
@@ -213,7 +215,7 @@ def write_textures(
         dom = sources[pid] if sources is not None else np.full(mask.shape, -1)
         dom = np.where(cov, dom, -1)
         rep = {"polygon_id": pid, "method": method, **fill, "peer_coverage": fill["coverage"], **extra}
-        write_texture_outputs(out / "textures" / pid, U, mask, cov, dom, names if sources is not None else [], rep)
+        write_texture_outputs(res.polygon_textures(pid), U, mask, cov, dom, names if sources is not None else [], rep)
         rows[pid] = round(fill["coverage"], 4)
     return rows
 
@@ -255,14 +257,15 @@ def run_peer(
     out = Path(out).absolute()  # the programs run in their own working folders
     out.parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.", suffix=".partial", dir=out.parent))
+    staged = Results(tmp)  # the results folder until it is complete
     try:
         with measure_self() as prep:
             scene = load_scene(scene_dir)
             fr = frames_for(scene, visibility, polygons, long_side, density)
             if fr.visibility is not None:
-                (tmp / "visibility.txt").write_text(str(fr.visibility))
+                staged.visibility_link.write_text(str(fr.visibility))
             else:
-                write_frames(tmp / "visibility", fr)
+                write_frames(staged.visibility_dir, fr)
             photos = peer_photos(scene, photos_table)
             work = tmp / "work"
             cams = export_photos(photos, work / "photos", cfg.photo_long_side)
@@ -305,7 +308,7 @@ def run_peer(
         }
         # the command line named the temporary folder, which is about to become ``out``
         record = json.loads(json.dumps(record, default=str).replace(str(tmp), str(out)))
-        write_json(tmp / "peer.json", record)
+        write_json(staged.peer_record, record)
         if out.exists():
             shutil.rmtree(out)
         os.replace(tmp, out)
