@@ -23,6 +23,23 @@ def add_common(parser, config=True, many=False) -> None:
     parser.add_argument("--compile-min-slots", type=int, default=None, help="overrides compute.compile_min_slots")
 
 
+def add_job(parser, decode_cache: bool = False) -> None:
+    """The options of a command that a workflow job runs on several polygons: ``--done`` (its
+    job file) and, for a command that decodes photos, ``--decode-cache-mb``."""
+    parser.add_argument("--done", help="after the last polygon, write this JSON listing them (the workflow's job file)")
+    if decode_cache:
+        parser.add_argument("--decode-cache-mb", type=float, default=512.0,
+                            help="with several polygons, keep up to this many MB of decoded photos for the next ones")
+
+
+def decoder(args, n_polygons: int):
+    """``decode_photo``, or one DecodeCache that the command's polygons share (they usually see
+    the same photos: each is decoded once, up to ``--decode-cache-mb``)."""
+    from difftex.scene.files import DecodeCache, decode_photo
+
+    return DecodeCache(args.decode_cache_mb) if n_polygons > 1 and args.decode_cache_mb > 0 else decode_photo
+
+
 def load(args):
     """(OptimizeConfig, ComputeConfig, PolygonInput) for the command's scene, visibility file and config."""
     cfg, compute, inputs = load_many(args, [args.visibility])

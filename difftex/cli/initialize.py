@@ -8,30 +8,27 @@ HELP = ("decode and crop each polygon's candidate photos once, for the optimize 
 
 
 def add_arguments(parser) -> None:
-    from difftex.cli._polygon import add_common
+    from difftex.cli._polygon import add_common, add_job
 
     add_common(parser, many=True)
+    add_job(parser, decode_cache=True)
     parser.add_argument("--out", required=True, nargs="+",
                         help="the crops file to write per --visibility file (R/init/<polygon>/crops.npz)")
-    parser.add_argument("--done", help="after the last polygon, write this JSON listing them (the workflow's job file)")
-    parser.add_argument("--decode-cache-mb", type=float, default=512.0,
-                        help="with several polygons, keep up to this many MB of decoded photos for the next ones")
 
 
 def run(args) -> int:
     import time
 
-    from difftex.cli._polygon import load_many
+    from difftex.cli._polygon import decoder, load_many
     from difftex.compose.stage_files import initialize_polygon, write_init
     from difftex.errors import DifftexError
-    from difftex.scene.files import DecodeCache, decode_photo, write_json
+    from difftex.scene.files import DecodeCache, write_json
 
     if len(args.out) != len(args.visibility):
         raise DifftexError(f"initialize: {len(args.visibility)} --visibility files but {len(args.out)} --out files")
     # no torch in this process: importing it would cost more than a small polygon's crops
     cfg, _, inputs = load_many(args, args.visibility, torch_threads=False)
-    shared = len(args.visibility) > 1 and args.decode_cache_mb > 0
-    decode = DecodeCache(args.decode_cache_mb) if shared else decode_photo
+    decode = decoder(args, len(args.visibility))
     done = []
     for n, (inp, out) in enumerate(zip(inputs, args.out, strict=True), 1):
         t0 = time.perf_counter()

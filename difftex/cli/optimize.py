@@ -8,15 +8,15 @@ HELP = ("optimize each polygon's blend weights from its crops (difftex initializ
 
 
 def add_arguments(parser) -> None:
-    from difftex.cli._polygon import add_common
+    from difftex.cli._polygon import add_common, add_job
 
     add_common(parser, many=True)
+    add_job(parser, decode_cache=False)
     parser.add_argument("--init", required=True, nargs="+",
                         help="the crops file per --visibility file (difftex initialize)")
     parser.add_argument("--out-dir", required=True, nargs="+",
                         help="folder for weights.npz, optimized.npz and stats.json per --visibility file "
                         "(R/optimized/<polygon>)")
-    parser.add_argument("--done", help="after the last polygon, write this JSON listing them (the workflow's job file)")
     parser.add_argument("--no-progress", action="store_true")
 
 

@@ -8,9 +8,10 @@ HELP = ("texture one or more polygons: brightness transfers, blend-weight optimi
 
 
 def add_arguments(parser) -> None:
-    from difftex.cli._polygon import add_common
+    from difftex.cli._polygon import add_common, add_job
 
     add_common(parser, many=True)
+    add_job(parser, decode_cache=True)
     parser.add_argument("--out-dir", required=True, nargs="+",
                         help="folder for weights.npz, stats.json and composite.npz (R/optimized/<polygon>), "
                         "one per --visibility file")
@@ -19,20 +20,17 @@ def add_arguments(parser) -> None:
         help="also write texture.png, source.png, source.npz, coverage.png, report.json here "
         "(one polygon only; the workflow's finish rule does this)",
     )
-    parser.add_argument("--done", help="after the last polygon, write this JSON listing them (the workflow's job file)")
-    parser.add_argument("--decode-cache-mb", type=float, default=512.0,
-                        help="with several polygons, keep up to this many MB of decoded photos for the next ones")
     parser.add_argument("--no-progress", action="store_true")
 
 
 def run(args) -> int:
     import time
 
-    from difftex.cli._polygon import load_many
+    from difftex.cli._polygon import decoder, load_many
     from difftex.compose.outputs import write_texture_outputs
     from difftex.compose.texturing import texture_polygon, write_polygon
     from difftex.errors import DifftexError
-    from difftex.scene.files import DecodeCache, decode_photo, write_json
+    from difftex.scene.files import DecodeCache, write_json
 
     if len(args.out_dir) != len(args.visibility):
         raise DifftexError(
@@ -44,8 +42,7 @@ def run(args) -> int:
     # small polygon's own work does not reach).
     cfg, compute, inputs = load_many(args, args.visibility)
     # the polygons of a job usually share their photos: decode each once (run.decode_cache_mb)
-    shared = len(args.visibility) > 1 and args.decode_cache_mb > 0
-    decode = DecodeCache(args.decode_cache_mb) if shared else decode_photo
+    decode = decoder(args, len(args.visibility))
     done = []
     for n, (inp, out_dir) in enumerate(zip(inputs, args.out_dir, strict=True), 1):
         t0 = time.perf_counter()
