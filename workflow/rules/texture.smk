@@ -7,7 +7,8 @@
 #       the optimization from those crops (the only stage that requests run.gpu), the
 #       composition (numpy, local); a change of optimize.lr reruns optimize and what follows;
 #   texture: the three in one process (a local CPU run's default: one process start, no crops file).
-# Both write the same R/optimized/<pid>/composite.npz, byte for byte; `finish` writes the PNGs.
+# Both write the same R/optimized/<pid>/composite.npz (equal arrays; only the report's timings differ),
+# so the PNGs that `finish` writes from it are the same bytes.
 # The `compute` section (device, torch.compile) changes no result, so changing it reruns nothing.
 
 
