@@ -362,3 +362,20 @@ def test_photos_that_agree_on_nothing_keep_the_plane():
     ps = PhotoSet.load(inp, "cpu", relief_range=(SWEEP.lo, SWEEP.hi))
     relief, stats = estimate_relief(ps, ReliefSettings(lo=-0.5, hi=0.5, long_side=64, window=9, smooth=5))
     assert np.mean(relief.heights[inp.texel_mask] == 0) >= 0.95, stats
+
+
+def test_the_split_stages_give_the_one_process_relief_texture(scene):
+    from difftex.compose.stage_files import compose_polygon, initialize_polygon
+    from difftex.compose.texturing import optimize_photos
+
+    inp = scene[0]
+    cfg = OptimizeConfig(long_side_start=32, level_step=2.0, histogram_matching=False, relief=True,
+                         relief_range=(SWEEP.lo, SWEEP.hi), relief_long_side=LONG, relief_window=9, relief_smooth=5)
+    one = texture_polygon(inp, cfg, ComputeConfig(device="cpu"))
+    # the crops hold the rectangle shifted to both ends of the sweep, as PhotoSet.load's do
+    crops, stats = initialize_polygon(inp, cfg)
+    photos = PhotoSet.from_crops(inp, crops, "cpu", cfg.supersample)
+    opt = optimize_photos(photos, cfg, ComputeConfig(device="cpu"), read_stats=stats)
+    U, _, _ = compose_polygon(opt)
+    assert opt.heights is not None and np.array_equal(opt.heights, one.heights)
+    assert np.array_equal(U, one.texture)
