@@ -115,9 +115,9 @@ def read_init(path: str | Path, polygon_id: str, names: list[str]) -> tuple[dict
         raise DifftexError(f"{path}: not an initialization file of this difftex (version {d.get('version')})")
     if str(d["polygon_id"]) != polygon_id or list(d["photos"]) != list(names):
         raise DifftexError(f"{path}: made for polygon {d['polygon_id']} and other photos; rerun the initialization")
-    crops = {}
     from difftex.sampling.crops import PhotoCrop
 
+    crops = {}
     for key in d:
         if key.startswith("crop_"):
             n = int(key[5:])
@@ -164,13 +164,19 @@ def write_weights(
     )
 
 
-def write_optimized(out_dir: str | Path, opt: OptimizedPolygon) -> None:
-    """The optimization stage's files: weights.npz, optimized.npz (composition's inputs) and
-    stats.json, each atomically."""
+def write_weights_and_stats(out_dir: str | Path, opt: OptimizedPolygon) -> None:
+    """weights.npz and stats.json of the optimization, each atomically (both texturing paths)."""
     out_dir = Path(out_dir)
     assert opt.idx is not None and opt.W is not None
     write_weights(out_dir / WEIGHTS, opt.polygon_id, opt.names, opt.frame, opt.mask, opt.idx, opt.W,
                   opt.transfers)
+    write_json(out_dir / STATS, opt.stats)
+
+
+def write_optimized(out_dir: str | Path, opt: OptimizedPolygon) -> None:
+    """The optimization stage's files: weights.npz, optimized.npz (composition's inputs) and
+    stats.json, each atomically."""
+    out_dir = Path(out_dir)
     extra = {"heights": np.asarray(opt.heights, np.float32)} if opt.heights is not None else {}
     write_npz(
         out_dir / OPTIMIZED,
@@ -180,7 +186,7 @@ def write_optimized(out_dir: str | Path, opt: OptimizedPolygon) -> None:
         histmatch=np.array(opt.histmatch),
         **extra,
     )
-    write_json(out_dir / STATS, opt.stats)
+    write_weights_and_stats(out_dir, opt)
 
 
 def read_optimized(out_dir: str | Path) -> OptimizedPolygon:
@@ -204,9 +210,9 @@ def read_optimized(out_dir: str | Path) -> OptimizedPolygon:
     )
 
 
-def write_composed(path: str | Path, opt: OptimizedPolygon) -> dict:
-    """The composition stage's file, composite.npz; returns the polygon's report."""
-    U, seen, report = compose_polygon(opt)
+def write_composite_of(path: str | Path, opt: OptimizedPolygon, U: np.ndarray, seen: np.ndarray, report: dict) -> None:
+    """composite.npz of a polygon: its composed texture ``U``, ``seen`` texels and ``report``
+    (``compose_polygon``'s), with the optimization's dominant photo, statistics and heights."""
     write_composite(
         path,
         U,
@@ -217,4 +223,10 @@ def write_composed(path: str | Path, opt: OptimizedPolygon) -> dict:
         dict(report, optimize=opt.stats),
         relief=(opt.heights, opt.frame.texel_size) if opt.heights is not None else None,
     )
+
+
+def write_composed(path: str | Path, opt: OptimizedPolygon) -> dict:
+    """The composition stage's file, composite.npz; returns the polygon's report."""
+    U, seen, report = compose_polygon(opt)
+    write_composite_of(path, opt, U, seen, report)
     return report

@@ -28,10 +28,9 @@ import numpy as np
 
 from difftex.compose.fill import dominant_from_slots
 from difftex.compose.histmatch import mapped_transfers
-from difftex.compose.outputs import write_composite
 from difftex.compose.stage_files import OptimizedPolygon, compose_polygon, crop_relief_range
 from difftex.geometry.frames import UVFrame, level_sides
-from difftex.layout import COMPOSITE, STATS, WEIGHTS
+from difftex.layout import COMPOSITE
 from difftex.method.config import ComputeConfig, OptimizeConfig
 from difftex.method.loop import optimize_polygon
 from difftex.method.relief import estimate_relief
@@ -42,18 +41,46 @@ from difftex.scene.files import decode_photo
 
 @dataclass
 class TexturedPolygon:
-    """Everything the texturing of one polygon produced (arrays at the target frame)."""
+    """Everything the texturing of one polygon produced (arrays at the target frame): the
+    optimization's result and the composed texture."""
 
     inp: PolygonInput
     texture: np.ndarray  # (H, W, 3) float, unseen texels filled
     seen: np.ndarray  # (H, W) bool texels some photo coloured
-    dominant: np.ndarray  # (H, W) int photo index with the largest weight, -1 none
-    idx: np.ndarray  # (K, H, W) slot photo indices
-    W: np.ndarray  # (K, H, W) blend weights
-    transfers: list | None  # per photo (3, 2, N_KNOTS) or None
-    stats: dict  # optimization statistics (levels, losses, times)
-    heights: np.ndarray | None = None  # (H, W) relief height field at the target frame, scene units
+    optimized: OptimizedPolygon  # slots, weights, transfers, dominant photo, heights, statistics
     report: dict = field(default_factory=dict)  # fill and summary figures
+
+    @property
+    def dominant(self) -> np.ndarray:
+        """(H, W) int photo index with the largest weight, -1 none."""
+        return self.optimized.dominant
+
+    @property
+    def idx(self) -> np.ndarray:
+        """(K, H, W) slot photo indices."""
+        assert self.optimized.idx is not None
+        return self.optimized.idx
+
+    @property
+    def W(self) -> np.ndarray:
+        """(K, H, W) blend weights."""
+        assert self.optimized.W is not None
+        return self.optimized.W
+
+    @property
+    def transfers(self) -> list | None:
+        """Per photo (3, 2, N_KNOTS) brightness transfers, or None."""
+        return self.optimized.transfers
+
+    @property
+    def stats(self) -> dict:
+        """Optimization statistics (levels, losses, times)."""
+        return self.optimized.stats
+
+    @property
+    def heights(self) -> np.ndarray | None:
+        """(H, W) relief height field at the target frame, scene units, or None."""
+        return self.optimized.heights
 
 
 def polygon_transfers(photos: PhotoSet, cfg: OptimizeConfig) -> tuple[UVFrame, dict, list | None, str | None]:
@@ -161,39 +188,15 @@ def texture_polygon(
     read = {"photo_reads": photos.reads, "time_read_photos_s": time.perf_counter() - t0}
     opt = optimize_photos(photos, cfg, compute, progress=progress, read_stats=read)
     U, seen, report = compose_polygon(opt)
-    assert opt.idx is not None and opt.W is not None
-    return TexturedPolygon(
-        inp=inp,
-        texture=U,
-        seen=seen,
-        dominant=opt.dominant,
-        idx=opt.idx,
-        W=opt.W,
-        transfers=opt.transfers,
-        stats=opt.stats,
-        report=report,
-        heights=opt.heights,
-    )
+    return TexturedPolygon(inp=inp, texture=U, seen=seen, optimized=opt, report=report)
 
 
 def write_polygon(tp: TexturedPolygon, optimized_dir: str | Path) -> None:
     """weights.npz (slots, weights, transfers), stats.json and composite.npz (the float texture,
-    its source map and report; the finish stage writes the PNGs from it), each written atomically."""
-    from difftex.compose.stage_files import write_weights
-    from difftex.scene.files import write_json
+    its source map and report; the finish stage writes the PNGs from it), each written atomically:
+    the split stages' files but optimized.npz, whose content composite.npz holds."""
+    from difftex.compose.stage_files import write_composite_of, write_weights_and_stats
 
-    inp = tp.inp
     out_dir = Path(optimized_dir)
-    write_weights(out_dir / WEIGHTS, inp.polygon_id, [p.name for p in inp.photos], inp.frame,
-                  inp.texel_mask, tp.idx, tp.W, tp.transfers)
-    write_json(out_dir / STATS, tp.stats)
-    write_composite(
-        out_dir / COMPOSITE,
-        tp.texture,
-        inp.texel_mask,
-        tp.seen,
-        tp.dominant,
-        [p.name for p in inp.photos],
-        dict(tp.report, optimize=tp.stats),
-        relief=(tp.heights, inp.frame.texel_size) if tp.heights is not None else None,
-    )
+    write_weights_and_stats(out_dir, tp.optimized)
+    write_composite_of(out_dir / COMPOSITE, tp.optimized, tp.texture, tp.seen, tp.report)
