@@ -131,7 +131,9 @@ def run_workflow(scene: Path, work: Path, preset: str, cores: int, split: str = 
     work.mkdir(parents=True, exist_ok=True)
     bin_dir = Path(sys.executable).parent
     cmd = [str(bin_dir / "snakemake"), "-s", str(ROOT / "Snakefile"), "--directory", str(work), "--cores", str(cores),
-           "--config", f"scene={scene.resolve()}", f"preset={preset}", f"run={{evaluate: false, split: {split}}}"]
+           "--config", f"scene={scene.resolve()}", f"run={{evaluate: false, split: {split}}}"]
+    if preset != "default":  # "default": no preset, the configuration's defaults (full density)
+        cmd.append(f"preset={preset}")
     env = dict(os.environ, PATH=f"{bin_dir}{os.pathsep}{os.environ.get('PATH', '')}")
     c0, t0 = children_cpu(), time.perf_counter()
     r = subprocess.run(cmd, capture_output=True, text=True, env=env)
@@ -204,7 +206,7 @@ def subset_scene(scene: Path, n: int, out: Path) -> Path | None:
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--scene", action="append", required=True)
-    ap.add_argument("--presets", default="fast,balanced")
+    ap.add_argument("--presets", default="fast,balanced", help="comma-separated; 'default' is no preset")
     ap.add_argument("--subset", type=int, default=0, help="also a copy of each scene with this many photos")
     ap.add_argument("--cores", type=int, default=2)
     ap.add_argument("--split", default="auto", choices=["auto", "true", "false", "both"],

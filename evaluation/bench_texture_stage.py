@@ -10,7 +10,8 @@ For the GPU machine lent through the `device` tool (no Snakemake there): the ups
 on any machine, their results travel with the scene, and this times the stage that holds the
 method's cost. Writes <out>.json and <out>.md with the machine; per polygon: wall seconds of the
 process, the method's own seconds (stats.json), iterations, texels, peak RSS and, on CUDA, peak
-GPU memory.
+GPU memory. With ``--split``, the split run's three commands per polygon instead (`difftex
+initialize`, `optimize`, `compose`; only `optimize` on the device), each timed.
 """
 
 from __future__ import annotations
@@ -43,28 +44,46 @@ def machine() -> dict:
     return info
 
 
-def run_polygon(
-    results: Path, scene: Path, pid: str, config: Path, compute_yaml: Path, threads: int, scratch: Path
-) -> dict:
-    """One `difftex texture` process for polygon ``pid``: its wall time and stats."""
-    out = scratch / pid
-    cmd = [
-        sys.executable, "-c", "import sys; from difftex.cli import main; sys.exit(main())",
-        "texture", "--threads", str(threads), "--no-progress",
-        "--scene", str(scene), "--visibility", str(results / "visibility" / f"{pid}.npz"),
-        "--config", str(config), "--compute-config", str(compute_yaml), "--out-dir", str(out),
-    ]
+def _difftex(args: list[str], threads: int) -> float:
+    """Run one `difftex` command in a fresh process; its wall seconds."""
+    cmd = [sys.executable, "-c", "import sys; from difftex.cli import main; sys.exit(main())", *args]
     path = str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", "")
     env = dict(os.environ, OMP_NUM_THREADS=str(threads), PYTHONPATH=path)
     t0 = time.perf_counter()
     p = subprocess.run(cmd, env=env, capture_output=True, text=True)
     wall = time.perf_counter() - t0
     if p.returncode != 0:
-        raise SystemExit(f"bench_texture_stage: {pid} failed:\n{p.stdout[-2000:]}{p.stderr[-2000:]}")
+        raise SystemExit(f"bench_texture_stage: difftex {args[0]} failed:\n{p.stdout[-2000:]}{p.stderr[-2000:]}")
+    return wall
+
+
+def run_polygon(
+    results: Path, scene: Path, pid: str, config: Path, compute_yaml: Path, threads: int, scratch: Path,
+    split: bool = False,
+) -> dict:
+    """Polygon ``pid`` through the workflow's commands: one `difftex texture` process, or with
+    ``split`` the `initialize`, `optimize` and `compose` processes of a split run; wall times and stats."""
+    out = scratch / pid
+    vis = str(results / "visibility" / f"{pid}.npz")
+    common = ["--threads", str(threads), "--scene", str(scene), "--visibility", vis, "--config", str(config)]
+    walls = {}
+    if split:
+        crops = scratch / "init" / pid / "crops.npz"
+        walls["initialize_s"] = _difftex(["initialize", *common, "--out", str(crops)], threads)
+        walls["optimize_s"] = _difftex(
+            ["optimize", "--no-progress", *common, "--init", str(crops), "--out-dir", str(out),
+             "--compute-config", str(compute_yaml)], threads)
+        walls["compose_s"] = _difftex(["compose", "--optimized", str(out)], threads)
+        crops.unlink()
+    else:
+        walls["texture_s"] = _difftex(
+            ["texture", "--no-progress", *common, "--compute-config", str(compute_yaml), "--out-dir", str(out)],
+            threads)
     st = json.loads((out / "stats.json").read_text())
     return {
         "polygon": pid,
-        "wall_s": round(wall, 2),
+        "wall_s": round(sum(walls.values()), 2),
+        **{k: round(v, 2) for k, v in walls.items()},
         "method_s": round(st["time_total_s"], 2),
         "device": st.get("device"),
         "texels": st["texels"],
@@ -82,6 +101,8 @@ def main(argv=None) -> int:
     ap.add_argument("--device", default="auto", choices=["auto", "cpu", "cuda"])
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--polygons", help="comma-separated ids (default: every visibility file)")
+    ap.add_argument("--split", action="store_true",
+                    help="the split run's three commands per polygon (initialize, optimize, compose)")
     ap.add_argument("--out", required=True)
     a = ap.parse_args(argv)
     pids = a.polygons.split(",") if a.polygons else sorted(p.stem for p in (a.results / "visibility").glob("*.npz"))
@@ -92,7 +113,7 @@ def main(argv=None) -> int:
         config = sorted((a.results / "config").glob("texture-*.yaml"))[-1]
         t0 = time.perf_counter()
         for pid in pids:
-            rows.append(run_polygon(a.results, a.scene, pid, config, compute, a.threads, Path(tmp)))
+            rows.append(run_polygon(a.results, a.scene, pid, config, compute, a.threads, Path(tmp), a.split))
             print(f"bench_texture_stage: {pid}: {rows[-1]}", flush=True)
         total = time.perf_counter() - t0
     rss = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024
@@ -102,6 +123,7 @@ def main(argv=None) -> int:
         "machine": machine(),
         "device": a.device,
         "threads": a.threads,
+        "split": a.split,
         "total_wall_s": round(total, 1),
         "peak_rss_mb": round(rss),
         "polygons": rows,
@@ -117,18 +139,23 @@ def main(argv=None) -> int:
         f"Date: {res['date']}  ",
         f"Machine: {m['cpu']}, {m['cores']} cores, {m.get('gpu', 'no GPU')}, torch {m['torch']}, {a.threads} threads",
         "",
-        f"One `difftex texture` process per polygon, one after another: {res['total_wall_s']} s in all, "
-        f"peak RSS {res['peak_rss_mb']} MB. Wall: the process (import, scene, decode, method, outputs); "
-        "method: stats.json's time_total_s; align: its alignment part.",
+        ("Per polygon, the split run's `difftex initialize`, `optimize` and `compose` processes"
+         if a.split else "One `difftex texture` process per polygon")
+        + f", one after another: {res['total_wall_s']} s in all, peak RSS {res['peak_rss_mb']} MB. "
+        "Wall: the processes (import, scene, decode, method, outputs); method: stats.json's "
+        "time_total_s; align: its alignment part.",
         "",
-        "| polygon | device | texels | long side | iterations | wall (s) | method (s) | align (s) | GPU peak (MB) |",
-        "|---|---|---|---|---|---|---|---|---|",
+        "| polygon | device | texels | long side | iterations | wall (s) | "
+        + ("initialize / optimize / compose (s) | " if a.split else "")
+        + "method (s) | align (s) | GPU peak (MB) |",
+        "|---|---|---|---|---|---|" + ("---|" if a.split else "") + "---|---|---|",
     ]
     for r in rows:
         gpu_mb = r["cuda_peak_mb"] if r["cuda_peak_mb"] is not None else ""
+        parts = f"{r['initialize_s']} / {r['optimize_s']} / {r['compose_s']} | " if a.split else ""
         lines.append(
             f"| {r['polygon']} | {r['device']} | {r['texels']} | {r['long_side']} | {r['iterations']} | "
-            f"{r['wall_s']} | {r['method_s']} | {r['align_s']} | {gpu_mb} |"
+            f"{r['wall_s']} | {parts}{r['method_s']} | {r['align_s']} | {gpu_mb} |"
         )
     out.with_suffix(".md").write_text("\n".join(lines) + "\n")
     print(f"bench_texture_stage: {len(rows)} polygons in {total:.0f} s -> {out.with_suffix('.md')}")

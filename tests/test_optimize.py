@@ -256,6 +256,32 @@ def test_compiled_objective_matches_eager(mode):
     assert np.abs(comp.U - eager.U).max() < 1e-4
 
 
+def test_auto_compile_only_large_cpu_levels():
+    """compile=auto: eager below compile_min_slots and on CUDA (where compiling costs more than
+    a level's iterations), compiled for a large CPU level; on and off are what they say."""
+    from types import SimpleNamespace
+
+    from difftex.method.config import ComputeConfig
+    from difftex.method.objective import compiled_objective
+
+    class Idx:
+        def __init__(self, n, cuda):
+            self.n, self.is_cuda = n, cuda
+
+        def numel(self):
+            return self.n
+
+    cfg = OptimizeConfig()
+    auto = ComputeConfig(compile="auto", compile_min_slots=1000)
+    sizes = ((1000, False), (999, False), (10**9, True))
+    big_cpu, small_cpu, big_cuda = (SimpleNamespace(idx=Idx(n, c)) for n, c in sizes)
+    assert compiled_objective(big_cpu, cfg, auto) is not None
+    assert compiled_objective(small_cpu, cfg, auto) is None
+    assert compiled_objective(big_cuda, cfg, auto) is None
+    assert compiled_objective(big_cuda, cfg, ComputeConfig(compile="on")) is not None
+    assert compiled_objective(big_cpu, cfg, ComputeConfig(compile="off")) is None
+
+
 @pytest.mark.gpu
 def test_cuda_matches_cpu():
     if not torch.cuda.is_available():

@@ -306,7 +306,7 @@ class ComputeConfig:
     beyond float tolerance (tests compare compiled with eager, CUDA with CPU)."""
 
     device: Device = "auto"  # auto (CUDA when torch sees it) | cpu | cuda
-    compile: CompileMode = "auto"  # torch.compile the objective: auto (large levels only) | on | off
+    compile: CompileMode = "auto"  # torch.compile the objective: auto (large levels on a CPU) | on | off
     compile_min_slots: int = 4_194_304  # auto: compile levels with at least this many K x H x W slot entries
 
     def __post_init__(self):

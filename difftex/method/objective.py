@@ -128,8 +128,15 @@ def compiled_objective(lv: Level, cfg: OptimizeConfig, compute: ComputeConfig):
     iteration repays the compilation at about 130 M slot-iterations, i.e. from ~4 M slots at the
     finer levels' 40-80 iteration caps: ``auto`` compiles levels with at least
     ``compile_min_slots`` slot entries (a sub-level of free texels counts its own).
+
+    On CUDA ``auto`` runs eagerly: there an iteration is milliseconds and the compilation is
+    not. On an H200 (evaluation/results/bench_texture_stage_h200.md, the paper preset on a
+    2048-texel wall) compiling took 17.7 and 11.4 s at the first iteration of the two finest
+    levels, whose 80 and 40 compiled iterations then took 0.7 and 1.3 s.
     """
     mode = compute.compile
-    if mode == "off" or (mode == "auto" and lv.idx.numel() < compute.compile_min_slots):
+    if mode == "off":
+        return None
+    if mode == "auto" and (lv.idx.is_cuda or lv.idx.numel() < compute.compile_min_slots):
         return None
     return torch.compile(objective if cfg.autograd else texel_value_and_grad, dynamic=False)
