@@ -57,7 +57,8 @@ def mosaic(crops: list[tuple[str, np.ndarray]], max_width: int):
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--scene", required=True, help="scene folder (its ground_truth/ is used when present)")
-    ap.add_argument("--run", action="append", required=True, help="LABEL=results folder (repeatable)")
+    ap.add_argument("--run", action="append", required=True,
+                    help="LABEL=results folder, or LABEL=a PNG in the ground truth's frame (repeatable)")
     ap.add_argument("--polygon", required=True)
     ap.add_argument("--crop", default="0,0,1,1", help="x0,y0,x1,y1 as fractions of the map")
     ap.add_argument("--max-width", type=int, default=1800, help="width of the written image, pixels")
@@ -73,6 +74,9 @@ def main(argv=None) -> int:
         label, _, folder = spec.partition("=")
         if not folder:
             raise SystemExit(f"side_by_side: --run {spec!r}: expected LABEL=FOLDER")
+        if folder.lower().endswith(".png"):  # a texture already in the ground truth's frame (variants.py --textures)
+            runs.append((label, read_image(folder)))
+            continue
         tex = load_textures(folder)
         if args.polygon not in tex:
             raise SystemExit(f"side_by_side: {folder}: no texture of polygon {args.polygon!r}")
@@ -81,10 +85,19 @@ def main(argv=None) -> int:
     if (gt / "frames" / f"{args.polygon}.json").is_file():
         frame = UVFrame.from_dict(read_json(gt / "frames" / f"{args.polygon}.json"))
         ref = [("ground truth", read_image(gt / "maps" / f"{args.polygon}.png"))]
+    elif all(isinstance(r, np.ndarray) for _, r in runs):
+        raise SystemExit(f"side_by_side: {gt}: no ground-truth frame of {args.polygon!r} for the PNG textures")
     else:
-        frame, ref = runs[0][1].frame, []
+        frame, ref = next(pt.frame for _, pt in runs if not isinstance(pt, np.ndarray)), []
     y0, y1, x0, x1 = crop_box(frame.shape, tuple(float(v) for v in args.crop.split(",")))
-    crops = [(label, resample_texture(pt.texture, pt.frame, frame)[y0:y1, x0:x1]) for label, pt in runs]
+    for label, pt in runs:
+        if isinstance(pt, np.ndarray) and pt.shape[:2] != frame.shape:
+            raise SystemExit(f"side_by_side: {label}: a {pt.shape[1]}x{pt.shape[0]} PNG, not the ground-truth "
+                             f"frame's {frame.shape[1]}x{frame.shape[0]}")
+    crops = [
+        (label, (pt if isinstance(pt, np.ndarray) else resample_texture(pt.texture, pt.frame, frame))[y0:y1, x0:x1])
+        for label, pt in runs
+    ]
     crops += [(label, img[y0:y1, x0:x1]) for label, img in ref]
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)

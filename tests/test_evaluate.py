@@ -369,3 +369,32 @@ def test_evaluate_command_on_a_held_out_scene_copy(tmp_path):
     assert (R / "evaluation" / "views" / "img01_render.png").is_file()
     # a bad scene is one line naming it
     assert main(["evaluate", "--scene", str(tmp_path / "nope"), "--results", str(R), "--out", str(out)]) == 2
+
+
+def test_side_by_side_takes_pngs_in_the_ground_truth_frame(tmp_path):
+    """evaluation/side_by_side.py: a PNG run (variants.py --textures) is cropped as it is, beside the
+    truth; a PNG of another size is one clear line, not a traceback."""
+    from difftex.scene.files import read_image
+    from evaluation.side_by_side import main as side_by_side
+
+    frame = UVFrame(np.zeros(3), np.array([1.0, 0, 0]), np.array([0, 0, -1.0]), np.array([0, -1.0, 0]), 0.1, 40, 20)
+    gt = tmp_path / "scene" / "ground_truth"
+    write_json(gt / "frames" / "wall.json", frame.to_dict())
+    truth = np.zeros((20, 40, 3), np.float32)
+    truth[:, 20:] = 1.0
+    write_image(gt / "maps" / "wall.png", truth)
+    variant = np.full((20, 40, 3), 0.5, np.float32)
+    write_image(tmp_path / "v.png", variant)
+    out = tmp_path / "sbs.png"
+    assert side_by_side(["--scene", str(tmp_path / "scene"), "--run", f"variant={tmp_path / 'v.png'}",
+                         "--polygon", "wall", "--crop", "0.25,0,1,1", "--max-width", "200", "--out", str(out)]) == 0
+    img = read_image(out)
+    assert img.shape[1] <= 200 and img.shape[0] > 22  # two crops of 30x20 texels under their labels
+    tile = img[22:, : (img.shape[1] - 6) // 2]
+    assert np.allclose(tile, 0.5, atol=0.01)  # the variant as it is, no resampling
+    right = img[22:, img.shape[1] - (img.shape[1] - 6) // 2 :]
+    assert right[:, -1].min() > 0.99  # the truth's white half, cropped the same way
+    write_image(tmp_path / "small.png", variant[:10])
+    with pytest.raises(SystemExit, match="not the ground-truth frame's 40x20"):
+        side_by_side(["--scene", str(tmp_path / "scene"), "--run", f"small={tmp_path / 'small.png'}",
+                      "--polygon", "wall", "--out", str(tmp_path / "x.png")])
