@@ -163,6 +163,10 @@ class OptimizeConfig:
     # Gaussian sigma, texels, of the low-pass under which photos are compared (Q_c, L_Render,
     # elimination, settling): relief parallax of thin details is not disagreement (0: full detail)
     consistency_sigma: float = 0.0
+    # ... or, when larger, the low-pass that brings the finest candidate to the median candidate's
+    # misfit, each photo taken to blur and misregister by this many of its own pixels
+    # (difftex.method.witnesses; 0: off)
+    consistency_px: float = 0.0
     settle_sigma: float = 3.0  # texels whose candidates agree within this many sigma_c keep their Q blend (0: off)
     align_tol_px: float = 0.1  # stop aligning once no weighted photo's correction moved more than this, pixels
     histmatch_reference: HistmatchReference = "median"  # per-texel median of the candidates, the best photo, or pooled
@@ -208,6 +212,8 @@ class OptimizeConfig:
             raise ValueError("select_patch must be >= 1, select_smoothness and select_feather >= 0")
         if self.parallax_sigma < 0 or self.parallax_gate < 0 or self.consistency_sigma < 0:
             raise ValueError("parallax_sigma, parallax_gate and consistency_sigma must be >= 0")
+        if self.consistency_px < 0:
+            raise ValueError(f"consistency_px must be >= 0, got {self.consistency_px}")
         if self.conv_window < 1 or self.conv_tol < 0 or self.conv_colour < 0:
             raise ValueError("conv_window must be >= 1, conv_tol and conv_colour >= 0")
         if self.lr <= 0 or len(tuple(self.betas)) != 2:
@@ -293,6 +299,7 @@ PUBLISHED: dict = {
     "conv_colour": 0.0,
     "align": False,
     "consistency_sigma": 0.0,
+    "consistency_px": 0.0,
     "parallax_sigma": 0.0,
     "select": False,
     "relief": False,

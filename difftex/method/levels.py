@@ -22,6 +22,7 @@ from difftex.method import losses
 from difftex.method.config import OptimizeConfig
 from difftex.method.filters import masked_blur
 from difftex.method.quality import level_noise, quality, relative_footprint, resolution_factor, robust_noise
+from difftex.method.witnesses import candidate_footprints, witness_sigma
 from difftex.sampling.photos import MappedPhoto, PhotoSet
 from difftex.sampling.texels import Region, resample_nearest
 
@@ -57,6 +58,7 @@ class Level:
     detail: torch.Tensor | None = None
     detail_noise: float | None = None
     Qb: torch.Tensor | None = None  # (K, h, w) Q of the blend (initial and settled weights); None: Q
+    compare_sigma: float = 0.0  # texels of the low-pass under which ``colours`` were compared
 
     @property
     def blend_Q(self) -> torch.Tensor:
@@ -276,7 +278,11 @@ def build_level(
 
     # The render loss compares the texture with the photos' own pixels (the paper's L_Render,
     # difftex.method.render): its level keeps comparing at full detail.
-    sig = cfg.consistency_sigma if cfg.loss_mode == "texel" else 0.0
+    sig = 0.0
+    if cfg.loss_mode == "texel":
+        sig = cfg.consistency_sigma
+        if cfg.consistency_px > 0:  # at the candidates' resolutions (difftex.method.witnesses)
+            sig = max(sig, witness_sigma(candidate_footprints(photos, frame, order), cfg.consistency_px))
 
     low: dict[int, torch.Tensor] = {}  # low-passed colours of the photos held in ``cache``
 
@@ -450,4 +456,5 @@ def build_level(
         noise=noise,
         detail=detail,
         detail_noise=detail_noise,
+        compare_sigma=sig,
     )

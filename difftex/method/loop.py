@@ -426,6 +426,7 @@ def _run_level(
         "dropped_photos": dropped_here,
         "settled_share": settled_share,
         "noise": lv.noise,  # sigma_c: L_Render's unit and the settling threshold's
+        "compare_sigma": lv.compare_sigma,  # the comparisons' low-pass, texels (consistency_sigma / _px)
         # texels the iterations ran on against the level's (1: the whole level, not the sub-level)
         "evaluated_share": sp.src.numel() / lv.mask.numel() if sp is not None else 1.0,
         "active_slots_mean": float(st.active.sum(0).float()[lv.mask].mean()) if bool(lv.mask.any()) else 0.0,

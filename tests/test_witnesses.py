@@ -1,0 +1,85 @@
+"""The comparison low-pass from the candidates' resolutions (difftex.method.witnesses)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from difftex.method.config import OptimizeConfig
+from difftex.method.witnesses import candidate_footprints, misfit, witness_sigma
+from difftex.sampling.photos import PhotoSet
+
+from analytic import make_input, make_photo, render
+
+
+def test_misfit_is_half_a_texel_or_half_a_pixel_plus_the_registration():
+    assert misfit(1.0, 0.0) == pytest.approx(0.5)
+    assert misfit(8.0, 0.0) == pytest.approx(0.5)  # a photo finer than the texel: the texel's own
+    assert misfit(0.25, 0.0) == pytest.approx(2.0)  # a pixel of 4 texels
+    assert misfit(0.5, 1.0) == pytest.approx(math.hypot(1.0, 2.0))
+    assert math.isfinite(misfit(1e-9, 1.0)) and misfit(1e9, 1.0) == pytest.approx(0.5)
+    for bad in ((0.0, 1.0), (-1.0, 1.0), (1.0, -0.1)):
+        with pytest.raises(ValueError):
+            misfit(*bad)
+
+
+def test_witness_sigma_is_zero_where_every_candidate_resolves_the_texel():
+    assert witness_sigma([2.0, 3.0, 4.0, 8.0], 0.0) == 0.0
+    assert witness_sigma([3.0] * 5, 1.0) == 0.0  # all alike
+    assert witness_sigma([], 1.0) == 0.0 and witness_sigma([0.5], 1.0) == 0.0  # nothing to compare
+    # non-positive footprints (a photo that sees nothing) do not count
+    assert witness_sigma([0.0, -1.0, 0.5, 0.5, 2.0], 1.0) == witness_sigma([0.5, 0.5, 2.0], 1.0)
+
+
+def test_witness_sigma_follows_the_typical_photo_not_the_finest():
+    """Drone photos at 0.6 pixels per texel and one street photo at 2.6: the low-pass is about
+    the drone photos' misfit, and it grows as the texels get finer (the drone photos coarser)."""
+    drone = [0.6] * 6 + [2.6]
+    s = witness_sigma(drone, 1.0)
+    assert s == pytest.approx(math.sqrt(misfit(0.6, 1.0) ** 2 - misfit(2.6, 1.0) ** 2))
+    assert 1.5 < s < 2.0
+    finer = witness_sigma([f / 2 for f in drone], 1.0)  # texels of half the size
+    assert finer > 1.8 * s
+    assert witness_sigma(drone, 0.0) < s  # without registration error, only the sampling
+
+
+def test_candidate_footprints_scale_with_distance_and_texel_size():
+    near, far = make_photo("near", 0.0, dist=4.0), make_photo("far", 0.0, dist=8.0)
+    inp = make_input([near, far], [render(near), render(far)], long_side=64)
+    ps = PhotoSet.load(inp, "cpu")
+    fp = candidate_footprints(ps, inp.frame, [0, 1])
+    assert fp[0] == pytest.approx(2 * fp[1], rel=0.05)  # twice the distance, half the pixels per texel
+    coarse = inp.frame.resized(32)
+    fp2 = candidate_footprints(ps, coarse, [0, 1])
+    assert np.allclose(fp2, [2 * f for f in fp], rtol=1e-6)  # texels twice the size
+
+
+def test_consistency_px_is_checked():
+    with pytest.raises(ValueError, match="consistency_px"):
+        OptimizeConfig(consistency_px=-1.0)
+    assert OptimizeConfig(consistency_px=1.0).consistency_px == 1.0
+
+
+def test_comparing_at_the_witnesses_resolution_brings_the_texture_closer_to_the_truth():
+    """One close photo that resolves the checker and four far ones that blur it (their pixels
+    span several texels at 128 texels): compared at the texels' resolution the close photo
+    disagrees with the far consensus at every edge; compared under the witnesses' low-pass
+    (consistency_px) the texture is closer to the truth, the close photo keeping its share."""
+    from analytic import fast_cfg, gt_texture, optimize
+
+    photos = [make_photo("near", 0.0, dist=3.0, f=300.0, size=(320, 240))]
+    photos += [make_photo(f"far{i}", y, dist=14.0, f=120.0) for i, y in enumerate((-20.0, -8.0, 8.0, 20.0))]
+    inp = make_input(photos, [render(p) for p in photos], long_side=128)
+    gt = gt_texture(inp)
+    m = inp.texel_mask
+    out = {}
+    for px in (0.0, 1.0):
+        r = optimize(inp, fast_cfg(consistency_px=px, resolution_weight=4.0, resolution_knee=1.5, settle_sigma=0.0))
+        near_w = ((r.idx == 0) * r.W).sum(0)[m].mean()
+        err = np.abs(r.U - gt)[m].mean()
+        out[px] = (near_w, err, r.stats["levels"][-1]["compare_sigma"])
+    assert out[0.0][2] == 0.0 and out[1.0][2] > 2.0  # the far photos' pixels span several texels
+    assert out[1.0][1] < 0.95 * out[0.0][1]
+    assert out[1.0][0] > out[0.0][0] - 0.02  # the close photo keeps its share of the wall
