@@ -85,3 +85,33 @@ def test_a_close_photo_with_an_occluder_does_not_outvote_the_farther_photos():
     split = near_share()
     assert split < 0.1
     assert near_share(resolution_in_consensus=True) > split + 0.2
+
+
+def test_witness_resolution_weight_keeps_the_far_witnesses_under_a_steep_q_r():
+    """The blend's Q_r may be steep (resolution_weight 8: the close photo takes the texel wherever
+    it is clean), but with witness_resolution_weight 1 a witness's vote falls only in proportion
+    to its pixels per texel (min(1, f)): with the far photos below a pixel per texel, 0.8^8 would
+    leave the three of them half the close one's vote on whether it shows an occluder. The
+    witnesses' Q is then the same at resolution_weight 8 as at 1, and the blend's is not; without
+    the option the witnesses follow resolution_weight."""
+    from difftex.method.levels import build_level
+    from difftex.sampling.photos import PhotoSet
+
+    near = make_photo("near", 0.0, dist=6.0)  # 1.6 pixels per texel at 64 texels
+    far = [make_photo(f"far{i}", yaw, dist=12.0) for i, yaw in enumerate((-20.0, -8.0, 20.0))]  # 0.8
+    photos = [near, *far]
+    inp = make_input(photos, [render(ph) for ph in photos], long_side=64)
+    ps = PhotoSet.load(inp, "cpu")
+
+    def level(rw: float, witness: float | None):
+        return build_level(ps, inp.frame, fast_cfg(resolution_weight=rw, resolution_knee=1.5,
+                                                   witness_resolution_weight=witness))
+
+    steep, linear, plain = level(8.0, 1.0), level(1.0, 1.0), level(8.0, None)
+    assert steep.fixed_slots and torch.equal(steep.idx, linear.idx)  # slot j is photo j in each
+    assert torch.allclose(steep.Q, linear.Q)
+    assert not torch.allclose(steep.blend_Q, linear.blend_Q)
+    far_slots = steep.visible[1:]
+    assert float(plain.Q[1:][far_slots].sum()) < 0.5 * float(steep.Q[1:][far_slots].sum())
+    with pytest.raises(ValueError, match="witness_resolution_weight"):
+        fast_cfg(witness_resolution_weight=-1.0)

@@ -111,6 +111,10 @@ class OptimizeConfig:
     # ghost term, the settling test): off, they count by Q_a Q_c min(1, px), so a close photo with
     # an occluder does not outvote the farther photos that see past it
     resolution_in_consensus: bool = False
+    # exponent of the witnesses' Q_r, min(1, px)^this (None: resolution_weight). A steep blend
+    # exponent would otherwise silence the far witnesses too (0.6 pixels per texel, to the 8th:
+    # 0.017), and a close photo's occluder would no longer be outvoted
+    witness_resolution_weight: float | None = None
     sigma_min: float = 0.02  # noise floor of colour standard deviations (Q_c and elimination)
     # "loo": leave-one-out mean/std with a noise floor, one slot per texel and pass; "paper": the
     # paper's test (Sec. 4.3), every selected pixel beyond sigma_k std of all selected ones
@@ -212,6 +216,8 @@ class OptimizeConfig:
             raise ValueError("select_patch must be >= 1, select_smoothness and select_feather >= 0")
         if self.parallax_sigma < 0 or self.parallax_gate < 0 or self.consistency_sigma < 0:
             raise ValueError("parallax_sigma, parallax_gate and consistency_sigma must be >= 0")
+        if self.witness_resolution_weight is not None and not self.witness_resolution_weight >= 0:
+            raise ValueError(f"witness_resolution_weight must be >= 0 or null, got {self.witness_resolution_weight}")
         if self.consistency_px < 0:
             raise ValueError(f"consistency_px must be >= 0, got {self.consistency_px}")
         if self.conv_window < 1 or self.conv_tol < 0 or self.conv_colour < 0:

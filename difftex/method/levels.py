@@ -383,7 +383,8 @@ def build_level(
         best = fpbest[sl] if cfg.resolution_reference == "best" else None
         rw = cfg.resolution_weight
         qb = qac * resolution_factor(relative_footprint(mp.footprint, best, cfg.resolution_knee), rw, mp.visible)
-        q = qac * resolution_factor(relative_footprint(mp.footprint, None), rw, mp.visible) if split else qb
+        rw_w = rw if cfg.witness_resolution_weight is None else cfg.witness_resolution_weight
+        q = qac * resolution_factor(relative_footprint(mp.footprint, None), rw_w, mp.visible) if split else qb
         pc = losses.persp_cost(mp.view[None], v_tilde)[0]
         weight = qb  # as the paper (Sec. 4.2), the weights start at Q (here the blend's, with Q_r)
         if prev is not None:
