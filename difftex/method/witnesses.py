@@ -18,9 +18,10 @@ of its own pixels of lens blur and registration error. The comparison low-pass i
 
     sigma = sqrt(max(0, s(f_med)^2 - s(f_max)^2)),
 
-f_med the median candidate's footprint and f_max the finest's: zero where every candidate
-resolves the texel alike (a preset at a fraction of the photos' density), about the typical
-photo's misfit where the texel is finer than most photos see.
+f_med the median candidate's footprint and f_max the finest's: zero where the candidates
+resolve the texel alike, a fraction of a texel where all of them resolve it (a preset at a
+fraction of the photos' density), about the typical photo's misfit where the texel is finer than
+most photos see.
 """
 
 from __future__ import annotations
