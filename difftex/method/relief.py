@@ -151,11 +151,8 @@ def sweep_cost(
     m = torch.from_numpy(mask).to(dev)
     sweeps, seen = [], []
     for n in which:
-        tm = texel_map(frame, photos.inp.photos[n], dev)
-        ok = torch.from_numpy(resample_nearest(photos.inp.texel_visible[n], photos.inp.frame, frame)).to(dev)
-        ok &= m & tm.valid
-        fp = float(tm.footprint[ok].median()) if bool(ok.any()) else 1.0
-        sweeps.append(GreySweep(photos.samplers[n], frame, photos.inp.photos[n], fp))
+        ok, fp = photos.footprint_on(n, frame, m)
+        sweeps.append(GreySweep(photos.samplers[n], frame, photos.inp.photos[n], 1.0 if fp is None else fp))
         seen.append(ok)
     costs, counts = [], []
     for h in heights:

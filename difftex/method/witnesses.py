@@ -34,7 +34,7 @@ import torch
 
 from difftex.geometry.frames import UVFrame, level_frame
 from difftex.sampling.photos import PhotoSet
-from difftex.sampling.texels import resample_nearest, texel_map
+from difftex.sampling.texels import resample_nearest
 
 PROBE_SIDE = 64  # long side of the grid on which each candidate's footprint is taken
 
@@ -79,13 +79,7 @@ def candidate_footprints(photos: PhotoSet, frame: UVFrame, which: Iterable[int])
     """
     inp = photos.inp
     probe = level_frame(inp.frame, min(PROBE_SIDE, max(inp.frame.shape)))
-    mask = resample_nearest(inp.texel_mask, inp.frame, probe)
+    mask = torch.from_numpy(resample_nearest(inp.texel_mask, inp.frame, probe)).to(photos.device)
     scale = frame.texel_size / probe.texel_size
-    out = []
-    for n in which:
-        tm = texel_map(probe, inp.photos[n], photos.device)
-        seen = torch.from_numpy(resample_nearest(inp.texel_visible[n], inp.frame, probe) & mask).to(photos.device)
-        seen &= tm.valid
-        if bool(seen.any()):
-            out.append(float(tm.footprint[seen].median()) * scale)
-    return out
+    fps = (photos.footprint_on(n, probe, mask)[1] for n in which)
+    return [fp * scale for fp in fps if fp is not None]

@@ -289,6 +289,22 @@ class PhotoSet:
     def nbytes(self) -> int:
         return int(sum(s.nbytes() for s in self.samplers.values()))
 
+    def footprint_on(self, n: int, frame: UVFrame, mask: torch.Tensor) -> tuple[torch.Tensor, float | None]:
+        """Where photo n sees ``frame`` (on the plane, within ``mask``), and its median footprint
+        there (pixels per texel; None where it sees none).
+
+        Args:
+            n: the photo's index; frame: any frame of the polygon; mask: (h, w) bool on ``frame``'s device.
+
+        Returns:
+            ((h, w) bool texels seen, median footprint or None).
+        """
+        inp = self.inp
+        tm = texel_map(frame, inp.photos[n], self.device)
+        seen = torch.from_numpy(resample_nearest(inp.texel_visible[n], inp.frame, frame)).to(self.device)
+        seen &= mask & tm.valid
+        return seen, (float(tm.footprint[seen].median()) if bool(seen.any()) else None)
+
     def map(
         self, n: int, frame: UVFrame, mask: np.ndarray, transfer: np.ndarray | None = None, region: Region | None = None
     ) -> MappedPhoto | None:
