@@ -83,3 +83,33 @@ def test_comparing_at_the_witnesses_resolution_brings_the_texture_closer_to_the_
     assert out[0.0][2] == 0.0 and out[1.0][2] > 2.0  # the far photos' pixels span several texels
     assert out[1.0][1] < 0.95 * out[0.0][1]
     assert out[1.0][0] > out[0.0][0] - 0.02  # the close photo keeps its share of the wall
+
+
+def test_the_drone_preset_changes_only_the_weighing_and_sharpens_a_close_and_far_capture():
+    """preset=drone (config/presets/drone.yaml), as the workflow resolves it, keeps the defaults'
+    texel size and schedule and changes how photos are weighed and compared; on one close photo
+    and four far ones that blur the checker it gives a texture closer to the truth than the
+    defaults, with the close photo carrying more of the wall."""
+    from pathlib import Path
+
+    from difftex.workflow import glue as wf
+
+    from analytic import fast_cfg, gt_texture, optimize
+
+    repo = Path(__file__).resolve().parents[1]
+    default, drone = wf.resolve_config(repo, {}), wf.resolve_config(repo, {"preset": "drone"})
+    assert drone["texture"] == default["texture"]
+    changed = {k: v for k, v in drone["optimize"].items() if v != default["optimize"][k]}
+    assert set(changed) == {"consistency_px", "resolution_weight", "resolution_knee", "witness_resolution_weight"}
+    OptimizeConfig(**drone["optimize"])  # valid as a whole
+
+    photos = [make_photo("near", 0.0, dist=3.0, f=300.0, size=(320, 240))]
+    photos += [make_photo(f"far{i}", y, dist=14.0, f=120.0) for i, y in enumerate((-20.0, -8.0, 8.0, 20.0))]
+    inp = make_input(photos, [render(p) for p in photos], long_side=128)
+    gt, m = gt_texture(inp), inp.texel_mask
+    out = {}
+    for name, kw in (("defaults", {}), ("drone", changed)):
+        r = optimize(inp, fast_cfg(**kw))
+        out[name] = (((r.idx == 0) * r.W).sum(0)[m].mean(), np.abs(r.U - gt)[m].mean())
+    assert out["drone"][1] < 0.9 * out["defaults"][1], out
+    assert out["drone"][0] > out["defaults"][0] + 0.05, out

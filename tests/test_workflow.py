@@ -14,6 +14,7 @@ import sys
 from pathlib import Path
 
 import pytest
+import yaml
 
 from difftex.cli import main as cli_main
 from difftex.errors import DifftexError
@@ -66,6 +67,17 @@ def test_presets_and_user_values_merge_in_order():
     assert TextureConfig(**cfg["texture"]).mode == "density" and cfg["texture"]["density"] == 12.5
     # the paper preset renders into the photos
     assert wf.resolve_config(REPO, {"preset": "paper"})["optimize"]["loss_mode"] == "render"
+
+
+def test_every_preset_file_is_a_choice_the_schema_accepts():
+    """A preset file the schema does not list is refused before the run starts, and a listed
+    preset without its file fails at the merge: the two lists are the same."""
+    schema = yaml.safe_load((REPO / "workflow/schemas/config.schema.yaml").read_text())
+    listed = set(schema["properties"]["preset"]["enum"]) - {None}
+    files = {p.stem for p in (REPO / "config" / "presets").glob("*.yaml")}
+    assert listed == files and "drone" in files
+    for name in sorted(files):
+        wf.validate(wf.resolve_config(REPO, {"preset": name}), REPO / "workflow/schemas/config.schema.yaml")
 
 
 def test_the_default_config_file_given_again_does_not_override_the_preset(tmp_path):
