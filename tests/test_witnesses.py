@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from difftex.method.config import OptimizeConfig
-from difftex.method.witnesses import candidate_footprints, misfit, witness_sigma
+from difftex.method.witnesses import candidate_footprints, misfit, resolution_spread, witness_sigma
 from difftex.sampling.photos import PhotoSet
 
 from analytic import make_input, make_photo, render
@@ -76,7 +76,8 @@ def test_comparing_at_the_witnesses_resolution_brings_the_texture_closer_to_the_
     m = inp.texel_mask
     out = {}
     for px in (0.0, 1.0):
-        r = optimize(inp, fast_cfg(consistency_px=px, resolution_weight=4.0, resolution_knee=1.5, settle_sigma=0.0))
+        cfg = fast_cfg(consistency_px=px, resolution_weight=4, resolution_knee=1.5, settle_sigma=0, mixed_spread=0)
+        r = optimize(inp, cfg)
         near_w = ((r.idx == 0) * r.W).sum(0)[m].mean()
         err = np.abs(r.U - gt)[m].mean()
         out[px] = (near_w, err, r.stats["levels"][-1]["compare_sigma"])
@@ -85,31 +86,63 @@ def test_comparing_at_the_witnesses_resolution_brings_the_texture_closer_to_the_
     assert out[1.0][0] > out[0.0][0] - 0.02  # the close photo keeps its share of the wall
 
 
-def test_the_drone_preset_changes_only_the_weighing_and_sharpens_a_close_and_far_capture():
-    """preset=drone (config/presets/drone.yaml), as the workflow resolves it, keeps the defaults'
-    texel size and schedule and changes how photos are weighed and compared; on one close photo
-    and four far ones that blur the checker it gives a texture closer to the truth than the
-    defaults, with the close photo carrying more of the wall."""
-    from pathlib import Path
+def test_resolution_spread_is_the_finest_over_the_median_and_scale_free():
+    assert resolution_spread([0.5, 0.5, 0.6, 2.4]) == pytest.approx(2.4 / 0.55)
+    assert resolution_spread([3.0, 3.0]) == 1.0 and resolution_spread([]) == 1.0 and resolution_spread([2.0]) == 1.0
+    assert resolution_spread([0.0, -1.0, 1.0, 4.0, 1.0]) == pytest.approx(4.0)  # non-positive ignored
+    f = [0.3, 0.4, 0.35, 2.1, 0.5]
+    assert resolution_spread([x * 7.5 for x in f]) == pytest.approx(resolution_spread(f))  # any texel size
 
-    from difftex.workflow import glue as wf
 
+def test_for_spread_swaps_in_the_mixed_values_from_the_threshold_on():
+    cfg = OptimizeConfig(mixed_spread=3.0)
+    assert cfg.for_spread(2.99) is cfg
+    m = cfg.for_spread(3.0)
+    assert (m.consistency_px, m.resolution_weight, m.resolution_knee, m.witness_resolution_weight) == (
+        cfg.mixed_consistency_px, cfg.mixed_resolution_weight, cfg.mixed_resolution_knee,
+        cfg.mixed_witness_resolution_weight,
+    )
+    assert m.top_k == cfg.top_k and m.settle_sigma == cfg.settle_sigma  # nothing else moves
+    assert OptimizeConfig(mixed_spread=0.0).for_spread(1e9).resolution_weight == 1.0  # never
+    assert OptimizeConfig(mixed_spread=1.0).for_spread(1.0).resolution_weight == 8.0  # always
+    for bad in (dict(mixed_spread=0.5), dict(mixed_spread=-1.0), dict(mixed_resolution_knee=0.9),
+                dict(mixed_resolution_weight=-1.0)):
+        with pytest.raises(ValueError, match="mixed_"):
+            OptimizeConfig(**bad)
+
+
+def test_a_close_and_far_capture_is_textured_as_mixed_resolution_by_default():
+    """One close photo that resolves the checker and four far ones that blur it: the defaults
+    find the spread (about 12x) and texture the wall with the mixed values, exactly as if asked
+    to always; never asked, the far photos' consensus outweighs the close photo and the texture
+    is further from the truth."""
     from analytic import fast_cfg, gt_texture, optimize
-
-    repo = Path(__file__).resolve().parents[1]
-    default, drone = wf.resolve_config(repo, {}), wf.resolve_config(repo, {"preset": "drone"})
-    assert drone["texture"] == default["texture"]
-    changed = {k: v for k, v in drone["optimize"].items() if v != default["optimize"][k]}
-    assert set(changed) == {"consistency_px", "resolution_weight", "resolution_knee", "witness_resolution_weight"}
-    OptimizeConfig(**drone["optimize"])  # valid as a whole
 
     photos = [make_photo("near", 0.0, dist=3.0, f=300.0, size=(320, 240))]
     photos += [make_photo(f"far{i}", y, dist=14.0, f=120.0) for i, y in enumerate((-20.0, -8.0, 8.0, 20.0))]
     inp = make_input(photos, [render(p) for p in photos], long_side=128)
     gt, m = gt_texture(inp), inp.texel_mask
     out = {}
-    for name, kw in (("defaults", {}), ("drone", changed)):
-        r = optimize(inp, fast_cfg(**kw))
-        out[name] = (((r.idx == 0) * r.W).sum(0)[m].mean(), np.abs(r.U - gt)[m].mean())
-    assert out["drone"][1] < 0.9 * out["defaults"][1], out
-    assert out["drone"][0] > out["defaults"][0] + 0.05, out
+    for name, spread in (("default", OptimizeConfig().mixed_spread), ("always", 1.0), ("never", 0.0)):
+        r = optimize(inp, fast_cfg(mixed_spread=spread))
+        out[name] = (float(((r.idx == 0) * r.W).sum(0)[m].mean()), float(np.abs(r.U - gt)[m].mean()), r.stats)
+    st = out["default"][2]
+    assert st["mixed_resolution"] and st["resolution_spread"] > 8.0
+    assert st["config"]["resolution_weight"] == 8.0  # the values it ran with
+    assert out["default"][:2] == out["always"][:2]
+    assert not out["never"][2]["mixed_resolution"] and out["never"][2]["resolution_spread"] is None
+    assert out["default"][1] < 0.9 * out["never"][1], out
+    assert out["default"][0] > out["never"][0] + 0.05, out
+
+
+def test_photos_from_similar_distances_keep_the_defaults_blend():
+    """Five photos at one distance (spread about 1): the switch stays off and the texture is the
+    same bytes as with it disabled."""
+    from analytic import fast_cfg, optimize
+
+    photos = [make_photo(f"p{i}", y, dist=8.0, f=200.0) for i, y in enumerate((-24.0, -10.0, 0.0, 10.0, 24.0))]
+    inp = make_input(photos, [render(p) for p in photos], long_side=96)
+    a = optimize(inp, fast_cfg())
+    b = optimize(inp, fast_cfg(mixed_spread=0.0))
+    assert not a.stats["mixed_resolution"] and 1.0 <= a.stats["resolution_spread"] < 2.0
+    assert np.array_equal(a.U, b.U)

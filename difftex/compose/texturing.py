@@ -34,6 +34,7 @@ from difftex.layout import COMPOSITE
 from difftex.method.config import ComputeConfig, OptimizeConfig
 from difftex.method.loop import optimize_polygon
 from difftex.method.relief import estimate_relief
+from difftex.method.witnesses import candidate_footprints, resolution_spread
 from difftex.sampling.photos import PhotoSet, PolygonInput, pick_device, with_transfer
 from difftex.sampling.texels import level_frame, resample_nearest
 from difftex.scene.files import decode_photo
@@ -118,6 +119,10 @@ def optimize_photos(
     """
     t0 = time.perf_counter()
     inp = photos.inp
+    spread = None
+    if cfg.mixed_spread > 0:  # decided once per polygon, on all its candidates
+        spread = resolution_spread(candidate_footprints(photos, inp.frame, sorted(photos.samplers)))
+        cfg = cfg.for_spread(spread)
     relief_stats = None
     if cfg.relief:
         photos.relief, relief_stats = estimate_relief(photos, cfg.relief_settings())
@@ -151,6 +156,8 @@ def optimize_photos(
             },
             "time_stage_s": time.perf_counter() - t0 + read["time_read_photos_s"],
             "relief": relief_stats,
+            "resolution_spread": spread,
+            "mixed_resolution": spread is not None and spread >= cfg.mixed_spread,
         }
     )
     return OptimizedPolygon(

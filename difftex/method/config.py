@@ -171,6 +171,16 @@ class OptimizeConfig:
     # misfit, each photo taken to blur and misregister by this many of its own pixels
     # (difftex.method.witnesses; 0: off)
     consistency_px: float = 0.0
+    # Mixed-resolution captures (a drone survey with a few close street photos): where the finest
+    # candidate has at least this many times the median candidate's pixels per texel
+    # (difftex.method.witnesses.resolution_spread, per polygon; scale-free), the polygon is textured
+    # with the mixed_* values in place of consistency_px, resolution_weight, resolution_knee and
+    # witness_resolution_weight, so the close photos' detail carries the blend (0: never; 1: always)
+    mixed_spread: float = 3.0
+    mixed_consistency_px: float = 1.0
+    mixed_resolution_weight: float = 8.0
+    mixed_resolution_knee: float = 1.5
+    mixed_witness_resolution_weight: float = 1.0
     settle_sigma: float = 3.0  # texels whose candidates agree within this many sigma_c keep their Q blend (0: off)
     align_tol_px: float = 0.1  # stop aligning once no weighted photo's correction moved more than this, pixels
     histmatch_reference: HistmatchReference = "median"  # per-texel median of the candidates, the best photo, or pooled
@@ -218,6 +228,14 @@ class OptimizeConfig:
             raise ValueError("parallax_sigma, parallax_gate and consistency_sigma must be >= 0")
         if self.witness_resolution_weight is not None and not self.witness_resolution_weight >= 0:
             raise ValueError(f"witness_resolution_weight must be >= 0 or null, got {self.witness_resolution_weight}")
+        if not (self.mixed_spread == 0 or self.mixed_spread >= 1.0):
+            raise ValueError(f"mixed_spread must be 0 (never) or >= 1, got {self.mixed_spread}")
+        if min(self.mixed_consistency_px, self.mixed_resolution_weight, self.mixed_witness_resolution_weight) < 0:
+            raise ValueError(
+                "mixed_consistency_px, mixed_resolution_weight and mixed_witness_resolution_weight must be >= 0"
+            )
+        if not self.mixed_resolution_knee >= 1.0:
+            raise ValueError(f"mixed_resolution_knee must be >= 1, got {self.mixed_resolution_knee}")
         if self.consistency_px < 0:
             raise ValueError(f"consistency_px must be >= 0, got {self.consistency_px}")
         if self.conv_window < 1 or self.conv_tol < 0 or self.conv_colour < 0:
@@ -247,6 +265,20 @@ class OptimizeConfig:
         """Whether L's gradient comes from autograd (difftex.method.objective.objective): the
         render loss, and L_Para's live edge weights, have no written-out gradient."""
         return self.loss_mode == "render" or self.para_edges == "live"
+
+    def for_spread(self, spread: float) -> OptimizeConfig:
+        """This configuration for a polygon whose candidates' resolutions spread by ``spread``
+        (the finest's pixels per texel over the median's): with the mixed_* values where it
+        reaches ``mixed_spread``, else unchanged."""
+        if self.mixed_spread <= 0 or spread < self.mixed_spread:
+            return self
+        return dataclasses.replace(
+            self,
+            consistency_px=self.mixed_consistency_px,
+            resolution_weight=self.mixed_resolution_weight,
+            resolution_knee=self.mixed_resolution_knee,
+            witness_resolution_weight=self.mixed_witness_resolution_weight,
+        )
 
     def departures(self) -> list[str]:
         """The keys of :data:`PUBLISHED` where this configuration is not the published method."""
@@ -306,6 +338,7 @@ PUBLISHED: dict = {
     "align": False,
     "consistency_sigma": 0.0,
     "consistency_px": 0.0,
+    "mixed_spread": 0.0,
     "parallax_sigma": 0.0,
     "select": False,
     "relief": False,
