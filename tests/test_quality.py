@@ -82,9 +82,25 @@ def test_a_close_photo_with_an_occluder_does_not_outvote_the_farther_photos():
         res = optimize(inp, fast_cfg(align=False, **kw))
         return float(np.where(res.idx == 0, res.W, 0.0).sum(0)[reg].mean())
 
-    split = near_share()
+    # the default weighting (three times the pixels per texel reaches mixed_spread: see below)
+    split = near_share(mixed_spread=0.0)
     assert split < 0.1
-    assert near_share(resolution_in_consensus=True) > split + 0.2
+    assert near_share(mixed_spread=0.0, resolution_in_consensus=True) > split + 0.2
+
+
+@pytest.mark.xfail(strict=True, reason="known limitation of mixed-resolution polygons (docs/optimizer.md): the "
+                   "steep blend Q_r starts the far photos below tau, so they neither carry weight nor let the "
+                   "elimination outvote a lone close photo's occluder; a floor under their start weight or "
+                   "starting from the witnesses' Q fixes this scene but lost the survey facades' detail")
+def test_on_a_mixed_resolution_polygon_a_lone_close_photos_occluder_is_outvoted():
+    near = make_photo("near", 0.0, dist=6.0)
+    far = [make_photo("left", -20.0, dist=18.0), make_photo("right", 20.0, dist=18.0)]
+    photos = [near, *far]
+    inp = make_input(photos, [paint_occluder(near, render(near)), *(render(ph) for ph in far)], long_side=32)
+    reg = occluded_region(inp) & inp.texel_visible.all(0)
+    res = optimize(inp, fast_cfg(align=False))
+    assert res.stats["mixed_resolution"]
+    assert float(np.where(res.idx == 0, res.W, 0.0).sum(0)[reg].mean()) < 0.1
 
 
 def test_witness_resolution_weight_keeps_the_far_witnesses_under_a_steep_q_r():
