@@ -356,3 +356,9 @@ def test_model_summary_and_end_message_name_the_untextured_with_their_reason():
     assert lines[i + 1] == "  inner: hidden behind other polygons in the 3 photo(s) that have it in view"
     assert lines[i + 2].startswith("  lost: no visibility record")
     assert "front" not in "\n".join(lines[i:])
+    # a polygon textured as mixed resolution says so, with its spread
+    text = format_summary({**summary, "results": "R", "model": {}, "atlas_pages": [], "stages": {}, "check": None,
+                           "mixed_resolution": {"front": 4.65, "inner": 5.0}})
+    lines = text.splitlines()
+    assert any(ln.startswith("  front") and "mixed resolution (finest photo 4.7x the median)" in ln for ln in lines)
+    assert not any(ln.startswith(("  side", "  inner")) and "mixed resolution" in ln for ln in lines)

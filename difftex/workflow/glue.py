@@ -310,6 +310,7 @@ def run_summary(results: str | Path) -> dict:
         "stages": stage_benchmarks(res.root),
         "texels": _texel_sizes(res),
         "devices": _devices(res),
+        "mixed_resolution": _mixed_resolution(res),
         "blurry": _blurry_photos(res),
     }
     if res.metrics.is_file():
@@ -366,6 +367,19 @@ def _devices(res: Results) -> dict[str, int]:
     return out
 
 
+def _mixed_resolution(res: Results) -> dict[str, float]:
+    """Polygons textured as mixed resolution and their spread (from the texture stage's stats)."""
+    out: dict[str, float] = {}
+    for st in sorted(res.optimized_dir.glob(f"*/{STATS}")):
+        try:
+            d = json.loads(st.read_text())
+        except (OSError, ValueError):
+            continue
+        if d.get("mixed_resolution") and d.get("resolution_spread") is not None:
+            out[str(d.get("polygon_id", st.parent.name))] = float(d["resolution_spread"])
+    return out
+
+
 def _polygon_state(p: dict) -> str:
     """One polygon's line of the summary: coverage and photos, and where they came from."""
     if not p.get("textured"):
@@ -394,7 +408,9 @@ def format_summary(s: dict) -> str:
             ts, bound = texels.get(p["id"], (None, None))
             if ts and p.get("texture_size"):
                 size += f" texels of {ts:.3g} units" + (f" (set by {bound})" if bound and bound != "photos" else "")
-            lines.append(f"  {p['id']:<{w}}  {_polygon_state(p)}  {size}")
+            mixed = (s.get("mixed_resolution") or {}).get(p["id"])
+            note = f", mixed resolution (finest photo {mixed:.1f}x the median)" if mixed and p.get("textured") else ""
+            lines.append(f"  {p['id']:<{w}}  {_polygon_state(p)}{note}  {size}")
     if s["stages"]:
         total = sum(d["seconds"] for d in s["stages"].values())
         parts = ", ".join(
