@@ -94,6 +94,7 @@ def test_the_default_config_file_given_again_does_not_override_the_preset(tmp_pa
         ({"optimize": {"lrr": 1}}, "lrr"),
         ({"optimize": {"loss_mode": "pixel"}}, "optimize.loss_mode"),
         ({"texture": {"long_side": 0}}, "texture.long_side"),
+        ({"optimize": {"mixed_spread": 0.5}}, "optimize.mixed_spread"),  # 0 or >= 1, refused before any job
         ({"sceen": "x"}, "sceen"),
     ],
 )

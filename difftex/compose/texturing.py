@@ -4,7 +4,9 @@ For one polygon:
 
 1. initialization (``initialize_polygon`` in difftex.compose.stage_files, no torch): decode its
    candidate photos once and crop them to the polygon (difftex.sampling.crops.photo_crops);
-2. optimization (``optimize_photos``): build the crops' pyramids, sweep the relief when asked,
+2. optimization (``optimize_photos``): decide whether the polygon is a mixed-resolution one
+   (its candidates' resolution spread, ``optimize.mixed_spread``: then the ``mixed_*`` values
+   apply), build the crops' pyramids, sweep the relief when asked,
    map the photos at the first level and estimate their brightness transfers there (histogram
    matching, Sec. 4.3; the losses compare matched colours, so the transfers are an input of the
    optimization, not a step after it), run the coarse-to-fine optimization of the blend weights
@@ -111,18 +113,21 @@ def optimize_photos(
     progress: bool = False,
     read_stats: dict | None = None,
 ) -> OptimizedPolygon:
-    """The optimization stage on decoded photos: relief sweep (``optimize.relief``), brightness
-    transfers, then the coarse-to-fine optimization of W and U = sum_k W_k sharp_k.
+    """The optimization stage on decoded photos: the mixed-resolution switch (``cfg.for_spread``
+    on the candidates' resolution spread; stats ``resolution_spread``, ``mixed_resolution``),
+    relief sweep (``optimize.relief``), brightness transfers, then the coarse-to-fine
+    optimization of W and U = sum_k W_k sharp_k.
 
     ``read_stats``: ``photo_reads``, ``time_read_photos_s`` of the stage that decoded the photos
     (``PhotoSet.load`` in this process, or the initialization stage's file).
     """
     t0 = time.perf_counter()
     inp = photos.inp
-    spread = None
+    spread, mixed = None, False
     if cfg.mixed_spread > 0:  # decided once per polygon, on all its candidates
         spread = resolution_spread(candidate_footprints(photos, inp.frame, sorted(photos.samplers)))
-        cfg = cfg.for_spread(spread)
+        switched = cfg.for_spread(spread)
+        mixed, cfg = switched is not cfg, switched
     relief_stats = None
     if cfg.relief:
         photos.relief, relief_stats = estimate_relief(photos, cfg.relief_settings())
@@ -157,7 +162,7 @@ def optimize_photos(
             "time_stage_s": time.perf_counter() - t0 + read["time_read_photos_s"],
             "relief": relief_stats,
             "resolution_spread": spread,
-            "mixed_resolution": spread is not None and spread >= cfg.mixed_spread,
+            "mixed_resolution": mixed,
         }
     )
     return OptimizedPolygon(

@@ -175,7 +175,10 @@ class OptimizeConfig:
     # candidate has at least this many times the median candidate's pixels per texel
     # (difftex.method.witnesses.resolution_spread, per polygon; scale-free), the polygon is textured
     # with the mixed_* values in place of consistency_px, resolution_weight, resolution_knee and
-    # witness_resolution_weight, so the close photos' detail carries the blend (0: never; 1: always)
+    # witness_resolution_weight, so the close photos' detail carries the blend (0: never; 1: always).
+    # It replaces those four keys there, whatever they are set to: a variant of them on a drone
+    # survey wants mixed_spread: 0. With two candidates the median is their mean, so the spread
+    # stays below 2 and the switch off
     mixed_spread: float = 3.0
     mixed_consistency_px: float = 1.0
     mixed_resolution_weight: float = 8.0
@@ -230,7 +233,13 @@ class OptimizeConfig:
             raise ValueError(f"witness_resolution_weight must be >= 0 or null, got {self.witness_resolution_weight}")
         if not (self.mixed_spread == 0 or self.mixed_spread >= 1.0):
             raise ValueError(f"mixed_spread must be 0 (never) or >= 1, got {self.mixed_spread}")
-        if min(self.mixed_consistency_px, self.mixed_resolution_weight, self.mixed_witness_resolution_weight) < 0:
+        mixed = (self.mixed_consistency_px, self.mixed_resolution_weight, self.mixed_witness_resolution_weight)
+        if any(not isinstance(v, (int, float)) or isinstance(v, bool) for v in mixed):
+            raise ValueError(
+                "mixed_consistency_px, mixed_resolution_weight and mixed_witness_resolution_weight must be numbers, "
+                f"got {mixed}"
+            )
+        if min(mixed) < 0:
             raise ValueError(
                 "mixed_consistency_px, mixed_resolution_weight and mixed_witness_resolution_weight must be >= 0"
             )
