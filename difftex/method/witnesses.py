@@ -27,7 +27,7 @@ most photos see.
 from __future__ import annotations
 
 import math
-from collections.abc import Iterable, Sequence
+from collections.abc import Sequence
 
 import numpy as np
 import torch
@@ -64,11 +64,11 @@ def witness_sigma(footprints: Sequence[float], registration_px: float) -> float:
     Returns:
         sigma in texels (0 with fewer than two candidates).
     """
-    f = np.asarray([x for x in footprints if x > 0], float)
-    if f.size < 2:
+    fm = _finest_and_median(footprints)
+    if fm is None:
         return 0.0
-    med = float(np.median(f))
-    return math.sqrt(max(0.0, misfit(med, registration_px) ** 2 - misfit(float(f.max()), registration_px) ** 2))
+    finest, med = fm
+    return math.sqrt(max(0.0, misfit(med, registration_px) ** 2 - misfit(finest, registration_px) ** 2))
 
 
 def resolution_spread(footprints: Sequence[float]) -> float:
@@ -84,21 +84,31 @@ def resolution_spread(footprints: Sequence[float]) -> float:
     Returns:
         the spread, >= 1 (1 with fewer than two candidates).
     """
+    fm = _finest_and_median(footprints)
+    return 1.0 if fm is None else fm[0] / fm[1]
+
+
+def _finest_and_median(footprints: Sequence[float]) -> tuple[float, float] | None:
+    """(largest, median) of the positive footprints, or None with fewer than two."""
     f = np.asarray([x for x in footprints if x > 0], float)
-    if f.size < 2:
-        return 1.0
-    return float(f.max() / np.median(f))
+    return None if f.size < 2 else (float(f.max()), float(np.median(f)))
 
 
-def candidate_footprints(photos: PhotoSet, frame: UVFrame, which: Iterable[int]) -> list[float]:
+def candidate_footprints(photos: PhotoSet, frame: UVFrame, which: Sequence[int]) -> list[float]:
     """Each candidate's median footprint (pixels per texel of ``frame``) over the texels it sees.
 
     Taken on a grid of PROBE_SIDE texels and scaled by the texel sizes: a footprint is
-    proportional to the texel's size.
+    proportional to the texel's size. The probe footprints depend only on the photo and the
+    polygon, so they are taken once per photo (``PhotoSet.probe_footprints``) for the polygon's
+    mixed-resolution decision and every level's low-pass.
     """
     inp = photos.inp
     probe = level_frame(inp.frame, min(PROBE_SIDE, max(inp.frame.shape)))
-    mask = torch.from_numpy(resample_nearest(inp.texel_mask, inp.frame, probe)).to(photos.device)
+    memo = photos.probe_footprints
+    missing = [n for n in which if n not in memo]
+    if missing:
+        mask = torch.from_numpy(resample_nearest(inp.texel_mask, inp.frame, probe)).to(photos.device)
+        memo.update({n: photos.footprint_on(n, probe, mask)[1] for n in missing})
     scale = frame.texel_size / probe.texel_size
-    fps = (photos.footprint_on(n, probe, mask)[1] for n in which)
+    fps = (memo[n] for n in which)
     return [fp * scale for fp in fps if fp is not None]

@@ -237,6 +237,10 @@ class PhotoSet:
     # the polygon's height field (difftex.sampling.relief): photos are mapped through the displaced
     # surface and lose the texels it hides from them; None: the proxy's plane
     relief: Relief | None = None
+    # each photo's median footprint on the polygon's coarse probe grid (None: it sees none there),
+    # filled by difftex.method.witnesses.candidate_footprints: it depends only on the photo's
+    # pose and the polygon, and is read once per level and once for the mixed-resolution decision
+    probe_footprints: dict[int, float | None] = field(default_factory=dict)
 
     @classmethod
     def load(
