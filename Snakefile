@@ -33,6 +33,9 @@ rule all:
     input:
         # the run guard first: it takes the run lock in real runs (and adds no input)
         lambda wc: RUN_GUARD(workflow),
+        # the per-polygon stages' config files, wanted from the start: asked for only after the
+        # visibility checkpoint, they would be a round of jobs between it and the texture jobs
+        PER_POLYGON_CFG,
         str(RES.model_summary),
         str(RES.report_md),
         str(RES.report_html),

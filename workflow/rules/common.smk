@@ -71,6 +71,8 @@ _local = workflow.local_exec and not workflow.remote_exec and jobs.cli_executor(
 RUN["pack_jobs"] = jobs.pack_jobs(RUN["pack_jobs"], _local, _cores)
 # initialize -> optimize -> compose jobs, or one texture job per polygon group (jobs.split_stages)
 SPLIT = jobs.split_stages(RUN["split"], RUN["gpu"], _local)
+PER_POLYGON_CFG = [STAGE_CFG[s] for s in (("initialize", "texture") if SPLIT else ("texture",)) + ("output",)]
+PER_POLYGON_CFG.append(str(RES.compute_config))
 # One real run per working directory; a run killed earlier leaves stale locks that this one
 # clears (difftex/workflow/runguard.py). Called as an input function, when the kind of run is known.
 RUN_GUARD = runguard.RunGuard(R)
