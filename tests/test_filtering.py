@@ -3,10 +3,11 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 from scipy.ndimage import gaussian_filter
 
 from difftex.config import FilterConfig
-from difftex.geometry.photo_filter import filter_photos, sharpness
+from difftex.geometry.photo_filter import filter_photos, luminance, sharpness
 from difftex.scene.files import write_image
 from difftex.scene.loading import load_scene
 
@@ -22,6 +23,19 @@ def test_sharpness_falls_with_blur():
 
 def test_sharpness_of_a_flat_image_is_zero():
     assert sharpness(np.full((64, 64, 3), 0.5, np.float32)) == 0.0
+
+
+def test_sharpness_of_stored_8_and_16_bit_values_equals_that_of_the_floats():
+    """The filter measures photos as decoded (as_stored): no float copy of the whole photo."""
+    rng = np.random.default_rng(2)
+    for dtype, top in ((np.uint8, 255), (np.uint16, 65535)):
+        stored = rng.integers(0, top + 1, (90, 130, 4), dtype=dtype)  # RGBA: alpha ignored
+        floats = stored.astype(np.float32) * np.float32(1.0 / top)
+        assert np.allclose(luminance(stored), luminance(floats), rtol=0, atol=2e-7)
+        assert sharpness(stored) == pytest.approx(sharpness(floats), rel=1e-5)
+    white = np.full((8, 8, 3), 255, np.uint8)
+    assert np.allclose(luminance(white), 1.0, atol=1e-6)  # the extremes of the range
+    assert luminance(np.zeros((8, 8, 3), np.uint16)).max() == 0.0
 
 
 def test_blurry_photo_is_dropped_relative_to_the_set(tmp_path):

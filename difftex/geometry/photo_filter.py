@@ -33,9 +33,35 @@ from difftex.scene.proxy import Proxy
 log = logging.getLogger(__name__)
 
 
+_LUMA = np.array([0.299, 0.587, 0.114], dtype=np.float32)
+
+
+def luminance(image: np.ndarray) -> np.ndarray:
+    """Rec. 601 luma in [0, 1], float32 (h, w), of an RGB(A) image as floats in [0, 1] or as its
+    stored 8/16-bit values (``decode_photo(..., as_stored=True)``).
+
+    Integer channels are converted one at a time: a float copy of the whole photo, made only to
+    be reduced to one channel, was most of the filter's time (fresh pages for every photo).
+    """
+    top = {np.dtype(np.uint8): 255.0, np.dtype(np.uint16): 65535.0}.get(image.dtype)
+    if top is None:
+        return image[..., :3] @ _LUMA
+    grey = image[..., 0].astype(np.float32)
+    grey *= _LUMA[0]
+    for c in (1, 2):
+        part = image[..., c].astype(np.float32)
+        part *= _LUMA[c]
+        grey += part
+    grey *= np.float32(1.0 / top)
+    return grey
+
+
 def sharpness(image: np.ndarray, long_side: int = 1024) -> float:
-    """Variance of the Laplacian of the luminance, after area-downscaling to ``long_side``."""
-    grey = image[..., :3] @ np.array([0.299, 0.587, 0.114], dtype=np.float32)
+    """Variance of the Laplacian of the luminance, after area-downscaling to ``long_side``.
+
+    ``image``: RGB(A) as floats in [0, 1], or as its stored 8/16-bit values.
+    """
+    grey = luminance(image)
     h, w = grey.shape
     scale = long_side / max(h, w)
     if scale < 1:
@@ -289,29 +315,37 @@ def photo_records(proxy: Proxy, photos: list[Photo], cfg: FilterConfig, progress
     def photo_sharpness(ph: Photo) -> float:
         # Sharpness is measured at sharpness_long_side: a JPEG decodes straight to about that size.
         reduce = 2 ** int(np.floor(np.log2(max(1.0, max(ph.width, ph.height) / cfg.sharpness_long_side))))
-        return sharpness(decode_photo(ph.image_path, (ph.width, ph.height), reduce), cfg.sharpness_long_side)
+        image = decode_photo(ph.image_path, (ph.width, ph.height), reduce, as_stored=True)
+        return sharpness(image, cfg.sharpness_long_side)
+
+    def photo_record(ph: Photo) -> PhotoRecord:
+        stride = max(1, ceil(max(ph.width, ph.height) / cfg.analysis_long_side))
+        ids, dist = id_buffer(pp, ph, stride=stride)
+        rec = PhotoRecord(name=ph.name)
+        rec.polygons = viewing_angles(proxy, ph, ids, dist, stride, cfg.min_pixels)
+        if not rec.polygons and cfg.min_pixels > 1:  # below min_pixels, or nothing at all?
+            rec.largest_view = max(
+                (v["pixels"] for v in viewing_angles(proxy, ph, ids, dist, stride, 1).values()), default=0
+            )
+        return rec
 
     # Decoding and sharpness (image codecs and numpy, which release the GIL) run ahead in worker
-    # threads, one per thread of the job (OMP_NUM_THREADS, as the workflow sets it), while this
-    # one makes the id buffers; with pinhole photos rasterised, the decodes are most of the work.
-    # The id buffers stay on this thread (Mitsuba's scene is not shared across threads here).
+    # threads, one per thread of the job (OMP_NUM_THREADS, as the workflow sets it). Pinhole
+    # photos' id buffers are rasterised (numpy block operations) and run in the same threads;
+    # distorted photos' are ray-cast on this thread (the caster is not shared across threads).
     workers = job_threads()
+    raster = all(ph.is_pinhole for ph in photos)
     with ThreadPoolExecutor(max_workers=workers) as pool:
-        ahead = deque(pool.submit(photo_sharpness, ph) for ph in photos[:workers])
+        sharp = deque(pool.submit(photo_sharpness, ph) for ph in photos[:workers])
+        ahead = deque(pool.submit(photo_record, ph) for ph in photos[:workers]) if raster else deque()
         it = track(range(len(photos)), description="filtering photos", disable=not progress, transient=True)
         for i in it:
-            ph = photos[i]
             if i + workers < len(photos):
-                ahead.append(pool.submit(photo_sharpness, photos[i + workers]))
-            stride = max(1, ceil(max(ph.width, ph.height) / cfg.analysis_long_side))
-            ids, dist = id_buffer(pp, ph, stride=stride)
-            rec = PhotoRecord(name=ph.name)
-            rec.polygons = viewing_angles(proxy, ph, ids, dist, stride, cfg.min_pixels)
-            if not rec.polygons and cfg.min_pixels > 1:  # below min_pixels, or nothing at all?
-                rec.largest_view = max(
-                    (v["pixels"] for v in viewing_angles(proxy, ph, ids, dist, stride, 1).values()), default=0
-                )
-            rec.sharpness = ahead.popleft().result()  # a decode error surfaces here, in photo order
+                sharp.append(pool.submit(photo_sharpness, photos[i + workers]))
+                if raster:
+                    ahead.append(pool.submit(photo_record, photos[i + workers]))
+            rec = ahead.popleft().result() if raster else photo_record(photos[i])
+            rec.sharpness = sharp.popleft().result()  # a decode error surfaces here, in photo order
             records.append(rec)
     return records
 
