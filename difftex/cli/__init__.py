@@ -105,7 +105,49 @@ def _warnings_to_stderr() -> logging.Handler:
     return handler
 
 
+# glibc's mallopt parameters (malloc.h) and the environment variables that set them too
+_M_TRIM_THRESHOLD, _M_MMAP_MAX = -1, -4
+_MALLOC_ENV = (
+    "MALLOC_TRIM_THRESHOLD_",
+    "MALLOC_MMAP_MAX_",
+    "MALLOC_MMAP_THRESHOLD_",
+    "MALLOC_TOP_PAD_",
+    "GLIBC_TUNABLES",
+)
+
+
+def reuse_freed_memory() -> bool:
+    """Have glibc's malloc keep freed memory for the process's next allocations.
+
+    By default glibc maps each block above a threshold (at most 32 MiB) afresh and unmaps it on
+    free, and hands the heap's free top back to the kernel: every new texel-sized tensor, photo
+    crop or decoded photo then faults in zeroed pages, much of a texture job's time as kernel
+    time (docs/optimizer.md, "Speed and memory"). With every block from the heap and no
+    trimming, freed blocks are reused; the peak resident memory is about the same (what a job
+    holds at once), and it stays with the process until the job ends. A process-wide
+    setting, so only the command's own process makes it (``main`` run as the program), and
+    not where the user set glibc's malloc variables or where the C library has no mallopt.
+
+    Returns:
+        Whether the setting was made.
+    """
+    import ctypes
+    import os
+
+    if any(k in os.environ for k in _MALLOC_ENV):
+        return False
+    try:
+        mallopt = ctypes.CDLL(None).mallopt
+    except (OSError, AttributeError):  # not glibc (macOS, musl without it): leave malloc alone
+        return False
+    mallopt.argtypes, mallopt.restype = [ctypes.c_int, ctypes.c_int], ctypes.c_int
+    # the trim threshold is a C int: the largest, 2 GiB, is "never" for a job's free heap top
+    return bool(mallopt(_M_MMAP_MAX, 0)) and bool(mallopt(_M_TRIM_THRESHOLD, 2**31 - 1))
+
+
 def main(argv: list[str] | None = None) -> int:
+    if argv is None:  # the process is this command (not a test or a tool calling main)
+        reuse_freed_memory()
     argv = sys.argv[1:] if argv is None else argv
     parser = build_parser(argv)
     args = parser.parse_args(argv)

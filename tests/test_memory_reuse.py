@@ -1,0 +1,69 @@
+"""The command keeps freed memory for its next allocations (difftex.cli.reuse_freed_memory):
+a large block freed and allocated again is not faulted in afresh, unless the user set glibc's
+malloc variables. Each case runs in its own process (the setting is process-wide)."""
+
+from __future__ import annotations
+
+import os
+import platform
+import subprocess
+import sys
+
+import pytest
+
+pytestmark = pytest.mark.skipif(platform.libc_ver()[0] != "glibc", reason="glibc's mallopt only")
+
+# Allocates and writes a 48 MiB block with the C library's malloc twice (numpy would ask the
+# kernel for huge pages, torch does not); prints whether the setting was made and the minor page
+# faults of the second round (the first grows the heap either way). 48 MiB is above the largest
+# block glibc's default ever takes from its heap (32 MiB).
+PROBE = """
+import ctypes, resource, sys
+from difftex.cli import reuse_freed_memory
+made = reuse_freed_memory() if sys.argv[1] == "on" else False
+libc = ctypes.CDLL(None)
+libc.malloc.restype, libc.malloc.argtypes = ctypes.c_void_p, [ctypes.c_size_t]
+libc.free.argtypes = [ctypes.c_void_p]
+n = 48 << 20
+def touch():
+    p = libc.malloc(n)
+    ctypes.memset(p, 1, n)
+    libc.free(p)
+touch()
+before = resource.getrusage(resource.RUSAGE_SELF).ru_minflt
+touch()
+print(made, resource.getrusage(resource.RUSAGE_SELF).ru_minflt - before)
+"""
+PAGES = (48 << 20) // 4096  # pages of the block
+
+
+def _probe(mode: str, **env: str) -> tuple[bool, int]:
+    clean = {k: v for k, v in os.environ.items() if not k.startswith("MALLOC_") and k != "GLIBC_TUNABLES"}
+    out = subprocess.run(
+        [sys.executable, "-c", PROBE, mode], env={**clean, **env}, capture_output=True, text=True, check=True
+    ).stdout.split()
+    return out[0] == "True", int(out[1])
+
+
+def test_a_freed_block_is_reused_without_new_page_faults():
+    made, faults = _probe("on")
+    assert made
+    assert faults < PAGES // 20
+    made, faults = _probe("off")  # glibc's default: the block is mapped afresh and faulted in
+    assert not made
+    assert faults > PAGES // 2
+
+
+def test_the_users_malloc_variables_are_left_as_they_are():
+    made, faults = _probe("on", MALLOC_MMAP_THRESHOLD_="131072")
+    assert not made
+    assert faults > PAGES // 2
+
+
+def test_main_called_by_a_tool_leaves_malloc_alone(monkeypatch):
+    import difftex.cli as cli
+
+    calls = []
+    monkeypatch.setattr(cli, "reuse_freed_memory", lambda: calls.append(1) or True)
+    assert cli.main([]) == 1  # no command: the help, and no setting
+    assert calls == []
