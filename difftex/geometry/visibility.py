@@ -136,12 +136,14 @@ def _on_crop(u: np.ndarray, v: np.ndarray, ok: np.ndarray, bbox, crop: np.ndarra
     """Which of the pixel positions (u, v) valid where ``ok`` fall on a True pixel of ``crop``
     (whose box is ``bbox``); the same shape as ``u``."""
     x0, y0, x1, y1 = bbox
-    px = np.floor(np.where(ok, u, -1.0)).astype(np.int64) - x0
-    py = np.floor(np.where(ok, v, -1.0)).astype(np.int64) - y0
-    inside = ok & (px >= 0) & (py >= 0) & (px < x1 - x0) & (py < y1 - y0)
-    hit = np.zeros_like(inside)
-    hit[inside] = crop[py[inside], px[inside]]
-    return hit
+    w, h = x1 - x0, y1 - y0
+    px = np.floor(np.where(ok, u, -1.0)) - x0
+    py = np.floor(np.where(ok, v, -1.0)) - y0
+    inside = ok & (px >= 0) & (py >= 0) & (px < w) & (py < h)
+    # one gather of every position, those outside reading a False past the crop's end: the
+    # boolean-mask selections it replaces were most of a polygon's visibility at full density
+    at = np.where(inside, py * w + px, h * w).astype(np.int64)
+    return np.append(crop.ravel(), False)[at]
 
 
 def _crop_texel_visibility_projected(
