@@ -67,3 +67,27 @@ def test_main_called_by_a_tool_leaves_malloc_alone(monkeypatch):
     monkeypatch.setattr(cli, "reuse_freed_memory", lambda: calls.append(1) or True)
     assert cli.main([]) == 1  # no command: the help, and no setting
     assert calls == []
+
+
+def test_freed_pages_go_back_to_the_kernel_between_polygons():
+    """malloc_trim after a polygon: the freed heap the setting keeps is returned, so resident
+    memory falls back (the next polygon's peak does not sit on this one's free heap)."""
+    probe = """
+import ctypes, sys
+from difftex.cli import give_back_freed_memory, reuse_freed_memory
+assert reuse_freed_memory()
+libc = ctypes.CDLL(None)
+libc.malloc.restype, libc.malloc.argtypes = ctypes.c_void_p, [ctypes.c_size_t]
+libc.free.argtypes = [ctypes.c_void_p]
+def rss_kb():
+    return int(next(l for l in open("/proc/self/status") if l.startswith("VmRSS")).split()[1])
+n = 256 << 20
+p = libc.malloc(n); ctypes.memset(p, 1, n); libc.free(p)
+kept = rss_kb()
+print(give_back_freed_memory(), kept - rss_kb())
+"""
+    clean = {k: v for k, v in os.environ.items() if not k.startswith("MALLOC_") and k != "GLIBC_TUNABLES"}
+    out = subprocess.run([sys.executable, "-c", probe], env=clean, capture_output=True, text=True, check=True)
+    returned, freed_kb = out.stdout.split()
+    assert returned == "True"
+    assert int(freed_kb) > 200 << 10  # most of the 256 MiB block

@@ -26,6 +26,7 @@ def add_arguments(parser) -> None:
 def run(args) -> int:
     import time
 
+    from difftex.cli import give_back_freed_memory
     from difftex.cli._polygon import decoder, load_many
     from difftex.compose.outputs import write_texture_outputs
     from difftex.compose.texturing import texture_polygon, write_polygon
@@ -68,6 +69,8 @@ def run(args) -> int:
             flush=True,
         )
         done.append({"polygon": inp.polygon_id, "out_dir": str(out_dir), "seconds": round(time.perf_counter() - t0, 3)})
+        del tp
+        give_back_freed_memory()  # the next polygon starts from its own peak, not this one's heap
     if isinstance(decode, DecodeCache):
         print(f"photos: {decode.decodes} decoded, {decode.hits} reused")
     if args.done:
