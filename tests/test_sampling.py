@@ -301,3 +301,19 @@ def test_decode_as_stored_converts_to_the_float_decode(tmp_path, suffix, reduce)
     cache = DecodeCache(budget_mb=10)
     assert np.array_equal(cache(path, (96, 64), reduce, as_stored=True), got)
     assert cache(path, (96, 64), reduce).dtype == np.float32 and cache.decodes == 2  # kept apart
+
+
+def test_box_halve_equals_avg_pool2d_bit_for_bit():
+    """The pyramid's 2x2 box average (written out) gives avg_pool2d's values exactly, odd sizes,
+    the smallest maps and the ends of the range included."""
+    import torch.nn.functional as F
+
+    from difftex.sampling.photos import box_halve
+
+    g = torch.Generator().manual_seed(3)
+    for shape in [(3, 2, 2), (3, 3, 2), (1, 601, 799), (3, 64, 37)]:
+        x = torch.rand(shape, generator=g)
+        assert torch.equal(box_halve(x), F.avg_pool2d(x[None], 2)[0])
+    ends = torch.tensor([[[0.0, 1.0], [1.0, 1.0]]])
+    assert torch.equal(box_halve(ends), torch.tensor([[[0.75]]]))
+    assert torch.equal(box_halve(torch.ones(2, 5, 5)), torch.ones(2, 2, 2))
