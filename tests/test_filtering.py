@@ -61,3 +61,30 @@ def test_inclined_views_are_dropped_per_polygon(tmp_path):
     assert "inclined" in poly["dropped"]["img01.png"]
     angles = {r["name"]: r["polygons"]["front"]["angle_deg"] for r in table["photos"]}
     assert angles["img00.png"] < 15 and angles["img01.png"] > 70
+
+
+@pytest.mark.parametrize("backend", ["default", "numpy"])
+def test_photos_measured_side_by_side_give_the_records_of_one_thread(tmp_path, monkeypatch, backend):
+    """The filter measures pinhole photos in worker threads (OMP_NUM_THREADS of them); the records
+    are those of one thread, in photo order. The last camera stands beside the back wall looking
+    along it, so the wall crosses its plane and the photo is ray-cast from a worker thread (under
+    the caster's lock; with the numpy caster too)."""
+    from difftex.geometry import raycast
+    from difftex.geometry.photo_filter import photo_records
+
+    from tests.scenes import wall
+
+    if backend == "numpy":  # as without Mitsuba: shapely's prepared polygons, under the lock
+        monkeypatch.setattr(raycast, "mitsuba_available", lambda: False)
+    polys = {"back": wall(-2, 2, 0, 2, y=0.0), "front": wall(-0.5, 0.5, 0, 1, y=-1.0)}
+    centers = [(0.0, -6.0, 1.0), (2.0, -6.0, 1.5), (-2.0, -5.0, 0.5), (1.0, -7.0, 0.8), (0.5, -0.6, 1.0)]
+    targets = [(0.0, 0.0, 1.0)] * 4 + [(-2.0, 0.0, 1.0)]
+    sc = load_scene(make_scene(tmp_path / "s", polys, centers=centers, target=targets))
+    cfg = FilterConfig(min_pixels=4)
+    monkeypatch.setenv("OMP_NUM_THREADS", "1")
+    one = [r.__dict__ for r in photo_records(sc.proxy, sc.photos, cfg, progress=False)]
+    monkeypatch.setenv("OMP_NUM_THREADS", "3")
+    three = [r.__dict__ for r in photo_records(sc.proxy, sc.photos, cfg, progress=False)]
+    assert [r["name"] for r in three] == [p.name for p in sc.photos]
+    assert three == one
+    assert one[-1]["polygons"] and "back" in one[-1]["polygons"]  # the cast photo sees the wall

@@ -19,9 +19,10 @@ pytestmark = pytest.mark.skipif(platform.libc_ver()[0] != "glibc", reason="glibc
 # block glibc's default ever takes from its heap (32 MiB).
 PROBE = """
 import ctypes, resource, sys
-from difftex.cli import reuse_freed_memory
+from difftex.cli._memory import reuse_freed_memory
 made = reuse_freed_memory() if sys.argv[1] == "on" else False
 libc = ctypes.CDLL(None)
+libc.prctl(41, 1, 0, 0, 0)  # PR_SET_THP_DISABLE: 4 KiB pages, where the kernel would give huge ones
 libc.malloc.restype, libc.malloc.argtypes = ctypes.c_void_p, [ctypes.c_size_t]
 libc.free.argtypes = [ctypes.c_void_p]
 n = 48 << 20
@@ -54,19 +55,61 @@ def test_a_freed_block_is_reused_without_new_page_faults():
     assert faults > PAGES // 2
 
 
-def test_the_users_malloc_variables_are_left_as_they_are():
-    made, faults = _probe("on", MALLOC_MMAP_THRESHOLD_="131072")
+@pytest.mark.parametrize(
+    "env", [{"MALLOC_MMAP_THRESHOLD_": "131072"}, {"GLIBC_TUNABLES": "glibc.malloc.trim_threshold=131072"}]
+)
+def test_the_users_malloc_variables_are_left_as_they_are(env):
+    made, faults = _probe("on", **env)
     assert not made
     assert faults > PAGES // 2
 
 
-def test_main_called_by_a_tool_leaves_malloc_alone(monkeypatch):
-    import difftex.cli as cli
+def test_other_glibc_tunables_do_not_turn_the_setting_off():
+    made, _ = _probe("on", GLIBC_TUNABLES="glibc.pthread.rseq=0")
+    assert made
 
+
+class _Command:
+    """A stand-in command module whose run does nothing (``REUSE_FREED_MEMORY`` as given)."""
+
+    def __init__(self, name: str, reuse: bool):
+        self.NAME, self.HELP, self.__name__ = name, name, f"tests._command_{name}"
+        if reuse:
+            self.REUSE_FREED_MEMORY = True
+
+        def run(args):
+            return 0
+
+        run.__module__ = self.__name__
+        self.run = run
+
+    def add_arguments(self, parser):
+        pass
+
+
+@pytest.mark.parametrize("reuse", [True, False])
+def test_main_makes_the_setting_for_the_commands_that_ask_and_only_as_the_program(reuse, monkeypatch):
+    import difftex.cli as cli
+    import difftex.cli._memory as memory
+
+    cmd = _Command("job", reuse)
     calls = []
-    monkeypatch.setattr(cli, "reuse_freed_memory", lambda: calls.append(1) or True)
-    assert cli.main([]) == 1  # no command: the help, and no setting
-    assert calls == []
+    monkeypatch.setitem(sys.modules, cmd.__name__, cmd)
+    monkeypatch.setattr(memory, "reuse_freed_memory", lambda: calls.append(1) or True)
+    monkeypatch.setattr(cli, "_commands", lambda only=None: [cmd])
+    monkeypatch.setattr(sys, "argv", ["difftex", "job"])
+    assert cli.main() == 0  # as the program: its arguments from the command line
+    assert calls == ([1] if reuse else [])
+    assert cli.main(["job"]) == 0  # called by a tool or a test: never
+    assert calls == ([1] if reuse else [])
+
+
+def test_the_per_polygon_commands_and_the_filter_ask_for_the_setting():
+    import importlib
+
+    for name in ("texture", "optimize", "initialize", "filter"):
+        assert importlib.import_module(f"difftex.cli.{name}").REUSE_FREED_MEMORY is True
+    assert not hasattr(importlib.import_module("difftex.cli.assemble"), "REUSE_FREED_MEMORY")
 
 
 def test_freed_pages_go_back_to_the_kernel_between_polygons():
@@ -74,9 +117,10 @@ def test_freed_pages_go_back_to_the_kernel_between_polygons():
     memory falls back (the next polygon's peak does not sit on this one's free heap)."""
     probe = """
 import ctypes, sys
-from difftex.cli import give_back_freed_memory, reuse_freed_memory
+from difftex.cli._memory import give_back_freed_memory, reuse_freed_memory
 assert reuse_freed_memory()
 libc = ctypes.CDLL(None)
+libc.prctl(41, 1, 0, 0, 0)  # PR_SET_THP_DISABLE
 libc.malloc.restype, libc.malloc.argtypes = ctypes.c_void_p, [ctypes.c_size_t]
 libc.free.argtypes = [ctypes.c_void_p]
 def rss_kb():

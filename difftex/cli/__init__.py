@@ -105,75 +105,18 @@ def _warnings_to_stderr() -> logging.Handler:
     return handler
 
 
-# glibc's mallopt parameters (malloc.h) and the environment variables that set them too
-_M_TRIM_THRESHOLD, _M_MMAP_MAX = -1, -4
-_MALLOC_ENV = (
-    "MALLOC_TRIM_THRESHOLD_",
-    "MALLOC_MMAP_MAX_",
-    "MALLOC_MMAP_THRESHOLD_",
-    "MALLOC_TOP_PAD_",
-    "GLIBC_TUNABLES",
-)
-
-
-def reuse_freed_memory() -> bool:
-    """Have glibc's malloc keep freed memory for the process's next allocations.
-
-    By default glibc maps each block above a threshold (at most 32 MiB) afresh and unmaps it on
-    free, and hands the heap's free top back to the kernel: every new texel-sized tensor, photo
-    crop or decoded photo then faults in zeroed pages, much of a texture job's time as kernel
-    time (docs/optimizer.md, "Speed and memory"). With every block from the heap and no
-    trimming, freed blocks are reused; the peak resident memory is about the same (what a job
-    holds at once), and it stays with the process until the job ends. A process-wide
-    setting, so only the command's own process makes it (``main`` run as the program), and
-    not where the user set glibc's malloc variables or where the C library has no mallopt.
-
-    Returns:
-        Whether the setting was made.
-    """
-    import ctypes
-    import os
-
-    if any(k in os.environ for k in _MALLOC_ENV):
-        return False
-    try:
-        mallopt = ctypes.CDLL(None).mallopt
-    except (OSError, AttributeError):  # not glibc (macOS, musl without it): leave malloc alone
-        return False
-    mallopt.argtypes, mallopt.restype = [ctypes.c_int, ctypes.c_int], ctypes.c_int
-    # the trim threshold is a C int: the largest, 2 GiB, is "never" for a job's free heap top
-    return bool(mallopt(_M_MMAP_MAX, 0)) and bool(mallopt(_M_TRIM_THRESHOLD, 2**31 - 1))
-
-
-def give_back_freed_memory() -> bool:
-    """Return the free pages of every malloc arena to the kernel (glibc's ``malloc_trim(0)``).
-
-    Called between the polygons of a texture job: within a polygon the freed blocks are reused
-    (:func:`reuse_freed_memory`), and a job that textures many polygons one after the other does
-    not carry one polygon's free, fragmented heap into the next one's peak.
-
-    Returns:
-        Whether pages were returned (False also where the C library has no malloc_trim).
-    """
-    import ctypes
-
-    try:
-        trim = ctypes.CDLL(None).malloc_trim
-    except (OSError, AttributeError):
-        return False
-    trim.argtypes, trim.restype = [ctypes.c_size_t], ctypes.c_int
-    return bool(trim(0))
-
-
 def main(argv: list[str] | None = None) -> int:
-    if argv is None:  # the process is this command (not a test or a tool calling main)
-        reuse_freed_memory()
+    own_process = argv is None  # the process is this command (not a test or a tool calling main)
     argv = sys.argv[1:] if argv is None else argv
     parser = build_parser(argv)
     args = parser.parse_args(argv)
     if not getattr(args, "_run", None):
         parser.print_help()
         return 1
+    if own_process and getattr(sys.modules[args._run.__module__], "REUSE_FREED_MEMORY", False):
+        from difftex.cli._memory import reuse_freed_memory
+
+        reuse_freed_memory()
     handler = _warnings_to_stderr()
     try:
         return int(args._run(args) or 0)

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 NAME = "filter"
 HELP = "Drop photos that see no polygon, blurry photos, and per polygon extremely inclined views."
+REUSE_FREED_MEMORY = True  # difftex.cli._memory: keep freed memory for reuse in this job
 
 
 def add_arguments(p) -> None:

@@ -5,6 +5,7 @@ from __future__ import annotations
 NAME = "initialize"
 HELP = ("decode and crop each polygon's candidate photos once, for the optimize stage "
         "(R/init/<polygon>/crops.npz; the workflow's initialize rule)")
+REUSE_FREED_MEMORY = True  # difftex.cli._memory: keep freed memory for reuse in this job
 
 
 def add_arguments(parser) -> None:
@@ -19,6 +20,7 @@ def add_arguments(parser) -> None:
 def run(args) -> int:
     import time
 
+    from difftex.cli._memory import give_back_freed_memory
     from difftex.cli._polygon import decoder, load_many
     from difftex.compose.stage_files import initialize_polygon, write_init
     from difftex.errors import DifftexError
@@ -38,6 +40,8 @@ def run(args) -> int:
         print(f"initialize {inp.polygon_id} ({n}/{len(args.out)}): {stats['photo_reads']} photos read, "
               f"{mpix:.1f} Mpixel of crops, {time.perf_counter() - t0:.1f}s", flush=True)
         done.append({"polygon": inp.polygon_id, "out": str(out), "seconds": round(time.perf_counter() - t0, 3)})
+        del crops
+        give_back_freed_memory()  # the next polygon starts from its own peak, not this one's heap
     if isinstance(decode, DecodeCache):
         print(f"photos: {decode.decodes} decoded, {decode.hits} reused")
     if args.done:

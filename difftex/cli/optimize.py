@@ -5,6 +5,7 @@ from __future__ import annotations
 NAME = "optimize"
 HELP = ("optimize each polygon's blend weights from its crops (difftex initialize): pyramids, brightness "
         "transfers, the coarse-to-fine optimization; decodes no photo (the workflow's optimize rule)")
+REUSE_FREED_MEMORY = True  # difftex.cli._memory: keep freed memory for reuse in this job
 
 
 def add_arguments(parser) -> None:
@@ -23,7 +24,7 @@ def add_arguments(parser) -> None:
 def run(args) -> int:
     import time
 
-    from difftex.cli import give_back_freed_memory
+    from difftex.cli._memory import give_back_freed_memory
     from difftex.cli._polygon import load_many
     from difftex.compose.stage_files import read_init, write_optimized
     from difftex.compose.texturing import optimize_photos

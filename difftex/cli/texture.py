@@ -5,6 +5,7 @@ from __future__ import annotations
 NAME = "texture"
 HELP = ("texture one or more polygons: brightness transfers, blend-weight optimization and composition, "
         "reading each candidate photo once per polygon")
+REUSE_FREED_MEMORY = True  # difftex.cli._memory: keep freed memory for reuse in this job
 
 
 def add_arguments(parser) -> None:
@@ -26,7 +27,7 @@ def add_arguments(parser) -> None:
 def run(args) -> int:
     import time
 
-    from difftex.cli import give_back_freed_memory
+    from difftex.cli._memory import give_back_freed_memory
     from difftex.cli._polygon import decoder, load_many
     from difftex.compose.outputs import write_texture_outputs
     from difftex.compose.texturing import texture_polygon, write_polygon

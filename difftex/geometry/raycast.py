@@ -55,7 +55,8 @@ class ProxyCaster:
     _tri_polygon: Any = None  # (T,) polygon index of each triangle
     _planes: Any = None  # numpy backend: visibility._PlanarPolygons
     # one thread at a time prepares the backend and casts with Mitsuba (its scene is not shared
-    # across threads here); rasterising and the numpy backend need no lock
+    # across threads here) or numpy (shapely builds its prepared polygons' indices on first
+    # use); rasterising needs no lock
     _lock: Any = field(default_factory=threading.RLock, repr=False)
 
     @classmethod
@@ -257,7 +258,9 @@ def id_buffer(proxy: Proxy | ProxyCaster, photo: Photo, stride: int = 1) -> tupl
             return raster
     caster._ready()
     if caster.backend == "numpy":
-        return _id_buffer_numpy(caster._planes, photo, stride)
+        # under the caster's lock: shapely builds its prepared polygons' indices on first use
+        with caster._lock:
+            return _id_buffer_numpy(caster._planes, photo, stride)
     win = proxy_window(caster.proxy, photo, stride)
     if win is None:
         return caster.cast(photo.center, pixel_rays(photo, stride))

@@ -137,6 +137,7 @@ def _on_crop(u: np.ndarray, v: np.ndarray, ok: np.ndarray, bbox, crop: np.ndarra
     (whose box is ``bbox``); the same shape as ``u``."""
     x0, y0, x1, y1 = bbox
     w, h = x1 - x0, y1 - y0
+    u, v = np.asarray(u, np.float64), np.asarray(v, np.float64)  # exact flat indices past 2^24 pixels
     px = np.floor(np.where(ok, u, -1.0)) - x0
     py = np.floor(np.where(ok, v, -1.0)) - y0
     inside = ok & (px >= 0) & (py >= 0) & (px < w) & (py < h)

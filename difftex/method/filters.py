@@ -20,8 +20,8 @@ def blur(x: torch.Tensor, sigma: float) -> torch.Tensor:
     sigma 0: unchanged).
 
     Each pass is a weighted sum of the shifted maps, one tap at a time, written out rather than
-    ``F.conv2d`` with the one-channel kernel: on a CPU that convolution ran several times slower
-    for the same values (tests/test_filters.py compares them), and the low-passed comparison
+    ``F.conv2d`` with the one-channel kernel (kept on a GPU): on a CPU that convolution ran
+    several times slower for the same values (tests/test_filters.py compares them), and the low-passed comparison
     colours of every candidate photo made it most of a level's set-up (docs/optimizer.md).
 
     Args:
@@ -35,6 +35,11 @@ def blur(x: torch.Tensor, sigma: float) -> torch.Tensor:
         raise ValueError(f"blur expects (C, h, w) maps, got {tuple(x.shape)}")
     if sigma <= 0:
         return x
+    if x.is_cuda:  # one library kernel per pass, not 2 r + 1 launches
+        k = gaussian_kernel(sigma).to(x.device)
+        r = len(k) // 2
+        y = F.conv2d(F.pad(x[:, None], (r, r, 0, 0), mode="replicate"), k.view(1, 1, 1, -1))
+        return F.conv2d(F.pad(y, (0, 0, r, r), mode="replicate"), k.view(1, 1, -1, 1))[:, 0]
     g = gaussian_kernel(sigma).tolist()
     r = len(g) // 2
     h, w = x.shape[1:]
