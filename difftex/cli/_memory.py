@@ -24,9 +24,10 @@ def reuse_freed_memory() -> bool:
     By default glibc maps each block above a threshold (at most 32 MiB) afresh and unmaps it on
     free, and hands the heap's free top back to the kernel: every new texel-sized tensor, photo
     crop or decoded photo then faults in zeroed pages, much of a texture job's time as kernel
-    time (docs/optimizer.md, "Speed and memory"). With every block from the heap and no
-    trimming, freed blocks are reused; the peak resident memory is about the same (what a job
-    holds at once), and it stays with the process until the job ends. A process-wide
+    time. With every block from the heap and no trimming, freed blocks are reused. The cost is a
+    higher peak: freed blocks that fit no later request stay with the process until
+    :func:`give_back_freed_memory` (docs/optimizer.md, "Time spent outside the arithmetic",
+    has both figures). A process-wide
     setting: ``main`` makes it for the commands whose module sets ``REUSE_FREED_MEMORY`` (the
     per-polygon jobs and the filter, which allocate and free photo- and texel-sized arrays over
     and over), only when it runs as the program (not for a test or a tool that calls it), and
