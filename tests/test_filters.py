@@ -59,3 +59,13 @@ def test_gaussian_kernel_is_normalised_and_three_sigma_wide():
         assert len(g) == 2 * max(1, int(np.ceil(3 * sigma))) + 1
         assert abs(float(g.sum()) - 1.0) < 1e-6
         assert torch.equal(g, g.flip(0))
+
+
+@pytest.mark.gpu
+def test_blur_on_a_gpu_is_the_cpus():
+    """On a GPU blur keeps the library convolution; its values are the written-out sum's."""
+    if not torch.cuda.is_available():
+        pytest.skip("no CUDA")
+    x = torch.rand(3, 70, 90, generator=torch.Generator().manual_seed(5))
+    for sigma in (0.7, 3.0):
+        assert torch.allclose(blur(x.cuda(), sigma).cpu(), blur(x, sigma), atol=1e-5)
