@@ -143,3 +143,30 @@ def test_witness_resolution_weight_keeps_the_far_witnesses_under_a_steep_q_r():
     assert float(plain.Q[1:][far_slots].sum()) < 0.5 * float(steep.Q[1:][far_slots].sum())
     with pytest.raises(ValueError, match="witness_resolution_weight"):
         fast_cfg(witness_resolution_weight=-1.0)
+
+
+def test_frontality_weight_raises_q_a_to_its_power():
+    """Q = Q_a^p Q_c: p = 1 is the paper's Q_a (bit for bit), p = 0 drops the angle, p > 1 ranks
+    frontal photos further above oblique ones; a grazing view (cos 0) stays at zero."""
+    cos = torch.tensor([[1.0, 0.7071, 0.5, 0.0]])
+    colour = torch.full((3, 1, 4), 0.4)
+    mu = torch.full((3, 1, 4), 0.5)
+    msd = torch.full((1, 4), 0.01)
+    vis = torch.ones(1, 4, dtype=torch.bool)
+    qc = torch.exp(torch.tensor(-0.5 * 0.03 / (0.01 + 0.02**2)))
+    assert torch.equal(quality(cos, colour, mu, msd, vis, 0.02), quality(cos, colour, mu, msd, vis, 0.02, 1.0))
+    for p in (0.0, 1.0, 3.0):
+        q = quality(cos, colour, mu, msd, vis, 0.02, p)
+        expected = (cos**p if p else torch.ones_like(cos)) * qc
+        assert torch.allclose(q, expected, rtol=1e-5), p
+    q3 = quality(cos, colour, mu, msd, vis, 0.02, 3.0)[0]
+    assert q3[3] == 0.0 and q3[0] / q3[2] == pytest.approx(8.0, rel=1e-5)  # twice as frontal: 8x at p = 3
+    assert float(quality(-cos, colour, mu, msd, vis, 0.02, 3.0).min()) == 0.0  # a back-facing cos is no weight
+
+
+def test_frontality_weight_is_checked():
+    from difftex.method.config import OptimizeConfig
+
+    assert OptimizeConfig(frontality_weight=0.0).frontality_weight == 0.0
+    with pytest.raises(ValueError, match="frontality_weight"):
+        OptimizeConfig(frontality_weight=-1.0)

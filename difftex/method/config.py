@@ -115,6 +115,10 @@ class OptimizeConfig:
     # exponent would otherwise silence the far witnesses too (0.6 pixels per texel, to the 8th:
     # 0.017), and a close photo's occluder would no longer be outvoted
     witness_resolution_weight: float | None = None
+    # exponent of Q_a in Q: cos^this of the angle between the normal and the direction to the
+    # camera (1: the paper's Q_a). Steeper, frontal photos outrank oblique ones more: the relief a
+    # proxy lacks (reveals, sills) shows most in oblique views
+    frontality_weight: float = 1.0
     sigma_min: float = 0.02  # noise floor of colour standard deviations (Q_c and elimination)
     # "loo": leave-one-out mean/std with a noise floor, one slot per texel and pass; "paper": the
     # paper's test (Sec. 4.3), every selected pixel beyond sigma_k std of all selected ones
@@ -211,6 +215,8 @@ class OptimizeConfig:
         _check_choice("resolution_reference", self.resolution_reference, ("best", "pixel"))
         if self.resolution_weight < 0:
             raise ValueError(f"resolution_weight must be >= 0, got {self.resolution_weight}")
+        if not self.frontality_weight >= 0:
+            raise ValueError(f"frontality_weight must be >= 0, got {self.frontality_weight}")
         if not self.resolution_knee >= 1.0:
             raise ValueError(f"resolution_knee must be >= 1, got {self.resolution_knee}")
         _check_choice("histmatch_reference", self.histmatch_reference, ("best", "median", "pooled"))

@@ -379,7 +379,7 @@ def build_level(
         y0, y1, x0, x1 = reg
         sl = (slice(y0, y1), slice(x0, x1))
         c = compared(n, mp)
-        qac = quality(mp.cos, c, mu[:, y0:y1, x0:x1], msd[sl], mp.visible, cfg.sigma_min)  # once for both Q
+        qac = quality(mp.cos, c, mu[:, y0:y1, x0:x1], msd[sl], mp.visible, cfg.sigma_min, cfg.frontality_weight)
         best = fpbest[sl] if cfg.resolution_reference == "best" else None
         rw = cfg.resolution_weight
         qb = qac * resolution_factor(relative_footprint(mp.footprint, best, cfg.resolution_knee), rw, mp.visible)

@@ -15,6 +15,7 @@ def quality(
     msd: torch.Tensor,
     visible: torch.Tensor,
     sigma_min: float,
+    frontality_weight: float = 1.0,
 ) -> torch.Tensor:
     """Q_a Q_c of one photo at every texel (Sec. 4.2), the paper's initial weight Q.
 
@@ -31,12 +32,14 @@ def quality(
         mu: (3, h, w) mean colour of the candidates; msd: (h, w) their mean squared distance to it.
         visible: (h, w) bool.
         sigma_min: noise floor of the colour standard deviation.
+        frontality_weight: exponent p of Q_a = cos^p (1: the paper's).
 
     Returns:
         (h, w) Q_a Q_c, zero where the photo does not see the texel.
     """
     d2 = ((colour - mu) ** 2).sum(0)
-    q = cos * torch.exp(-0.5 * d2 / (msd + sigma_min**2))
+    qa = cos if frontality_weight == 1.0 else cos.clamp_min(0.0) ** frontality_weight
+    q = qa * torch.exp(-0.5 * d2 / (msd + sigma_min**2))
     return torch.where(visible, q, torch.zeros_like(q))
 
 
