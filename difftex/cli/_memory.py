@@ -18,6 +18,19 @@ def _user_set_malloc() -> bool:
     return any(k in os.environ for k in _MALLOC_ENV) or "glibc.malloc." in os.environ.get("GLIBC_TUNABLES", "")
 
 
+def _libc(name: str, argtypes: list, restype):
+    """The C library's function ``name`` with its ctypes signature, or None where it has none
+    (not glibc: macOS, musl)."""
+    import ctypes
+
+    try:
+        fn = getattr(ctypes.CDLL(None), name)
+    except (OSError, AttributeError):
+        return None
+    fn.argtypes, fn.restype = argtypes, restype
+    return fn
+
+
 def reuse_freed_memory() -> bool:
     """Have glibc's malloc keep freed memory for the process's next allocations.
 
@@ -38,13 +51,9 @@ def reuse_freed_memory() -> bool:
     """
     import ctypes
 
-    if _user_set_malloc():
+    mallopt = None if _user_set_malloc() else _libc("mallopt", [ctypes.c_int, ctypes.c_int], ctypes.c_int)
+    if mallopt is None:
         return False
-    try:
-        mallopt = ctypes.CDLL(None).mallopt
-    except (OSError, AttributeError):  # not glibc (macOS, musl without it): leave malloc alone
-        return False
-    mallopt.argtypes, mallopt.restype = [ctypes.c_int, ctypes.c_int], ctypes.c_int
     # the trim threshold is a C int: the largest, 2 GiB, is "never" for a job's free heap top
     return bool(mallopt(_M_MMAP_MAX, 0)) and bool(mallopt(_M_TRIM_THRESHOLD, 2**31 - 1))
 
@@ -61,9 +70,5 @@ def give_back_freed_memory() -> bool:
     """
     import ctypes
 
-    try:
-        trim = ctypes.CDLL(None).malloc_trim
-    except (OSError, AttributeError):
-        return False
-    trim.argtypes, trim.restype = [ctypes.c_size_t], ctypes.c_int
-    return bool(trim(0))
+    trim = _libc("malloc_trim", [ctypes.c_size_t], ctypes.c_int)
+    return trim is not None and bool(trim(0))

@@ -41,17 +41,18 @@ def blur(x: torch.Tensor, sigma: float) -> torch.Tensor:
         y = F.conv2d(F.pad(x[:, None], (r, r, 0, 0), mode="replicate"), k.view(1, 1, 1, -1))
         return F.conv2d(F.pad(y, (0, 0, r, r), mode="replicate"), k.view(1, 1, -1, 1))[:, 0]
     g = gaussian_kernel(sigma).tolist()
-    r = len(g) // 2
-    h, w = x.shape[1:]
-    p = F.pad(x[None], (r, r, 0, 0), mode="replicate")[0]
-    y = p[:, :, 0:w] * g[0]
+    return _taps(_taps(x, g, dim=2), g, dim=1)
+
+
+def _taps(x: torch.Tensor, g: list[float], dim: int) -> torch.Tensor:
+    """One pass of :func:`blur`: sum_i g[i] x shifted by i - r along ``dim`` (edges replicated)."""
+    r, n = len(g) // 2, x.shape[dim]
+    pad = (r, r, 0, 0) if dim == 2 else (0, 0, r, r)
+    p = F.pad(x[None], pad, mode="replicate")[0]
+    out = p.narrow(dim, 0, n) * g[0]
     for i in range(1, 2 * r + 1):
-        y = y.add_(p[:, :, i : i + w], alpha=g[i])
-    p = F.pad(y[None], (0, 0, r, r), mode="replicate")[0]
-    z = p[:, 0:h] * g[0]
-    for i in range(1, 2 * r + 1):
-        z = z.add_(p[:, i : i + h], alpha=g[i])
-    return z
+        out.add_(p.narrow(dim, i, n), alpha=g[i])
+    return out
 
 
 def masked_blur(colour: torch.Tensor, visible: torch.Tensor, sigma: float) -> torch.Tensor:
