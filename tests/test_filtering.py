@@ -63,12 +63,13 @@ def test_inclined_views_are_dropped_per_polygon(tmp_path):
     assert angles["img00.png"] < 15 and angles["img01.png"] > 70
 
 
+@pytest.mark.parametrize("model", ["PINHOLE", "SIMPLE_RADIAL"])
 @pytest.mark.parametrize("backend", ["default", "numpy"])
-def test_photos_measured_side_by_side_give_the_records_of_one_thread(tmp_path, monkeypatch, backend):
-    """The filter measures pinhole photos in worker threads (OMP_NUM_THREADS of them); the records
-    are those of one thread, in photo order. The last camera stands beside the back wall looking
-    along it, so the wall crosses its plane and the photo is ray-cast from a worker thread (under
-    the caster's lock; with the numpy caster too)."""
+def test_photos_measured_side_by_side_give_the_records_of_one_thread(tmp_path, monkeypatch, backend, model):
+    """The filter measures photos in worker threads (OMP_NUM_THREADS of them); the records are
+    those of one thread, in photo order. Distorted photos are ray-cast from the worker threads
+    under the caster's lock; so is a pinhole photo whose plane the back wall crosses (the last
+    camera stands beside it looking along it); with the numpy caster too."""
     from difftex.geometry import raycast
     from difftex.geometry.photo_filter import photo_records
 
@@ -79,7 +80,7 @@ def test_photos_measured_side_by_side_give_the_records_of_one_thread(tmp_path, m
     polys = {"back": wall(-2, 2, 0, 2, y=0.0), "front": wall(-0.5, 0.5, 0, 1, y=-1.0)}
     centers = [(0.0, -6.0, 1.0), (2.0, -6.0, 1.5), (-2.0, -5.0, 0.5), (1.0, -7.0, 0.8), (0.5, -0.6, 1.0)]
     targets = [(0.0, 0.0, 1.0)] * 4 + [(-2.0, 0.0, 1.0)]
-    sc = load_scene(make_scene(tmp_path / "s", polys, centers=centers, target=targets))
+    sc = load_scene(make_scene(tmp_path / "s", polys, centers=centers, target=targets, model=model))
     cfg = FilterConfig(min_pixels=4)
     monkeypatch.setenv("OMP_NUM_THREADS", "1")
     one = [r.__dict__ for r in photo_records(sc.proxy, sc.photos, cfg, progress=False)]

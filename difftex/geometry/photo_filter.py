@@ -329,22 +329,19 @@ def photo_records(proxy: Proxy, photos: list[Photo], cfg: FilterConfig, progress
             )
         return rec
 
-    # Decoding and sharpness (image codecs and numpy, which release the GIL) run ahead in worker
-    # threads, one per thread of the job (OMP_NUM_THREADS, as the workflow sets it). Pinhole
-    # photos' id buffers are rasterised (numpy block operations) and run in the same threads;
-    # distorted photos' are ray-cast on this thread (the caster is not shared across threads).
+    # Decoding, sharpness and id buffers run ahead in worker threads, one per thread of the job
+    # (OMP_NUM_THREADS, as the workflow sets it): image codecs and numpy's rasterising release
+    # the GIL, and the photos that must be ray-cast take the caster's lock one at a time.
     workers = job_threads()
-    raster = all(ph.is_pinhole for ph in photos)
     with ThreadPoolExecutor(max_workers=workers) as pool:
         sharp = deque(pool.submit(photo_sharpness, ph) for ph in photos[:workers])
-        ahead = deque(pool.submit(photo_record, ph) for ph in photos[:workers]) if raster else deque()
+        ahead = deque(pool.submit(photo_record, ph) for ph in photos[:workers])
         it = track(range(len(photos)), description="filtering photos", disable=not progress, transient=True)
         for i in it:
             if i + workers < len(photos):
                 sharp.append(pool.submit(photo_sharpness, photos[i + workers]))
-                if raster:
-                    ahead.append(pool.submit(photo_record, photos[i + workers]))
-            rec = ahead.popleft().result() if raster else photo_record(photos[i])
+                ahead.append(pool.submit(photo_record, photos[i + workers]))
+            rec = ahead.popleft().result()
             rec.sharpness = sharp.popleft().result()  # a decode error surfaces here, in photo order
             records.append(rec)
     return records
