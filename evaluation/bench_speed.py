@@ -3,16 +3,20 @@
     python evaluation/bench_speed.py --scene data/synth/paper/archive --scene ../shared/data/herzjesu-p8
     python evaluation/bench_speed.py --scene data/synth/paper/archive --subset 50   # + a 50-photo copy
 
-For every scene, in this order and on the same machine:
+For every scene, in rounds (``--repeats``), on the same machine:
 
-1. texrecon (mvs-texturing) through difftex's peer runner (``difftex peer``): the program's own wall
-   and CPU seconds and peak RSS; difftex's preparation (photos resampled as centred pinhole cameras,
-   the proxy meshed) and the import of its atlas are reported apart. Not run if texrecon is not
-   found (``DIFFTEX_TEXRECON`` or PATH; ``../shared/peers/build_texrecon.sh`` builds it).
-2. The workflow, once per preset, as a user runs it: ``snakemake --cores N --config scene=S
+1. The workflow, once per preset, as a user runs it: ``snakemake --cores N --config scene=S
    preset=P 'run={evaluate: false}'`` in a fresh folder; wall seconds of the command, CPU seconds
    and peak RSS of every job (Snakemake's benchmark files), texels and K x texels per polygon,
    iterations per level.
+2. texrecon (mvs-texturing) at the end of every round: in the first, through difftex's peer runner
+   (``difftex peer``) on the photos the first run kept, with difftex's preparation (photos
+   resampled as centred pinhole cameras, the proxy meshed) and the import of its atlas reported
+   apart; in the later rounds its program alone again on the same prepared input. Each workflow
+   run's ratio is against the texrecon of its own round: this machine's speed drifts by a third
+   over minutes (other tenants), so a texrecon timed once minutes away from a run is no yardstick.
+   Not run if texrecon is not found (``DIFFTEX_TEXRECON`` or PATH;
+   ``../shared/peers/build_texrecon.sh`` builds it).
 3. The floor: a plain per-texel average (``difftex baseline --method average``) of every polygon
    at the first preset's texel sizes, in-process (no interpreter start-up per polygon).
 
@@ -166,7 +170,20 @@ def run_texrecon(scene: Path, work: Path, results: Path) -> dict:
     }
     (results / "config" / "x.yaml").parent.mkdir(exist_ok=True)
     shutil.copyfile(results / "photos.json", results / "config" / "photos.json")
-    return peers.run_peer("texrecon", scene, work / "texrecon", common)
+    # the resampled photos are kept so that later rounds time the program again on the same input
+    return peers.run_peer("texrecon", scene, work / "texrecon", common, keep_inputs=True)
+
+
+def rerun_texrecon(first: dict) -> dict:
+    """texrecon's program again, on the input the first round prepared (its command as recorded):
+    {"wall_s", "cpu_s", "peak_rss_mib"}."""
+    from difftex.evaluation.peers.measure import run_measured
+
+    rec = first["peer_record"]
+    cmd = shlex.split(rec["peer_program"]["command"])
+    log = Path(first["results"]) / "work" / "rerun.log"
+    phase = run_measured(cmd, log, float(rec["config"]["timeout_s"]), what="texrecon")
+    return {"wall_s": phase.wall_s, "cpu_s": phase.cpu_s, "peak_rss_mib": phase.peak_rss_mib}
 
 
 def run_average(scene: Path, results: Path) -> dict:
@@ -241,16 +258,86 @@ def main(argv=None) -> int:
                     f"peak {run['peak_rss_mb']:.0f} MB, {run['texels'] / 1e6:.2f} M texels",
                     flush=True,
                 )
+            if rep == 0:
+                row["texrecon"] = run_texrecon(scene, work / scene.name, Path(row["runs"][0]["results"]))
+                if "peer_s" in row["texrecon"]:
+                    tr = row["texrecon"]
+                    row["texrecon_rounds"] = [
+                        {"wall_s": tr["peer_s"], "cpu_s": tr["peer_cpu_s"], "peak_rss_mib": tr["peer_peak_rss_mib"]}
+                    ]
+            elif "peer_s" in row["texrecon"]:
+                row["texrecon_rounds"].append(rerun_texrecon(row["texrecon"]))
+            if row.get("texrecon_rounds"):
+                wall = row["texrecon_rounds"][-1]["wall_s"]
+                print(f"bench_speed: {scene.name} texrecon: {wall:.1f} s wall", flush=True)
         first = Path(row["runs"][0]["results"])
-        row["texrecon"] = run_texrecon(scene, work / scene.name, first)
-        if "peer_s" in row["texrecon"]:
-            print(f"bench_speed: {scene.name} texrecon: {row['texrecon']['peer_s']:.0f} s wall", flush=True)
         row["average"] = run_average(scene, first)
         row["load_avg_end"] = os.getloadavg()
         rows.append(row)
         write(Path(args.out), rows, mach, args)
     print(Path(args.out).with_suffix(".md").read_text())
     return 0
+
+
+def texrecon_rounds(row: dict) -> list[dict]:
+    """texrecon's time per round ({"wall_s", "cpu_s", "peak_rss_mib"}); a record written before
+    the rounds (one texrecon run) gives that run for every round."""
+    if row.get("texrecon_rounds"):
+        return row["texrecon_rounds"]
+    tr = row.get("texrecon", {})
+    if tr.get("peer_s") is None:
+        return []
+    one = {"wall_s": tr["peer_s"], "cpu_s": tr["peer_cpu_s"], "peak_rss_mib": tr["peer_peak_rss_mib"]}
+    return [one] * (1 + max((r.get("repeat", 0) for r in row["runs"]), default=0))
+
+
+def table_lines(row: dict, n_ph: int) -> list[str]:
+    """Markdown rows of one scene: per round, its workflow runs and then its texrecon; each run's
+    ratio is against its round's texrecon, the average's against the last round's."""
+    name, rounds = Path(row["scene"]).name, texrecon_rounds(row)
+    lines = []
+    for rep in range(1 + max((r.get("repeat", 0) for r in row["runs"]), default=0)):
+        tw = rounds[rep]["wall_s"] if rounds else None
+        for run in (r for r in row["runs"] if r.get("repeat", 0) == rep):
+            ratio = f"{run['wall_s'] / tw:.2f}" if tw else "n/a"
+            lines.append(
+                f"| {name} | {n_ph} | {rep + 1} | difftex {run['preset']} | {run['wall_s']:.1f} | {run['cpu_s']:.1f} | "
+                f"{run['peak_rss_mb']:.0f} | {run['texels'] / 1e6:.2f} | {run['slot_texels'] / 1e6:.2f} | "
+                f"{run['iterations']} of {run.get('iteration_caps', '?')} "
+                f"({run.get('levels_converged', '?')}/{run.get('levels', '?')} levels converged) | {ratio} |"
+            )
+        if rounds:
+            t = rounds[rep]
+            lines.append(f"| {name} | {n_ph} | {rep + 1} | texrecon | {t['wall_s']:.1f} | {t['cpu_s']:.1f} | "
+                         f"{t['peak_rss_mib']:.0f} | | | | 1.00 |")
+        else:
+            lines.append(f"| {name} | {n_ph} | {rep + 1} | texrecon | not run: "
+                         f"{row.get('texrecon', {}).get('missing', '?')} | | | | | | |")
+    av, tw = row["average"], rounds[-1]["wall_s"] if rounds else None
+    ratio = f"{av['wall_s'] / tw:.2f}" if tw else "n/a"
+    lines.append(f"| {name} | {n_ph} | | plain average | {av['wall_s']:.1f} | {av['cpu_s']:.1f} | | | | | {ratio} |")
+    return lines
+
+
+def ratio_lines(rows: list[dict]) -> list[str]:
+    """Markdown: per scene and preset, the median (and range) over the rounds of its ratio to the
+    texrecon of the same round."""
+    import statistics
+
+    lines = []
+    for row in rows:
+        rounds = texrecon_rounds(row)
+        if not rounds:
+            continue
+        by: dict[str, list[float]] = {}
+        for run in row["runs"]:
+            by.setdefault(run["preset"], []).append(run["wall_s"] / rounds[run.get("repeat", 0)]["wall_s"])
+        for preset, ratios in by.items():
+            lines.append(
+                f"- {Path(row['scene']).name} {preset}: {statistics.median(ratios):.2f}x texrecon, median of "
+                f"{len(ratios)} rounds (range {min(ratios):.2f}-{max(ratios):.2f})"
+            )
+    return lines + [""] if lines else []
 
 
 def write(stem: Path, rows: list[dict], mach: dict, args) -> None:
@@ -260,52 +347,30 @@ def write(stem: Path, rows: list[dict], mach: dict, args) -> None:
             "python evaluation/bench_speed.py " + shlex.join(sys.argv[1:]),
             mach,
             [
-                "One run per row, in the order texrecon's input (the first preset's run), the presets, "
-                "texrecon, the average; wall seconds of the whole command on the machine below, "
+                "Rows in the order they ran: per round, the presets and then texrecon (in the first round "
+                "on the first preset's photos, through difftex's preparation of its input; in later rounds "
+                "its program alone on that input); then the average. Wall seconds of the whole command, "
                 f"Snakemake with --cores {args.cores}, evaluation off (the workflow's other stages all on).",
                 "texrecon: the program's own wall time (difftex's preparation of its input and the import of "
                 "its atlas apart, in the JSON). Average: every polygon's plain per-texel average at the first "
                 "preset's texel sizes, in one process.",
-                "Ratio = workflow wall / texrecon wall. CPU: all jobs of the run; RSS: the largest job.",
+                "Ratio = workflow wall / the wall of its round's texrecon (the average: the last round's). "
+                "CPU: all jobs of the run; RSS: the largest job.",
             ],
         )
     ]
     lines.append(
-        "| scene | photos | method | wall (s) | CPU (s) | peak RSS (MB) | texels (M) | K x texels (M) | iterations | "
-        "vs texrecon |"
+        "| scene | photos | round | method | wall (s) | CPU (s) | peak RSS (MB) | texels (M) | K x texels (M) | "
+        "iterations | vs texrecon |"
     )
-    lines.append("|---|---|---|---|---|---|---|---|---|---|")
+    lines.append("|---|---|---|---|---|---|---|---|---|---|---|")
     from difftex.scene.camera import load_photos
     from difftex.scene.loading import find_sparse
 
     for row in rows:
         sc = Path(row["scene"])
-        n_ph = len(load_photos(find_sparse(sc), sc / "images", check_images=False))
-        tr = row.get("texrecon", {})
-        tw = tr.get("peer_s")
-        if tw is not None:
-            lines.append(
-                f"| {sc.name} | {n_ph} | texrecon | {tw:.1f} | {tr['peer_cpu_s']:.1f} | {tr['peer_peak_rss_mib']:.0f} "
-                f"| | | | 1.0 |"
-            )
-        else:
-            lines.append(f"| {sc.name} | {n_ph} | texrecon | not run: {tr.get('missing', '?')} | | | | | | |")
-        for run in row["runs"]:
-            ratio = f"{run['wall_s'] / tw:.1f}" if tw else "n/a"
-            lines.append(
-                f"| {sc.name} | {n_ph} | difftex {run['preset']} | {run['wall_s']:.1f} | {run['cpu_s']:.1f} | "
-                f"{run['peak_rss_mb']:.0f} | {run['texels'] / 1e6:.2f} | {run['slot_texels'] / 1e6:.2f} | "
-                f"{run['iterations']} of {run.get('iteration_caps', '?')} "
-                f"({run.get('levels_converged', '?')}/{run.get('levels', '?')} levels converged) | {ratio} |"
-            )
-        av = row["average"]
-        lines.append(
-            f"| {sc.name} | {n_ph} | plain average | {av['wall_s']:.1f} | {av['cpu_s']:.1f} | | | | | "
-            f"{av['wall_s'] / tw:.1f} |"
-            if tw
-            else f"| {sc.name} | {n_ph} | plain average | {av['wall_s']:.1f} | {av['cpu_s']:.1f} | | | | | n/a |"
-        )
-    lines += ["", *split_lines(rows), *stage_lines(rows)]
+        lines += table_lines(row, len(load_photos(find_sparse(sc), sc / "images", check_images=False)))
+    lines += ["", *ratio_lines(rows), *split_lines(rows), *stage_lines(rows)]
     C.write_outputs(stem, "\n".join(lines) + "\n", {"machine": mach, "args": vars(args), "rows": rows})
 
 

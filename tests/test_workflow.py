@@ -9,6 +9,7 @@ import importlib.util
 import math
 import os
 import re
+import shlex
 import subprocess
 import sys
 from pathlib import Path
@@ -16,7 +17,6 @@ from pathlib import Path
 import pytest
 import yaml
 
-from difftex.cli import main as cli_main
 from difftex.errors import DifftexError
 from difftex.layout import Results
 from difftex.workflow import glue as wf
@@ -116,10 +116,15 @@ def test_stage_files_hold_only_their_sections_and_are_named_by_their_content(tmp
     paths2 = wf.stage_config_paths(tmp_path, {s: wf.stage_config_text(cfg2, s) for s in wf.STAGE_SECTIONS})
     # only the texture stage's file changes name, so only what reads it reruns
     assert {s for s in paths if paths[s] != paths2[s]} == {"texture"}
-    # the stage_config rule's command
-    text = wf.stage_config_text(cfg2, "texture")
-    assert cli_main(["stage-config", "--out", str(paths2["texture"]), "--text", text]) == 0
-    assert "0.02" in Path(paths2["texture"]).read_text()
+    # the stage_config rule's command (from the rule file), through the shell Snakemake uses
+    rule = (REPO / "workflow/rules/scene.smk").read_text().split("rule stage_config:")[1].split("rule ")[0]
+    command = rule.split("shell:")[1].strip().strip('"')
+    text = wf.stage_config_text(cfg2, "texture") + "note: 'it''s' $HOME `x` \\n\n"
+    out, log = Path(paths2["texture"]), tmp_path / "stage.log"
+    out.parent.mkdir(parents=True, exist_ok=True)
+    filled = command.replace("{params.text:q}", shlex.quote(text)).replace("{output:q}", shlex.quote(str(out)))
+    subprocess.run(["bash", "-euo", "pipefail", "-c", filled.replace("{log:q}", shlex.quote(str(log)))], check=True)
+    assert out.read_text() == text and not out.with_name(out.name + ".tmp").exists()
 
 
 def test_memory_estimate_grows_with_texels_and_photos():

@@ -24,7 +24,7 @@ from difftex.errors import ERROR_PREFIX, WARNING_PREFIX, DifftexError, one_line,
 
 def _commands(only: str | None = None) -> list:
     """The command modules; ``only``: just that command's, when it has one (the workflow runs
-    ``difftex finish`` and ``difftex stage-config`` once per polygon and stage: importing every
+    ``difftex finish`` once per texture job: importing every
     command's arguments, some of which import numpy and matplotlib, was most of their start-up)."""
     names = [info.name for info in pkgutil.iter_modules(__path__) if not info.name.startswith("_")]
     if only is not None and only.replace("-", "_") in names:
