@@ -201,3 +201,31 @@ def test_pinhole_crop_visibility_is_the_projected_one(occlusion_scene):
             fast = V.crop_texel_visibility(frame, ph, mask, box, crop)
             projected = V._crop_texel_visibility_projected(frame, ph, mask, box, crop)
             assert fast.any() and np.array_equal(fast, projected)
+
+
+def test_crop_visibility_projects_only_the_texels_that_can_reach_the_crop(occlusion_scene):
+    """A photo that sees part of a polygon (a pixel box) maps back to a texel span that holds every
+    texel whose centre lands in the box, and is smaller than the frame; a box whose corner rays
+    miss the plane (above the horizon of a plane seen edge-on) has an unbounded preimage: the
+    whole frame."""
+    import difftex.geometry.visibility as V
+    from difftex.geometry.frames import texel_homography, texel_to_pixel, uv_frame
+
+    sc = occlusion_scene
+    ph, poly = sc.photos[0], sc.proxy.polygons[0]
+    frame = uv_frame(poly, sc.up, long_side=400)
+    H = texel_homography(frame, ph)
+    full = (0, frame.shape[0]), (0, frame.shape[1])
+    box = (100, 60, 180, 140)
+    r0, r1, c0, c1 = V._texel_span_of_box(H, box, *full)
+    assert 0 < (r1 - r0) * (c1 - c0) < 0.5 * frame.shape[0] * frame.shape[1]
+    ty, tx = np.mgrid[0 : frame.shape[0], 0 : frame.shape[1]]
+    pix, _ = texel_to_pixel(frame, ph, tx + 0.5, ty + 0.5)
+    lands = (np.floor(pix[..., 0]) >= 100) & (np.floor(pix[..., 0]) < 180)
+    lands &= (np.floor(pix[..., 1]) >= 60) & (np.floor(pix[..., 1]) < 140)
+    assert lands.any() and not lands[:r0].any() and not lands[r1:].any()
+    assert not lands[:, :c0].any() and not lands[:, c1:].any()
+    # depth = ty - 50: rays through the photo's rows v < 1 meet the plane behind the camera
+    behind = np.array([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 1.0, -50.0]])
+    assert V._texel_span_of_box(behind, (0, 0, 320, 240), *full) == (*full[0], *full[1])
+    assert V._texel_span_of_box(behind, (0, 2, 10, 4), *full)[0] > 0  # rows 2-4: in front, bounded

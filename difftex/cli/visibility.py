@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 NAME = "visibility"
+REUSE_FREED_MEMORY = True  # difftex.cli._memory: keep freed memory for reuse in this job
 HELP = "Compute which texels of each polygon every kept photo sees (depth test against the whole proxy)."
 
 

@@ -134,8 +134,9 @@ def zbuffer(pieces: Pieces, photo: Photo, stride: int = 1) -> tuple[np.ndarray, 
             d = (h * norm[r0:r1, c0:c1]) / denom.astype(np.float32)
         blk = dist[r0:r1, c0:c1]
         closer = inside & (d > 0) & (d < blk)
-        blk[closer] = d[closer]
-        ids[r0:r1, c0:c1][closer] = pieces.polygon[j]
+        # masked copies in place: a boolean index gathers and scatters every selected pixel
+        np.copyto(blk, d, where=closer)
+        np.copyto(ids[r0:r1, c0:c1], pieces.polygon[j], where=closer)
     return ids, dist
 
 
