@@ -12,6 +12,7 @@ reference points, so a user can pick a preset from measured evidence.
 from __future__ import annotations
 
 import argparse
+import json
 import shlex
 import sys
 import time
@@ -67,6 +68,7 @@ def main(argv=None) -> int:
         help="run at each resolution as reference points ('' for none)",
     )
     ap.add_argument("--polygons", default="wall00", help="comma-separated ids, or 'all'")
+    ap.add_argument("--optimize", default="{}", help="JSON of optimize: overrides for every difftex run")
     C.add_table_args(ap, "tradeoff")
     args = ap.parse_args(argv)
 
@@ -111,7 +113,7 @@ def main(argv=None) -> int:
                 rows.append(
                     {"label": f"{b}@{side}", "method": b, "preset": None, "long_side": side, "run": r, "metrics": ev}
                 )
-        cfg = C.base_config(size, preset, {"evaluate": {"views": False}})
+        cfg = C.base_config(size, preset, {"evaluate": {"views": False}, "optimize": json.loads(args.optimize)})
         r = C.run_method("difftex", scene, work / f"{preset}@{side}", commons[side], cfg)
         ev = C.evaluate(scene, work / f"{preset}@{side}", args.lpips, config=commons[side]["config"])
         rows.append(

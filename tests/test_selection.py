@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import torch
 
-from difftex.method.selection import UNSEEN_COST, select_weights, solve_potts, texel_costs
+from difftex.method.selection import UNSEEN_COST, detail_band, select_weights, solve_potts, texel_costs
 
 
 def _slots(h=16, w=32):
@@ -97,3 +97,40 @@ def test_where_the_photos_agree_the_blend_stays_and_the_seam_goes_there():
     # with a cross-fade, the weights still sum to one
     soft, _ = select_weights(W, Q, idx, mask, 3, patch=4, feather=1.5, free=free)
     assert torch.allclose(soft.sum(0), torch.ones(h, w), atol=1e-5)
+
+
+def test_detail_band_keeps_the_selections_edges_and_the_blends_colours_below_the_band():
+    """A mullion (a dark bar) that the selected photo shows and the blend smears: the band keeps the
+    bar's full contrast from the selection, while the selection's exposure (+0.2 everywhere) and
+    its slow shading are replaced by the blend's; outside the polygon the blend stays."""
+    h, w = 24, 48
+    x = torch.arange(w, dtype=torch.float32)
+    shading = 0.1 * x / w  # slow, below the band
+    selected = (0.6 + 0.2 + shading).expand(3, h, w).clone()
+    selected[:, :, 22:25] -= 0.4  # the bar, three texels wide
+    blended = (0.6 + shading).expand(3, h, w).clone()
+    blended[:, :, 18:29] -= 0.4 * 3 / 11  # the same bar smeared over eleven texels
+    mask = torch.ones(h, w, dtype=torch.bool)
+    mask[:, -4:] = False
+    out = detail_band(blended, selected, mask, 4.0)
+    assert torch.equal(out[:, :, -4:], blended[:, :, -4:])
+    inner = out[:, 4:-4, 4:-8]
+    # the bar at full contrast, the plain wall at the blend's level (the +0.2 exposure gone)
+    bar_depth = float(out[0, 12, 12] - out[0, 12, 23])
+    assert bar_depth == pytest.approx(0.4, abs=0.06)
+    assert float(out[0, 12, 8]) == pytest.approx(float(blended[0, 12, 8]), abs=0.03)
+    assert float(inner.mean()) < float(selected[:, 4:-4, 4:-8].mean()) - 0.15
+    # the extremes: a band edge under a texel leaves no detail to hand over (the blend); one far
+    # wider than the polygon hands over all of it, at the blend's mean level
+    thin = detail_band(blended, selected, mask, 0.1)
+    assert torch.allclose(thin[:, mask], blended[:, mask], atol=1e-3)
+    wide = detail_band(blended, selected, mask, 1e4)
+    shift = blended[:, mask].mean() - selected[:, mask].mean()
+    assert torch.allclose(wide[:, mask], selected[:, mask] + shift, atol=1e-3)
+    # a bright selected edge over a dark blend would overshoot: the colours stay in [0, 1]
+    over = detail_band(torch.zeros(3, h, w), torch.where(x < 24, 0.0, 1.0).expand(3, h, w), mask, 3.0)
+    assert float(over.min()) >= 0.0 and float(over.max()) <= 1.0 and float(over.max()) > 0.3
+    with pytest.raises(ValueError):
+        detail_band(blended, selected, mask, 0.0)
+    with pytest.raises(ValueError):
+        detail_band(blended, selected[:, :-1], mask, 1.0)

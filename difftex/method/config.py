@@ -142,6 +142,13 @@ class OptimizeConfig:
     select_patch: int = 4  # patch side, texels
     select_smoothness: float = 1.0  # Potts cost per texel of seam, in units of a texel's data cost
     select_feather: float = 1.0  # Gaussian sigma of the cross-fade at seams, texels
+    # where: "disagree", the texels whose kept photos disagree (the settled ones keep the blend,
+    # which averages the photos' noise away); "all", every texel (one photo per patch everywhere)
+    select_scope: Literal["disagree", "all"] = "disagree"
+    # > 0: the selection gives only the detail finer than a Gaussian of this sigma (texels); the
+    # colours below it stay the blend's, which averages the photos' noise and exposure (0: the
+    # selected colours whole)
+    select_band: float = 0.0
     # parallax-aware composition (difftex.method.parallax): where the kept photos disagree by more
     # than parallax_gate sigma_c, the slots seen from nearly the best slot's direction carry the
     # texel (within parallax_sigma, about radians, of it; 0: off)
@@ -233,6 +240,10 @@ class OptimizeConfig:
             raise ValueError(f"ghost must be >= 0, got {self.ghost}")
         if self.select_patch < 1 or self.select_smoothness < 0 or self.select_feather < 0:
             raise ValueError("select_patch must be >= 1, select_smoothness and select_feather >= 0")
+        if self.select_band < 0:
+            raise ValueError(f"select_band must be >= 0, got {self.select_band}")
+        if self.select_scope not in ("disagree", "all"):
+            raise ValueError(f"select_scope must be 'disagree' or 'all', got {self.select_scope!r}")
         if self.parallax_sigma < 0 or self.parallax_gate < 0 or self.consistency_sigma < 0:
             raise ValueError("parallax_sigma, parallax_gate and consistency_sigma must be >= 0")
         if self.witness_resolution_weight is not None and not self.witness_resolution_weight >= 0:

@@ -191,13 +191,16 @@ def optimize_polygon(
             W, stats["parallax"] = parallax.parallax_weights(
                 W, lv.sharp, lv.cost, lv.sharp_noise, cfg.parallax_sigma, cfg.parallax_gate, lv.idx
             )
+        blend = W
         if cfg.select:
             settled, _ = settled_texels(lv, prev.active, prev.active, cfg.settle_sigma)
             W, stats["selection"] = selection.select_weights(
                 W, lv.Q, lv.idx, lv.mask, len(inp.photos), cfg.select_patch, cfg.select_smoothness,
-                cfg.select_feather, free=lv.mask & ~settled,
+                cfg.select_feather, free=lv.mask & ~settled if cfg.select_scope == "disagree" else None,
             )
         U = losses.compose(W, lv.sharp)
+        if cfg.select and cfg.select_band > 0:
+            U = selection.detail_band(losses.compose(blend, lv.sharp), U, lv.mask, cfg.select_band)
     lmask = lv.mask
     stats["diagnostics"] = {
         **diagnostics.effective_photos(W, lmask),

@@ -21,7 +21,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from difftex.method.filters import blur
+from difftex.method.filters import blur, masked_blur
 
 UNSEEN_COST = 2.0  # a photo that does not see a texel (or holds no weight there) costs more than any that does
 
@@ -135,3 +135,31 @@ def select_weights(
         "selected_share": float((chosen & has).sum()) / max(n_mask, 1),
     }
     return out, stats
+
+
+def detail_band(blended: torch.Tensor, selected: torch.Tensor, mask: torch.Tensor, sigma: float) -> torch.Tensor:
+    """The blend's colours below a Gaussian of ``sigma`` texels plus the selection's detail above it:
+
+        U = G * U_blend + (U_sel - G * U_sel)
+
+    as in multi-band blending: the selected photo keeps its edges (mullions, carvings) where the
+    blend of photos that disagree by parallax smears them, while its noise and exposure below the
+    band are averaged with the other photos'. The low-pass is normalised over the polygon's texels.
+
+    Args:
+        blended: (3, h, w) the optimized blend's colours.
+        selected: (3, h, w) the selection's colours.
+        mask: (h, w) bool texels of the polygon.
+        sigma: Gaussian sigma of the band's edge, texels (> 0).
+
+    Returns:
+        (3, h, w) colours in [0, 1], the blend's outside the mask.
+    """
+    if blended.shape != selected.shape or blended.shape[1:] != mask.shape:
+        raise ValueError(f"blended, selected (3, h, w) and mask (h, w) must match, got "
+                         f"{tuple(blended.shape)}, {tuple(selected.shape)}, {tuple(mask.shape)}")
+    if sigma <= 0:
+        raise ValueError(f"sigma must be > 0, got {sigma}")
+    out = masked_blur(blended, mask, sigma) + selected - masked_blur(selected, mask, sigma)
+    # the sum of a band and a detail can leave the colours' range next to strong edges
+    return torch.where(mask[None], out.clamp(0.0, 1.0), blended)
