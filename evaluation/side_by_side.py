@@ -11,6 +11,14 @@ truth's frame (the code Table 1 scores with, difftex.evaluation.evaluate.resampl
 same crop (fractions x0,y0,x1,y1 of the ground-truth map) is cut from each and the crops are
 written in one row, each under its label. Without ground truth (real scenes), the crops are cut
 from the first run's frame and the others are resampled into it.
+
+With ``--view NAME`` (Table 2's held-out photos) the crops are of each run's rendering of the
+textured proxy into that held-out camera (``<run>/evaluation/views/NAME_render.png``, written by
+``difftex evaluate``), beside the held-out photo itself:
+
+    python evaluation/side_by_side.py --scene ../shared/data/lund-door --view DSC_0005 \
+        --run difftex=evaluation/out/table2/lund-door/difftex --run MRF=evaluation/out/table2/lund-door/mrf \
+        --crop 0.35,0.3,0.65,0.55 --out docs/images/table2_lund_door_tympanum.png
 """
 
 from __future__ import annotations
@@ -59,11 +67,16 @@ def main(argv=None) -> int:
     ap.add_argument("--scene", required=True, help="scene folder (its ground_truth/ is used when present)")
     ap.add_argument("--run", action="append", required=True,
                     help="LABEL=results folder, or LABEL=a PNG in the ground truth's frame (repeatable)")
-    ap.add_argument("--polygon", required=True)
+    ap.add_argument("--polygon", help="the polygon whose textures to compare (not with --view)")
+    ap.add_argument("--view", help="a held-out photo's name without extension: compare the runs' renderings into it")
     ap.add_argument("--crop", default="0,0,1,1", help="x0,y0,x1,y1 as fractions of the map")
     ap.add_argument("--max-width", type=int, default=1800, help="width of the written image, pixels")
     ap.add_argument("--out", required=True, help="PNG to write")
     args = ap.parse_args(argv)
+    if (args.view is None) == (args.polygon is None):
+        raise SystemExit("side_by_side: give --polygon (textures) or --view (held-out renderings), not both")
+    if args.view is not None:
+        return view_crops(args)
 
     from difftex.evaluation.evaluate import load_textures, resample_texture
     from difftex.geometry.frames import UVFrame
@@ -105,6 +118,34 @@ def main(argv=None) -> int:
     mosaic(crops, args.max_width).save(tmp)
     tmp.replace(out)
     print(f"side_by_side: {out} ({len(crops)} crops of {x1 - x0}x{y1 - y0} texels)")
+    return 0
+
+
+def view_crops(args) -> int:
+    """The same crop of every run's rendering into the held-out camera ``args.view``, then the photo."""
+    from difftex.scene.files import read_image
+
+    crops, photo = [], None
+    for spec in args.run:
+        label, _, folder = spec.partition("=")
+        views = Path(folder) / "evaluation" / "views"
+        render = views / f"{args.view}_render.png"
+        if not render.is_file():
+            raise SystemExit(f"side_by_side: {render}: no rendering of view {args.view!r} (run difftex evaluate)")
+        crops.append((label, read_image(render)))
+        if photo is None and (views / f"{args.view}_photo.png").is_file():
+            photo = read_image(views / f"{args.view}_photo.png")
+    if photo is not None:
+        crops.append(("held-out photo", photo))
+    if any(img.shape != crops[0][1].shape for _, img in crops):
+        raise SystemExit(f"side_by_side: the renderings of {args.view!r} differ in size")
+    y0, y1, x0, x1 = crop_box(crops[0][1].shape[:2], tuple(float(v) for v in args.crop.split(",")))
+    out = Path(args.out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    tmp = out.with_name(out.stem + ".tmp.png")
+    mosaic([(label, img[y0:y1, x0:x1]) for label, img in crops], args.max_width).save(tmp)
+    tmp.replace(out)
+    print(f"side_by_side: {out} ({len(crops)} crops of {x1 - x0}x{y1 - y0} pixels)")
     return 0
 
 

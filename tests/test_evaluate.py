@@ -398,3 +398,28 @@ def test_side_by_side_takes_pngs_in_the_ground_truth_frame(tmp_path):
     with pytest.raises(SystemExit, match="not the ground-truth frame's 40x20"):
         side_by_side(["--scene", str(tmp_path / "scene"), "--run", f"small={tmp_path / 'small.png'}",
                       "--polygon", "wall", "--out", str(tmp_path / "x.png")])
+
+
+def test_side_by_side_of_a_held_out_view_crops_each_rendering_beside_the_photo(tmp_path):
+    """evaluation/side_by_side.py --view: every run's rendering into the held-out camera, cropped
+    the same way, then the held-out photo; a run without that rendering is one clear line."""
+    from difftex.scene.files import read_image
+    from evaluation.side_by_side import main as side_by_side
+
+    runs = []
+    for name, value in (("a", 0.2), ("b", 0.8)):
+        views = tmp_path / name / "evaluation" / "views"
+        write_image(views / "IMG_1_render.png", np.full((30, 40, 3), value, np.float32))
+        write_image(views / "IMG_1_photo.png", np.ones((30, 40, 3), np.float32))
+        runs += ["--run", f"{name}={tmp_path / name}"]
+    out = tmp_path / "views.png"
+    assert side_by_side(["--scene", str(tmp_path), "--view", "IMG_1", *runs, "--crop", "0,0,0.5,1",
+                         "--max-width", "200", "--out", str(out)]) == 0
+    img = read_image(out)
+    w = (img.shape[1] - 2 * 6) // 3  # three crops of 20x30 pixels: a, b, the photo
+    assert img.shape[1] <= 200 and np.allclose(img[22:, :w], 0.2, atol=0.01)
+    assert np.allclose(img[22:, w + 6 : 2 * w + 6], 0.8, atol=0.01) and img[22:, -w:].min() > 0.99
+    with pytest.raises(SystemExit, match="no rendering of view 'IMG_2'"):
+        side_by_side(["--scene", str(tmp_path), "--view", "IMG_2", *runs, "--out", str(out)])
+    with pytest.raises(SystemExit, match="--polygon .* or --view"):
+        side_by_side(["--scene", str(tmp_path), *runs, "--out", str(out)])
