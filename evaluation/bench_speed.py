@@ -175,14 +175,25 @@ def run_texrecon(scene: Path, work: Path, results: Path) -> dict:
 
 
 def rerun_texrecon(first: dict) -> dict:
-    """texrecon's program again, on the input the first round prepared (its command as recorded):
-    {"wall_s", "cpu_s", "peak_rss_mib"}."""
+    """texrecon's program again, on the input the first round prepared.
+
+    Args:
+        first: the first round's ``run_texrecon`` result (its command as recorded, shell-quoted).
+
+    Returns:
+        {"wall_s", "cpu_s", "peak_rss_mib"}, or {"error": the one-line reason} when it failed
+        (the other rounds are kept).
+    """
+    from difftex.errors import DifftexError
     from difftex.evaluation.peers.measure import run_measured
 
     rec = first["peer_record"]
     cmd = shlex.split(rec["peer_program"]["command"])
     log = Path(first["results"]) / "work" / "rerun.log"
-    phase = run_measured(cmd, log, float(rec["config"]["timeout_s"]), what="texrecon")
+    try:
+        phase = run_measured(cmd, log, float(rec["config"]["timeout_s"]), what="texrecon")
+    except DifftexError as e:
+        return {"error": str(e)}
     return {"wall_s": phase.wall_s, "cpu_s": phase.cpu_s, "peak_rss_mib": phase.peak_rss_mib}
 
 
@@ -268,8 +279,9 @@ def main(argv=None) -> int:
             elif "peer_s" in row["texrecon"]:
                 row["texrecon_rounds"].append(rerun_texrecon(row["texrecon"]))
             if row.get("texrecon_rounds"):
-                wall = row["texrecon_rounds"][-1]["wall_s"]
-                print(f"bench_speed: {scene.name} texrecon: {wall:.1f} s wall", flush=True)
+                last = row["texrecon_rounds"][-1]
+                done = f"{last['wall_s']:.1f} s wall" if "wall_s" in last else f"failed: {last['error']}"
+                print(f"bench_speed: {scene.name} texrecon: {done}", flush=True)
         first = Path(row["runs"][0]["results"])
         row["average"] = run_average(scene, first)
         row["load_avg_end"] = os.getloadavg()
@@ -297,7 +309,7 @@ def table_lines(row: dict, n_ph: int) -> list[str]:
     name, rounds = Path(row["scene"]).name, texrecon_rounds(row)
     lines = []
     for rep in range(1 + max((r.get("repeat", 0) for r in row["runs"]), default=0)):
-        tw = rounds[rep]["wall_s"] if rounds else None
+        tw = rounds[rep].get("wall_s") if rounds else None
         for run in (r for r in row["runs"] if r.get("repeat", 0) == rep):
             ratio = f"{run['wall_s'] / tw:.2f}" if tw else "n/a"
             lines.append(
@@ -306,14 +318,16 @@ def table_lines(row: dict, n_ph: int) -> list[str]:
                 f"{run['iterations']} of {run.get('iteration_caps', '?')} "
                 f"({run.get('levels_converged', '?')}/{run.get('levels', '?')} levels converged) | {ratio} |"
             )
-        if rounds:
+        if rounds and "error" in rounds[rep]:
+            lines.append(f"| {name} | {n_ph} | {rep + 1} | texrecon | failed: {rounds[rep]['error']} | | | | | | |")
+        elif rounds:
             t = rounds[rep]
             lines.append(f"| {name} | {n_ph} | {rep + 1} | texrecon | {t['wall_s']:.1f} | {t['cpu_s']:.1f} | "
                          f"{t['peak_rss_mib']:.0f} | | | | 1.00 |")
         else:
             lines.append(f"| {name} | {n_ph} | {rep + 1} | texrecon | not run: "
                          f"{row.get('texrecon', {}).get('missing', '?')} | | | | | | |")
-    av, tw = row["average"], rounds[-1]["wall_s"] if rounds else None
+    av, tw = row["average"], rounds[-1].get("wall_s") if rounds else None
     ratio = f"{av['wall_s'] / tw:.2f}" if tw else "n/a"
     lines.append(f"| {name} | {n_ph} | | plain average | {av['wall_s']:.1f} | {av['cpu_s']:.1f} | | | | | {ratio} |")
     return lines
@@ -331,7 +345,9 @@ def ratio_lines(rows: list[dict]) -> list[str]:
             continue
         by: dict[str, list[float]] = {}
         for run in row["runs"]:
-            by.setdefault(run["preset"], []).append(run["wall_s"] / rounds[run.get("repeat", 0)]["wall_s"])
+            tw = rounds[run.get("repeat", 0)].get("wall_s")
+            if tw:
+                by.setdefault(run["preset"], []).append(run["wall_s"] / tw)
         for preset, ratios in by.items():
             lines.append(
                 f"- {Path(row['scene']).name} {preset}: {statistics.median(ratios):.2f}x texrecon, median of "

@@ -74,7 +74,7 @@ def main(argv=None) -> int:
     ap.add_argument("--out", required=True, help="PNG to write")
     args = ap.parse_args(argv)
     if (args.view is None) == (args.polygon is None):
-        raise SystemExit("side_by_side: give --polygon (textures) or --view (held-out renderings), not both")
+        raise SystemExit("side_by_side: give one of --polygon (textures) or --view (held-out renderings)")
     if args.view is not None:
         return view_crops(args)
 
@@ -122,9 +122,17 @@ def main(argv=None) -> int:
 
 
 def view_crops(args) -> int:
-    """The same crop of every run's rendering into the held-out camera ``args.view``, then the photo."""
+    """The same crop of every run's rendering into the held-out camera ``args.view``, then the photo.
+
+    Args:
+        args: the parsed command line (``view``: the photo's name, with or without its extension).
+
+    Returns:
+        0; a missing rendering or renderings of different sizes end the program with one line.
+    """
     from difftex.scene.files import read_image
 
+    args.view = Path(args.view).stem
     crops, photo = [], None
     for spec in args.run:
         label, _, folder = spec.partition("=")

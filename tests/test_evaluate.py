@@ -421,5 +421,6 @@ def test_side_by_side_of_a_held_out_view_crops_each_rendering_beside_the_photo(t
     assert np.allclose(img[22:, w + 6 : 2 * w + 6], 0.8, atol=0.01) and img[22:, -w:].min() > 0.99
     with pytest.raises(SystemExit, match="no rendering of view 'IMG_2'"):
         side_by_side(["--scene", str(tmp_path), "--view", "IMG_2", *runs, "--out", str(out)])
+    assert side_by_side(["--scene", str(tmp_path), "--view", "IMG_1.JPG", *runs, "--out", str(out)]) == 0
     with pytest.raises(SystemExit, match="--polygon .* or --view"):
         side_by_side(["--scene", str(tmp_path), *runs, "--out", str(out)])

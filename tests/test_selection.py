@@ -119,6 +119,8 @@ def test_detail_band_keeps_the_selections_edges_and_the_blends_colours_below_the
     bar_depth = float(out[0, 12, 12] - out[0, 12, 23])
     assert bar_depth == pytest.approx(0.4, abs=0.06)
     assert float(out[0, 12, 8]) == pytest.approx(float(blended[0, 12, 8]), abs=0.03)
+    # next to texels outside the mask (unseen), the selection's exposure is still taken out whole
+    assert float(out[0, 12, w - 5]) == pytest.approx(float(blended[0, 12, w - 5]), abs=0.03)
     assert float(inner.mean()) < float(selected[:, 4:-4, 4:-8].mean()) - 0.15
     # the extremes: a band edge under a texel leaves no detail to hand over (the blend); one far
     # wider than the polygon hands over all of it, at the blend's mean level

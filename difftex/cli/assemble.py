@@ -4,7 +4,6 @@
 from __future__ import annotations
 
 NAME = "assemble"
-REUSE_FREED_MEMORY = True  # difftex.cli._memory: keep freed memory for reuse in this job
 HELP = "pack per-polygon textures into atlas pages and write the textured model (OBJ, GLB)"
 
 

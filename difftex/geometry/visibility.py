@@ -142,10 +142,11 @@ def _on_crop(u: np.ndarray, v: np.ndarray, ok: np.ndarray, bbox, crop: np.ndarra
     # integer edges directly (NaN and inf compare False, so invalid positions need no masking)
     ix, iy = np.floor(np.asarray(u, np.float64)), np.floor(np.asarray(v, np.float64))
     inside = ok & (ix >= x0) & (ix < x1) & (iy >= y0) & (iy < y1)
-    ix -= x0
-    iy -= y0
-    iy *= w
-    iy += ix  # the flat index into the crop (integral, exact in float64)
+    with np.errstate(invalid="ignore", over="ignore"):  # the invalid positions' values are not used
+        ix -= x0
+        iy -= y0
+        iy *= w
+        iy += ix  # the flat index into the crop (integral, exact in float64)
     # one gather of every position, those outside reading a False past the crop's end: the
     # boolean-mask selections it replaces were most of a polygon's visibility at full density
     at = np.where(inside, iy, h * w).astype(np.int64)
@@ -157,9 +158,22 @@ def _texel_span_of_box(H: np.ndarray, bbox, rows: tuple[int, int], cols: tuple[i
     into the pixel box ``bbox`` through the texel homography ``H``: the box's corners mapped back
     onto the plane, with a texel of margin for rounding. A photo that sees part of a polygon then
     projects only that part's texels. Where a corner's ray does not meet the plane in front of the
-    camera the pixel box's preimage is unbounded, and the span is the whole of rows x cols."""
+    camera the pixel box's preimage is unbounded, and the span is the whole of rows x cols.
+
+    Args:
+        H: (3, 3) texel homography (``frames.texel_homography``).
+        bbox: (x0, y0, x1, y1) pixel box, half-open.
+        rows, cols: (start, stop) of the texel rows and columns to restrict.
+
+    Returns:
+        (r0, r1, c0, c1) within rows x cols (r1 == r0 or c1 == c0 when no texel can reach the box).
+    """
     x0, y0, x1, y1 = bbox
-    q = np.linalg.inv(H) @ np.array([[x0, x1, x0, x1], [y0, y0, y1, y1], [1.0, 1.0, 1.0, 1.0]])
+    try:
+        Hinv = np.linalg.inv(H)
+    except np.linalg.LinAlgError:  # the camera centre on the polygon's plane: no bound from it
+        return (*rows, *cols)
+    q = Hinv @ np.array([[x0, x1, x0, x1], [y0, y0, y1, y1], [1.0, 1.0, 1.0, 1.0]])
     if not (q[2] > 1e-12 * np.abs(q[:2]).max(0)).all():
         return (*rows, *cols)
     t = q[:2] / q[2]  # the corners' texel coordinates (x, y); centres sit at index + 0.5

@@ -193,14 +193,19 @@ def optimize_polygon(
             )
         blend = W
         if cfg.select:
-            settled, _ = settled_texels(lv, prev.active, prev.active, cfg.settle_sigma)
+            free = None  # select_scope "all": every texel
+            if cfg.select_scope == "disagree":
+                free = lv.mask & ~settled_texels(lv, prev.active, prev.active, cfg.settle_sigma)[0]
             W, stats["selection"] = selection.select_weights(
                 W, lv.Q, lv.idx, lv.mask, len(inp.photos), cfg.select_patch, cfg.select_smoothness,
-                cfg.select_feather, free=lv.mask & ~settled if cfg.select_scope == "disagree" else None,
+                cfg.select_feather, free=free,
             )
         U = losses.compose(W, lv.sharp)
         if cfg.select and cfg.select_band > 0:
-            U = selection.detail_band(losses.compose(blend, lv.sharp), U, lv.mask, cfg.select_band)
+            # the band's low-pass over the texels some photo sees: the unseen ones (filled later)
+            # would pull both low-passes towards zero and leave part of the selected photo's exposure
+            seen = lv.mask & (blend.sum(0) > 0)
+            U = selection.detail_band(losses.compose(blend, lv.sharp), U, seen, cfg.select_band)
     lmask = lv.mask
     stats["diagnostics"] = {
         **diagnostics.effective_photos(W, lmask),

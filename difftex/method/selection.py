@@ -144,12 +144,12 @@ def detail_band(blended: torch.Tensor, selected: torch.Tensor, mask: torch.Tenso
 
     as in multi-band blending: the selected photo keeps its edges (mullions, carvings) where the
     blend of photos that disagree by parallax smears them, while its noise and exposure below the
-    band are averaged with the other photos'. The low-pass is normalised over the polygon's texels.
+    band are averaged with the other photos'. The low-pass is normalised over ``mask``.
 
     Args:
         blended: (3, h, w) the optimized blend's colours.
         selected: (3, h, w) the selection's colours.
-        mask: (h, w) bool texels of the polygon.
+        mask: (h, w) bool texels to filter over and change: the polygon's texels that a photo sees.
         sigma: Gaussian sigma of the band's edge, texels (> 0).
 
     Returns:

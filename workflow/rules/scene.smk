@@ -35,9 +35,9 @@ rule stage_config:
     localrule: True
     conda:
         "../envs/difftex.yaml"
-    # a shell job, not run: (Snakemake 9 spawns a second Snakemake, ~1.5 s, for each run: job),
-    # and no Python (0.2 s of CPU each, while the first scene job waits for a core); written to a
-    # temporary file and renamed, so a crash never leaves half a config file
+    # a shell job without Python (docs/workflow.md: a run: job starts a second Snakemake, a
+    # Python start per file delays the first scene job); written to a temporary file and
+    # renamed, so a crash never leaves half a config file
     shell:
         "(printf '%s' {params.text:q} > {output:q}.tmp && mv {output:q}.tmp {output:q}) > {log:q} 2>&1"
 

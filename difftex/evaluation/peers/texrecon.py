@@ -148,4 +148,6 @@ def collect(job: dict, work: Path, frames, mesh) -> tuple[dict, dict | None, dic
 
 
 def describe(job: dict) -> dict:
-    return {"program": "texrecon", "command": " ".join(job["cmd"])}
+    import shlex
+
+    return {"program": "texrecon", "command": shlex.join(job["cmd"])}
