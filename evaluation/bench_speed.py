@@ -13,8 +13,8 @@ For every scene, in rounds (``--repeats``), on the same machine:
    (``difftex peer``) on the photos the first run kept, with difftex's preparation (photos
    resampled as centred pinhole cameras, the proxy meshed) and the import of its atlas reported
    apart; in the later rounds its program alone again on the same prepared input. Each workflow
-   run's ratio is against the texrecon of its own round: this machine's speed drifts by a third
-   over minutes (other tenants), so a texrecon timed once minutes away from a run is no yardstick.
+   run's ratio is against the texrecon of its own round: a shared machine's speed drifts over
+   minutes (other tenants), so a texrecon timed once minutes away from a run is no yardstick.
    Not run if texrecon is not found (``DIFFTEX_TEXRECON`` or PATH;
    ``../shared/peers/build_texrecon.sh`` builds it).
 3. The floor: a plain per-texel average (``difftex baseline --method average``) of every polygon
