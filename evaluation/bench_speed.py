@@ -291,22 +291,10 @@ def main(argv=None) -> int:
     return 0
 
 
-def texrecon_rounds(row: dict) -> list[dict]:
-    """texrecon's time per round ({"wall_s", "cpu_s", "peak_rss_mib"}); a record written before
-    the rounds (one texrecon run) gives that run for every round."""
-    if row.get("texrecon_rounds"):
-        return row["texrecon_rounds"]
-    tr = row.get("texrecon", {})
-    if tr.get("peer_s") is None:
-        return []
-    one = {"wall_s": tr["peer_s"], "cpu_s": tr["peer_cpu_s"], "peak_rss_mib": tr["peer_peak_rss_mib"]}
-    return [one] * (1 + max((r.get("repeat", 0) for r in row["runs"]), default=0))
-
-
 def table_lines(row: dict, n_ph: int) -> list[str]:
     """Markdown rows of one scene: per round, its workflow runs and then its texrecon; each run's
     ratio is against its round's texrecon, the average's against the last round's."""
-    name, rounds = Path(row["scene"]).name, texrecon_rounds(row)
+    name, rounds = Path(row["scene"]).name, row.get("texrecon_rounds", [])
     lines = []
     for rep in range(1 + max((r.get("repeat", 0) for r in row["runs"]), default=0)):
         tw = rounds[rep].get("wall_s") if rounds else None
@@ -340,7 +328,7 @@ def ratio_lines(rows: list[dict]) -> list[str]:
 
     lines = []
     for row in rows:
-        rounds = texrecon_rounds(row)
+        rounds = row.get("texrecon_rounds", [])
         if not rounds:
             continue
         by: dict[str, list[float]] = {}

@@ -112,13 +112,18 @@ def main(argv=None) -> int:
         for label, pt in runs
     ]
     crops += [(label, img[y0:y1, x0:x1]) for label, img in ref]
-    out = Path(args.out)
+    write_mosaic(crops, args.max_width, Path(args.out), "texels")
+    return 0
+
+
+def write_mosaic(crops: list[tuple[str, np.ndarray]], max_width: int, out: Path, unit: str) -> None:
+    """:func:`mosaic` written to ``out`` through a temporary file (no half-written PNG), and said."""
     out.parent.mkdir(parents=True, exist_ok=True)
     tmp = out.with_name(out.stem + ".tmp.png")
-    mosaic(crops, args.max_width).save(tmp)
+    mosaic(crops, max_width).save(tmp)
     tmp.replace(out)
-    print(f"side_by_side: {out} ({len(crops)} crops of {x1 - x0}x{y1 - y0} texels)")
-    return 0
+    h, w = crops[0][1].shape[:2]
+    print(f"side_by_side: {out} ({len(crops)} crops of {w}x{h} {unit})")
 
 
 def view_crops(args) -> int:
@@ -148,12 +153,7 @@ def view_crops(args) -> int:
     if any(img.shape != crops[0][1].shape for _, img in crops):
         raise SystemExit(f"side_by_side: the renderings of {args.view!r} differ in size")
     y0, y1, x0, x1 = crop_box(crops[0][1].shape[:2], tuple(float(v) for v in args.crop.split(",")))
-    out = Path(args.out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = out.with_name(out.stem + ".tmp.png")
-    mosaic([(label, img[y0:y1, x0:x1]) for label, img in crops], args.max_width).save(tmp)
-    tmp.replace(out)
-    print(f"side_by_side: {out} ({len(crops)} crops of {x1 - x0}x{y1 - y0} pixels)")
+    write_mosaic([(label, img[y0:y1, x0:x1]) for label, img in crops], args.max_width, Path(args.out), "pixels")
     return 0
 
 
