@@ -419,3 +419,24 @@ def test_survey_preset_lays_out_a_drone_survey():
         a, b = corners @ v.R.T + v.t, corners @ Rw.T + tw
         shifts.append(np.linalg.norm(f * (a[:, :2] / a[:, 2:] - b[:, :2] / b[:, 2:]), axis=1).mean())
     assert 0.6 < np.median(shifts) < 1.6, np.median(shifts)
+
+
+def test_true_pose_scene_carries_the_poses_the_photos_were_rendered_at(survey_tiny, tmp_path):
+    """evaluation/true_poses.py: the scene loads with every photo at synth.json's R_true, t_true
+    (the written model has them with pose noise added), and the rest of the scene unchanged."""
+    from difftex.scene.loading import load_scene
+    from evaluation.true_poses import main as true_poses
+
+    out = tmp_path / "true"
+    assert true_poses(["--scene", str(survey_tiny), "--out", str(out)]) == 0
+    given, true = load_scene(survey_tiny), load_scene(out)
+    views = {v["name"]: v for v in _manifest(survey_tiny)["views"]}
+    assert sorted(p.name for p in true.photos) == sorted(views)
+    moved = 0.0
+    for g, t in zip(sorted(given.photos, key=lambda p: p.name), sorted(true.photos, key=lambda p: p.name)):
+        v = views[t.name]
+        assert np.allclose(t.R, v["R_true"], atol=1e-9) and np.allclose(t.t, v["t_true"], atol=1e-9)
+        assert (g.width, g.height, g.image_path.name) == (t.width, t.height, t.image_path.name)
+        moved = max(moved, float(np.abs(g.t - t.t).max()))
+    assert moved > 1e-4  # the written poses are the noisy ones
+    assert true_poses(["--scene", str(tmp_path / "nowhere"), "--out", str(tmp_path / "x")]) == 2

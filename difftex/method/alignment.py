@@ -12,7 +12,10 @@ optimized texture, or at the first level the per-texel median of the photos. The
 sampled through the same trilinear pyramid sampling as everywhere (difftex.sampling.photos); its
 gradient by central differences. A robust (Cauchy) weight ignores occluded texels, and a
 Gaussian prior of ``align_prior_px`` keeps corrections small where the texture says little
-(flat walls). The corrections accumulate from coarse to fine levels.
+(flat walls). The corrections accumulate from coarse to fine levels. What the consensus cannot
+tell (every photo moved together, or the plane moved along its normal) is taken out of the
+corrections after each level: their median, or with ``align_gauge: plane`` a common shift and
+height fitted over the photos (plane_gauge), so that relief does not pull them off the plane.
 
 Why per polygon and not a pose update shared by a photo's polygons: a homography per plane is
 exactly what a small pose error does to a planar polygon, and per-polygon parameters absorb
@@ -38,6 +41,12 @@ from difftex.sampling.texels import resample_nearest, texel_map
 # the number of points: 64 k gave corrections within 0.02 px of these on the analytic wall, at
 # four times the cost (alignment was 85-90 % of a `fast` polygon's time with 64 k).
 MAX_POINTS = 16384
+# Photos refined together below which the plane gauge falls back to the median: it fits four
+# parameters from two equations per photo, and with few photos a chance correlation of their pose
+# errors with their parallax is taken for height (six photos with such errors, on the analytic wall:
+# 1.4 px left of 2.6).
+PLANE_GAUGE_MIN_PHOTOS = 12
+PLANE_GAUGE_T = 3.0  # a fitted height is kept beyond this many of its standard errors
 
 
 @dataclass(frozen=True)
@@ -47,6 +56,8 @@ class AlignSettings:
     prior_px: float  # standard deviation of the prior on every parameter, pixels
     max_px: float  # corrections larger than this (at the polygon's edge) are rejected
     noise: float  # colour noise (sigma_c): the prior's and the robust weight's scale
+    gauge: str = "median"  # what is taken out of the corrections: their median, or plane_gauge's fit
+    robust: float = 3.0  # Cauchy scale, robust standard deviations of a photo's residuals
 
 
 def _basis(pix: torch.Tensor, centre: tuple[float, float], scale: float) -> torch.Tensor:
@@ -108,11 +119,12 @@ def gauss_newton(
         r = (col - target).double()  # (3, m)
         grad = torch.stack([gx, gy], -1).double()  # (3, m, 2)
         J = torch.einsum("cmk,mkp->cmp", grad, B)  # (3, m, 6)
-        # Cauchy weights at three robust standard deviations of this photo's residuals (its
-        # median absolute residual), at least the noise: an occluded texel hardly counts, while
-        # the blur differences at edges, which every photo has, keep their weight.
+        # Cauchy weights at st.robust robust standard deviations of this photo's residuals (its
+        # median squared residual), at least the noise: an occluded texel hardly counts, and at
+        # one deviation neither does relief that the photo sees displaced by parallax.
         e2 = (r * r).sum(0)
-        c2 = max(9.0 * 2.2 * float(e2.median()), 9.0 * st.noise**2)
+        k2 = st.robust**2
+        c2 = max(k2 * 2.2 * float(e2.median()), k2 * st.noise**2)
         w = weight.double() / (1.0 + e2 / c2)
         # the 6x6 system on the CPU, where the parameters live (the sums run on the photos' device)
         Hm = torch.einsum("cmp,m,cmq->pq", J, w, J).cpu() * inv_var + prior
@@ -171,6 +183,7 @@ def align_level(
     inner = torch.nn.functional.max_pool2d(outside, 5, stride=1)[0, 0] == 0
     defined = defined & inner
     before = dict(photos.corrections)
+    geometry: dict[int, tuple[torch.Tensor, torch.Tensor, torch.Tensor]] = {}
     for n in sorted(photos.samplers):
         if which is not None and n not in which:
             continue
@@ -190,13 +203,18 @@ def align_level(
             lo, hi = pix0.min(0).values, pix0.max(0).values
             centre = (float((lo[0] + hi[0]) / 2), float((lo[1] + hi[1]) / 2))
             corr = Correction(torch.zeros(6, dtype=torch.float64), centre, max(float((hi - lo).max()) / 2, 1.0))
+        if st.gauge == "plane":
+            geometry[n] = (*texel_jacobian_and_parallax(tm, frame, idx), pix0)
         target = consensus.reshape(3, -1)[:, idx]
         weight = torch.ones(len(idx), device=pix0.device)
         new = gauss_newton(photos, n, pix0, fp, target, weight, corr, transfers[n] if transfers else None, st)
         if bool(torch.isfinite(new.params).all()):
             photos.corrections[n] = new
         report[ph.name] = n
-    _fix_gauge(photos)
+    if st.gauge == "plane" and len(geometry) >= PLANE_GAUGE_MIN_PHOTOS:
+        plane_gauge(photos, geometry)
+    else:
+        _fix_gauge(photos)
     out = {}
     for name, n in report.items():
         c = photos.corrections.get(n)
@@ -233,3 +251,108 @@ def _fix_gauge(photos: PhotoSet) -> None:
     med = torch.stack([c.params for c in photos.corrections.values()]).median(0).values
     for n, c in photos.corrections.items():
         photos.corrections[n] = Correction(c.params - med, c.centre, c.scale)
+
+
+def texel_jacobian_and_parallax(tm, frame: UVFrame, idx: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """At the texels ``idx`` (flat indices) of ``tm``'s frame: the photo's pixels per texel and
+    where a point one scene unit in front of the plane is seen on it.
+
+    A point at height h along the normal n, seen along the unit direction v (camera to texel), is
+    seen on the plane at h (n - v / (v . n)) from its foot: the parallax per unit height.
+
+    Returns:
+        J (m, 2, 2): columns d pixel / d texel x and y (finite differences of the texel map);
+        P (m, 2): parallax per unit height, texels.
+    """
+    pix = tm.pix.double()
+    du = torch.zeros_like(pix)
+    dv = torch.zeros_like(pix)
+    if pix.shape[1] > 1:
+        du[:, :-1] = pix[:, 1:] - pix[:, :-1]
+        du[:, -1] = du[:, -2]
+    if pix.shape[0] > 1:
+        dv[:-1] = pix[1:] - pix[:-1]
+        dv[-1] = dv[-2]
+    J = torch.stack([du.reshape(-1, 2)[idx], dv.reshape(-1, 2)[idx]], -1)
+    v = tm.view.double().reshape(3, -1)[:, idx].cpu()
+    n = torch.tensor(np.asarray(frame.normal), dtype=torch.float64)
+    vn = (v * n[:, None]).sum(0).clamp(max=-1e-3)  # front-facing texels look against the normal
+    p3 = n[:, None] - v / vn[None]
+    axes = torch.tensor(np.stack([frame.e_u, frame.e_v]), dtype=torch.float64)  # (2, 3)
+    return J.cpu(), (axes @ p3).T / frame.texel_size
+
+
+def _huber_fit(A: torch.Tensor, b: torch.Tensor, iterations: int = 5) -> torch.Tensor:
+    """(t_x, t_y, h_x, h_y) of plane_gauge: least squares with Huber weights (1.345 robust
+    deviations, so a photo far off does not set the gauge); a height within PLANE_GAUGE_T robust
+    standard errors of zero is set to zero and the shift refitted without it: the pose errors of
+    a few dozen photos correlate with their parallax by that much by chance, and taking that
+    out would misalign photos that agree on a flat surface."""
+    cols = list(range(A.shape[1]))
+    for _ in range(2):
+        As = A[:, cols]
+        w = torch.ones(len(b), dtype=torch.float64)
+        for _ in range(iterations):
+            xs = torch.linalg.lstsq(As * w.sqrt()[:, None], b * w.sqrt()).solution
+            r = (b - As @ xs).abs()
+            s = 1.4826 * float(r.median()) + 1e-9
+            w = (1.345 * s / r.clamp_min(1e-12)).clamp(max=1.0)
+        cov = s**2 * torch.linalg.pinv((As * w[:, None]).T @ As)
+        x = torch.zeros(A.shape[1], dtype=torch.float64)
+        x[cols] = xs
+        weak = [c for j, c in enumerate(cols) if c >= 2 and abs(float(xs[j])) < PLANE_GAUGE_T * float(cov[j, j].sqrt())]
+        if not weak:
+            break
+        cols = [c for c in cols if c not in weak]
+    return x
+
+
+def plane_gauge(photos: PhotoSet, geometry: dict) -> None:
+    """Take out of the refined photos' corrections what a common in-plane shift t and a common
+    height h_x, h_y per texel axis explain.
+
+    Aligning photos to their consensus cannot see either: every photo moved together, or the
+    plane moved along its normal (each photo then shifts by its parallax). Relief decides both:
+    the fit follows the layer with the most contrast (window frames, reveals), not the plane the
+    texture lies in, and vertical and horizontal edges can sit at different depths. With photo k's
+    correction moving its samples by e_k texels on average and P_k its parallax per unit height,
+
+        e_k = t + diag(h_x, h_y) P_k + (the photo's own pose error),
+
+    fitted over the photos by least squares with Huber weights; the fitted part is removed.
+
+    Args:
+        geometry: photo index -> (J (m, 2, 2), P (m, 2), pix0 (m, 2)) at its fitted texels.
+    """
+    names, E, P, J = [], [], [], []
+    for n, (Jn, Pn, pix0) in geometry.items():
+        c = photos.corrections.get(n)
+        if c is None:
+            continue
+        # texels whose finite differences reach past the photo's edge or fold are left out
+        ok = torch.isfinite(Jn).all((1, 2)) & (torch.linalg.det(Jn).abs() > 1e-9) & torch.isfinite(Pn).all(1)
+        if not bool(ok.any()):
+            continue
+        d = c.displacement(pix0.cpu()[ok]).double()
+        e = torch.linalg.solve(Jn[ok], d[..., None])[..., 0]  # texels, per fitted texel
+        names.append(n)
+        E.append(e.mean(0))
+        P.append(Pn[ok].mean(0))
+        J.append(Jn[ok].mean(0))
+    if len(names) < PLANE_GAUGE_MIN_PHOTOS:
+        _fix_gauge(photos)
+        return
+    Em, Pm = torch.stack(E), torch.stack(P)
+    k = len(names)
+    A = torch.zeros(2 * k, 4, dtype=torch.float64)
+    A[0::2, 0] = 1.0
+    A[1::2, 1] = 1.0
+    A[0::2, 2] = Pm[:, 0]
+    A[1::2, 3] = Pm[:, 1]
+    x = _huber_fit(A, Em.reshape(-1))
+    for i, n in enumerate(names):
+        g = J[i] @ (x[:2] + x[2:] * Pm[i])  # pixels
+        c = photos.corrections[n]
+        p = c.params.clone()
+        p[:2] -= g.to(p.dtype)
+        photos.corrections[n] = Correction(p, c.centre, c.scale)

@@ -21,6 +21,7 @@ Device = Literal["auto", "cpu", "cuda"]
 CompileMode = Literal["auto", "on", "off"]
 RenderUnits = Literal["noise", "raw"]
 AlignModel = Literal["translation", "affine"]
+AlignGauge = Literal["median", "plane"]
 ResolutionReference = Literal["best", "pixel"]
 # the parameters: "softmax" (the project's): logits, W their softmax over the active slots;
 # "normalised" (the paper's, Sec. 4.1): weights w in [0, 1], W = w normalised per texel
@@ -167,14 +168,23 @@ class OptimizeConfig:
     relief_smooth: int = 9  # mode filter of the height field, texels of the sweep's frame (odd; 1: off)
     coarse_to_fine: bool = True
     histogram_matching: bool = True
-    # refine each photo's mapping (affine, pixels) against the consensus texture; off by default:
-    # with registered photos it fitted spurious shifts (docs/optimizer.md, alignment refinement)
-    align: bool = False
-    align_model: AlignModel = "translation"  # correction per photo: translation (2 parameters) or affine (6)
+    # refine each photo's mapping (affine, pixels) against the consensus texture, where at least
+    # align_min_photos photos are refined: drone surveys' poses are off by about a pixel, and
+    # their blends lost the bricks and mullions to it (docs/optimizer.md, "Alignment refinement")
+    align: bool = True
+    align_model: AlignModel = "affine"  # correction per photo: translation (2 parameters) or affine (6)
     align_iterations: int = 3  # Gauss-Newton steps per level
-    align_prior_px: float = 2.0  # prior standard deviation of a correction, pixels
+    align_prior_px: float = 0.5  # prior standard deviation of a correction, pixels
     align_max_px: float = 8.0  # a correction moving the polygon's edge further than this is rejected
     align_max_long_side: int = 1024  # align at levels up to this long side
+    # what the corrections cannot tell apart and is taken out of them: the median correction
+    # (median), or a common in-plane shift and a common depth along the normal per texel axis (plane:
+    # relief pulls the fit to the layer with the most contrast; difftex.method.alignment)
+    align_gauge: AlignGauge = "plane"
+    align_robust: float = 1.0  # Cauchy scale of the fit's residuals, robust standard deviations
+    # a level is aligned only with at least this many photos to refine: the plane gauge fits four
+    # parameters over them, and with fewer photos alignment never measured better (Table 2's scenes)
+    align_min_photos: int = 12
     # Gaussian sigma, texels, of the low-pass under which photos are compared (Q_c, L_Render,
     # elimination, settling): relief parallax of thin details is not disagreement (0: full detail)
     consistency_sigma: float = 0.0
@@ -219,6 +229,11 @@ class OptimizeConfig:
         _check_choice("elimination_test", self.elimination_test, ("loo", "paper"))
         _check_choice("render_units", self.render_units, ("noise", "raw"))
         _check_choice("align_model", self.align_model, ("translation", "affine"))
+        _check_choice("align_gauge", self.align_gauge, ("median", "plane"))
+        if self.align_min_photos < 0:
+            raise ValueError(f"align_min_photos must be >= 0, got {self.align_min_photos}")
+        if not self.align_robust > 0:
+            raise ValueError(f"align_robust must be > 0, got {self.align_robust}")
         _check_choice("resolution_reference", self.resolution_reference, ("best", "pixel"))
         if self.resolution_weight < 0:
             raise ValueError(f"resolution_weight must be >= 0, got {self.resolution_weight}")

@@ -157,7 +157,7 @@ def optimize_polygon(
             if aligning and side <= cfg.align_max_long_side:
                 rep = _align(photos, frame, transfers, prev, cfg)
                 stats["alignment"].append(rep)
-                aligned = True
+                aligned = "skipped" not in rep
                 # Converged: the corrections no longer move at this resolution; finer levels
                 # would refit the same ones at the cost of mapping every photo again.
                 aligning = li == 0 or rep["max_update_px"] > cfg.align_tol_px
@@ -245,19 +245,25 @@ def _align(photos: PhotoSet, frame, transfers, prev: LevelState | None, cfg: Opt
     inp = photos.inp
     mask = resample_nearest(inp.texel_mask, inp.frame, frame)
     which = None
+    if prev is not None:
+        W = losses.blend_weights(prev.z, prev.active, cfg.weights)
+        which = set(torch.unique(prev.level.idx[(W > cfg.tau) & prev.level.visible]).tolist()) - {-1}
+    refined = len(photos.samplers) if which is None else len(which)
+    if refined < cfg.align_min_photos:  # too few to tell pose errors from relief: registration kept
+        return {"long_side": max(frame.shape), "photos": {}, "aligned": 0, "max_update_px": 0.0,
+                "skipped": f"{refined} photos to refine, fewer than align_min_photos", "time_s": 0.0}
     if prev is None:
         consensus, defined = alignment.consensus_median(photos, frame, mask, transfers)
         noise = 0.05
     else:
         plv = prev.level
-        W = losses.blend_weights(prev.z, prev.active, cfg.weights)
-        which = set(torch.unique(plv.idx[(W > cfg.tau) & plv.visible]).tolist()) - {-1}
         U = losses.compose(W, plv.sharp)  # registration needs the full detail
         consensus = upsample_field(U, plv.frame, frame)
         defined = upsample_field((plv.visible.sum(0) >= 2).float()[None], plv.frame, frame)[0] > 0.99
         noise = plv.sharp_noise
     st = alignment.AlignSettings(
-        cfg.align_model, cfg.align_iterations, cfg.align_prior_px, cfg.align_max_px, max(noise, cfg.sigma_min)
+        cfg.align_model, cfg.align_iterations, cfg.align_prior_px, cfg.align_max_px, max(noise, cfg.sigma_min),
+        cfg.align_gauge, cfg.align_robust,
     )
     report = alignment.align_level(
         photos, frame, mask, transfers, consensus, defined & torch.from_numpy(mask).to(defined.device), st, which
