@@ -264,16 +264,18 @@ def texel_jacobian_and_parallax(tm, frame: UVFrame, idx: torch.Tensor) -> tuple[
         J (m, 2, 2): columns d pixel / d texel x and y (finite differences of the texel map);
         P (m, 2): parallax per unit height, texels.
     """
-    pix = tm.pix.double()
-    du = torch.zeros_like(pix)
-    dv = torch.zeros_like(pix)
-    if pix.shape[1] > 1:
-        du[:, :-1] = pix[:, 1:] - pix[:, :-1]
-        du[:, -1] = du[:, -2]
-    if pix.shape[0] > 1:
-        dv[:-1] = pix[1:] - pix[:-1]
-        dv[-1] = dv[-2]
-    J = torch.stack([du.reshape(-1, 2)[idx], dv.reshape(-1, 2)[idx]], -1)
+    h, w = tm.pix.shape[:2]
+    flat = tm.pix.reshape(-1, 2)
+
+    def difference(along: torch.Tensor, size: int, stride: int) -> torch.Tensor:
+        """Forward difference to the next texel along an axis (backward at its last texel), only
+        at ``idx``: the whole frame's differences would be computed for a few thousand texels."""
+        if size < 2:
+            return torch.zeros(len(idx), 2, dtype=torch.float64, device=flat.device)
+        a = torch.where(along == size - 1, idx - stride, idx)
+        return flat[a + stride].double() - flat[a].double()
+
+    J = torch.stack([difference(idx % w, w, 1), difference(idx // w, h, w)], -1)
     v = tm.view.double().reshape(3, -1)[:, idx].cpu()
     n = torch.tensor(np.asarray(frame.normal), dtype=torch.float64)
     vn = (v * n[:, None]).sum(0).clamp(max=-1e-3)  # front-facing texels look against the normal

@@ -21,6 +21,7 @@ like for the other view-selection methods.
 from __future__ import annotations
 
 import os
+import shlex
 import shutil
 from pathlib import Path
 
@@ -148,6 +149,4 @@ def collect(job: dict, work: Path, frames, mesh) -> tuple[dict, dict | None, dic
 
 
 def describe(job: dict) -> dict:
-    import shlex
-
     return {"program": "texrecon", "command": shlex.join(job["cmd"])}
