@@ -227,7 +227,7 @@ def test_parallax_per_unit_height_is_where_a_raised_point_is_seen(yaw, pitch):
 def test_plane_gauge_recovers_the_poses_of_a_dozen_photos():
     """Twelve photos around the flat wall, each off by about 2 px in a random direction: with the
     plane gauge (and three-deviation Cauchy weights: at one deviation, the defaults', the checker's
-    edges, which carry the misregistration, hardly count, and 0.76 px are left) they are aligned."""
+    edges, which carry the misregistration, hardly count, and more is left) they are aligned."""
     f = 300.0
     rng = np.random.default_rng(3)
     yaws = np.linspace(-30.0, 30.0, 12)

@@ -43,8 +43,7 @@ from difftex.sampling.texels import resample_nearest, texel_map
 MAX_POINTS = 16384
 # Photos refined together below which the plane gauge falls back to the median: it fits four
 # parameters from two equations per photo, and with few photos a chance correlation of their pose
-# errors with their parallax is taken for height (six photos with such errors, on the analytic wall:
-# 1.4 px left of 2.6).
+# errors with their parallax is taken for height (docs/optimizer.md, "Alignment refinement").
 PLANE_GAUGE_MIN_PHOTOS = 12
 PLANE_GAUGE_T = 3.0  # a fitted height is kept beyond this many of its standard errors
 
