@@ -180,8 +180,9 @@ def test_plane_gauge_is_not_set_by_a_photo_far_off():
 
     photos, geometry, own = _gauge_case(np.random.default_rng(1))
     far = photos.corrections[3]
-    photos.corrections[3] = Correction(far.params + torch.tensor([12.0, -9.0, 0, 0, 0, 0], dtype=torch.float64),
-                                       far.centre, far.scale)
+    photos.corrections[3] = Correction(
+        far.params + torch.tensor([12.0, -9.0, 0, 0, 0, 0], dtype=torch.float64), far.centre, far.scale
+    )
     own[3] += (6.0, -4.5)
     plane_gauge(photos, geometry)
     after = _texel_shifts(photos, len(own))
@@ -287,3 +288,41 @@ def test_too_few_photos_keep_their_registration(scene):
     _, tp, _ = run(given, imgs, align=True)
     assert tp.stats["corrections"] == {}
     assert all("skipped" in rep for rep in tp.stats["alignment"])
+
+
+@pytest.mark.gpu
+def test_alignment_on_cuda_matches_cpu():
+    """The defaults' alignment (plane gauge, affine, Cauchy weights) on CUDA: the same corrections
+    as on the CPU, to float32's reach, for a dozen photos off by about 2 px."""
+    if not torch.cuda.is_available():
+        pytest.skip("no CUDA")
+    f = 300.0
+    rng = np.random.default_rng(5)
+    true = [
+        make_photo(f"p{i:02d}", y, pitch_deg=p, size=(320, 240), f=f)
+        for i, (y, p) in enumerate(zip(np.linspace(-30.0, 30.0, 12), np.tile([6.0, -6.0, 0.0], 4)))
+    ]
+    imgs = [render(ph) for ph in true]
+    ang = rng.uniform(0, 2 * np.pi, 12)
+    given = [rotated(ph, 2.0 * np.sin(a) / f, 2.0 * np.cos(a) / f) for ph, a in zip(true, ang)]
+    inp = make_input(given, imgs, long_side=128)
+    cfg, compute = fast_cfg(align=True), {d: ComputeConfig(device=d, compile="off") for d in ("cpu", "cuda")}
+    tps = {d: texture_polygon(inp, cfg, compute[d]) for d in ("cpu", "cuda")}
+    ty, tx = np.nonzero(inp.texel_mask)
+    moved = 0
+    for ph in given:
+        a, b = (tps[d].stats["corrections"].get(ph.name) for d in ("cpu", "cuda"))
+        assert (a is None) == (b is None), ph.name
+        if a is None:
+            continue
+        px, _ = texel_to_pixel(inp.frame, ph, tx + 0.5, ty + 0.5)
+        pa, pb = (
+            Correction(torch.tensor(c["params"], dtype=torch.float64), tuple(c["centre"]), c["scale"])
+            .apply(torch.from_numpy(px))
+            .numpy()
+            for c in (a, b)
+        )
+        assert np.linalg.norm(pa - pb, axis=1).max() < 0.05, ph.name
+        moved += np.linalg.norm(pa - px, axis=1).mean() > 1.0
+    assert moved >= 10  # the photos were corrected, not left alone on both devices
+    assert np.abs(tps["cpu"].texture - tps["cuda"].texture).mean() < 2e-3
