@@ -140,12 +140,12 @@ def phase_shift(reference: np.ndarray, moving: np.ndarray, upsample: int = 10) -
     corr = np.fft.ifft2(product)
     shape = np.array(corr.shape)
     shifts = np.array(np.unravel_index(np.argmax(np.abs(corr)), corr.shape), dtype=np.float64)
-    wrap = shifts > np.fix(shape / 2)
+    wrap = shifts > np.trunc(shape / 2)
     shifts[wrap] -= shape[wrap]
     if upsample > 1:
         shifts = np.round(shifts * upsample) / upsample
         region = np.ceil(upsample * 1.5)
-        centre = np.fix(region / 2.0)
+        centre = np.trunc(region / 2.0)
         up = _upsampled_dft(product.conj(), int(region), upsample, centre - shifts * upsample).conj()
         peak = np.array(np.unravel_index(np.argmax(np.abs(up)), up.shape), dtype=np.float64)
         shifts = shifts + (peak - centre) / upsample
