@@ -136,4 +136,6 @@ def main(argv=None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    from evaluation.common import run_script
+
+    run_script(main)

@@ -379,4 +379,4 @@ def write(stem: Path, rows: list[dict], mach: dict, args) -> None:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    C.run_script(main)

@@ -32,6 +32,17 @@ LABELS = {"difftex": "DiffTex (ours)", "difftex-paper": "DiffTex as published (p
           "meshlab-face": "MeshLab per-face raster parameterization", "meshlab-blend": "MeshLab per-texel raster blend"}
 
 
+def run_script(main) -> None:
+    """Exit with ``main()``'s status. Bad input that difftex names (a folder without textures, an
+    unreadable file: DifftexError) ends in one line that names the script, not a traceback."""
+    from difftex.errors import DifftexError
+
+    try:
+        sys.exit(main())
+    except DifftexError as e:
+        sys.exit(f"{Path(sys.argv[0]).stem}: {e}")
+
+
 def machine() -> dict:
     import torch
 

@@ -158,4 +158,6 @@ def view_crops(args) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    from evaluation.common import run_script
+
+    run_script(main)

@@ -400,6 +400,24 @@ def test_side_by_side_takes_pngs_in_the_ground_truth_frame(tmp_path):
                       "--polygon", "wall", "--out", str(tmp_path / "x.png")])
 
 
+def test_evaluation_script_names_bad_input_in_one_line(tmp_path):
+    """An evaluation script run as a command: a --run folder without textures (DifftexError deep in
+    difftex) ends in one line that names the script and the folder, exit status 1, no traceback."""
+    import subprocess
+    import sys
+
+    root = Path(__file__).resolve().parents[1]
+    p = subprocess.run(
+        [sys.executable, str(root / "evaluation" / "side_by_side.py"), "--scene", str(tmp_path), "--run",
+         f"a={tmp_path / 'empty'}", "--polygon", "wall", "--out", str(tmp_path / "x.png")],
+        capture_output=True, text=True,
+    )
+    assert p.returncode == 1 and "Traceback" not in p.stderr, p.stderr
+    lines = p.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("side_by_side: ") and "no textures/ folder" in lines[0]
+    assert not (tmp_path / "x.png").exists()
+
+
 def test_side_by_side_of_a_held_out_view_crops_each_rendering_beside_the_photo(tmp_path):
     """evaluation/side_by_side.py --view: every run's rendering into the held-out camera, cropped
     the same way, then the held-out photo; a run without that rendering is one clear line."""
