@@ -326,3 +326,49 @@ def test_alignment_on_cuda_matches_cpu():
         moved += np.linalg.norm(pa - px, axis=1).mean() > 1.0
     assert moved >= 10  # the photos were corrected, not left alone on both devices
     assert np.abs(tps["cpu"].texture - tps["cuda"].texture).mean() < 2e-3
+
+
+@pytest.mark.parametrize(
+    "over",
+    [{"align_min_long_side": 64}, {"align_consensus": "median"}, {"align_consensus": "blend"}, {"align_points": 256}],
+)
+def test_alignment_options_keep_recovering_the_poses(scene, over):
+    """align_min_long_side leaves the coarser levels unaligned (the first aligned level always
+    goes on to the next); align_consensus: median aligns the later levels to the photos' median
+    at full detail; align_points: 256 fits from a strided 256 texels per photo. Each still brings
+    the four photos, 2-2.5 px off, to within half a pixel of their true poses (the defaults' fit
+    within 0.3 px: test_corrections_recover_the_poses_and_the_texture)."""
+    true, given, imgs = scene
+    inp, tp, _ = run(given, imgs, align=True, align_min_photos=0, **BEFORE, **over)
+    sides = [a["long_side"] for a in tp.stats["alignment"]]
+    assert sides == ([64, 128] if "align_min_long_side" in over else [32, 64, 128]), sides
+    corr = tp.stats["corrections"]
+    after = [reprojection_error(inp, given[k], true[k], corr.get(name)) for k, name in enumerate(NAMES)]
+    assert max(after) < 0.5, after
+
+
+def test_alignment_accuracy_measures_each_photo_against_its_true_pose(scene, tmp_path):
+    """evaluation/alignment_accuracy.py: per photo the mean distance to the true pose's mapping,
+    as written (about the 2-2.5 px the poses were turned by) and with the run's correction; the
+    photo's pixels per texel; and the W-weighted summary in texels."""
+    from evaluation.alignment_accuracy import photo_error, summary, weight_shares
+
+    true, given, imgs = scene
+    inp, tp, _ = run(given, imgs, align=True, align_min_photos=0, **BEFORE)
+    rows = []
+    for k, name in enumerate(NAMES):
+        vis = inp.texel_visible[k] & inp.texel_mask
+        before, after, per_texel = photo_error(inp.frame, given[k], true[k], vis, tp.stats["corrections"].get(name))
+        assert 1.9 < before < 2.8 and after < 0.3, (name, before, after)
+        assert photo_error(inp.frame, true[k], true[k], vis, None)[:2] == (0.0, 0.0)
+        # against the frame's corners projected: the square root of pixels of area per texel
+        w, h = inp.frame.width, inp.frame.height
+        c, _ = texel_to_pixel(inp.frame, true[k], np.array([0.0, w, w, 0.0]), np.array([0.0, 0.0, h, h]))
+        area = 0.5 * abs(np.dot(c[:, 0], np.roll(c[:, 1], 1)) - np.dot(c[:, 1], np.roll(c[:, 0], 1)))
+        assert abs(per_texel / math.sqrt(area / (w * h)) - 1) < 0.1, (per_texel, area)
+        rows.append({"before_px": before, "after_px": after, "px_per_texel": per_texel, "weight_share": 0.25})
+    s = summary(rows)
+    assert s["photos"] == 4 and s["closer"] == 4 and s["weighted_after_texels"] < 0.3 < s["weighted_before_texels"]
+    np.savez(tmp_path / "weights.npz", photos=np.array(["a", "b", "c"]), idx=np.array([[[0, 1]], [[2, -1]]]),
+             W=np.array([[[0.5, 1.0]], [[0.5, 0.0]]], np.float16))
+    assert weight_shares(tmp_path / "weights.npz") == {"a": 0.25, "b": 0.5, "c": 0.25}

@@ -36,8 +36,8 @@ from difftex.sampling.colour import apply_transfer_torch
 from difftex.sampling.photos import Correction, PhotoSet
 from difftex.sampling.texels import resample_nearest, texel_map
 
-# Texels per photo and Gauss-Newton step (a strided subset above it). A 2- or 6-parameter fit
-# from 16 k texels is limited by the texture's blur and the pose error's non-affine part, not by
+# Texels per photo and Gauss-Newton step (a strided subset above it; align_points' default). A 2-
+# or 6-parameter fit from 16 k texels is limited by the texture's blur and the pose error's non-affine part, not by
 # the number of points: 64 k gave corrections within 0.02 px of these on the analytic wall, at
 # four times the cost (alignment was 85-90 % of a `fast` polygon's time with 64 k).
 MAX_POINTS = 16384
@@ -57,6 +57,7 @@ class AlignSettings:
     noise: float  # colour noise (sigma_c): the prior's and the robust weight's scale
     gauge: str = "median"  # what is taken out of the corrections: their median, or plane_gauge's fit
     robust: float = 3.0  # Cauchy scale, robust standard deviations of a photo's residuals
+    points: int = MAX_POINTS  # texels per photo and step, at most (a strided subset above it)
 
 
 def _basis(pix: torch.Tensor, centre: tuple[float, float], scale: float) -> torch.Tensor:
@@ -154,6 +155,35 @@ def consensus_median(
     return torch.nan_to_num(med), vis.sum(0) >= 2
 
 
+def consensus_blend(
+    photos: PhotoSet, frame: UVFrame, mask: np.ndarray, transfers: list | None, weights: dict[int, torch.Tensor]
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """The previous level's blend at this level's detail ((3, h, w)) and where it is defined.
+
+    Args:
+        weights: per photo n, its blend weight (h, w) on this level's frame (the coarser level's
+            optimized W, upsampled). Each of those photos is mapped at this level with its current
+            correction and blended by them: the texture the optimizer chose, with this level's
+            detail, where the upsampled texture would be a level blurrier.
+
+    Returns:
+        (consensus, defined): defined where the photos mapped hold at least half of the weight.
+    """
+    h, w = frame.shape
+    num = torch.zeros(3, h, w, device=photos.device)
+    den = torch.zeros(h, w, device=photos.device)
+    total = torch.zeros(h, w, device=photos.device)
+    for n, wn in sorted(weights.items()):
+        total += wn
+        mp = photos.map(n, frame, mask, transfers[n] if transfers else None)
+        if mp is None:
+            continue
+        v = wn * mp.visible.float()
+        num += mp.colour * v
+        den += v
+    return num / den.clamp_min(1e-6), (den > 0.5 * total) & (den > 1e-3)
+
+
 def align_level(
     photos: PhotoSet,
     frame: UVFrame,
@@ -193,8 +223,8 @@ def align_level(
         if int(sel.sum()) < 64:
             continue
         idx = torch.nonzero(sel.flatten()).flatten()
-        if len(idx) > MAX_POINTS:
-            idx = idx[:: math.ceil(len(idx) / MAX_POINTS)]
+        if len(idx) > st.points:
+            idx = idx[:: math.ceil(len(idx) / st.points)]
         pix0 = tm.pix.reshape(-1, 2)[idx].double()
         fp = tm.footprint.reshape(-1)[idx]
         corr = photos.corrections.get(n)

@@ -22,6 +22,7 @@ CompileMode = Literal["auto", "on", "off"]
 RenderUnits = Literal["noise", "raw"]
 AlignModel = Literal["translation", "affine"]
 AlignGauge = Literal["median", "plane"]
+AlignConsensus = Literal["texture", "median", "blend"]
 ResolutionReference = Literal["best", "pixel"]
 # the parameters: "softmax" (the project's): logits, W their softmax over the active slots;
 # "normalised" (the paper's, Sec. 4.1): weights w in [0, 1], W = w normalised per texel
@@ -177,6 +178,14 @@ class OptimizeConfig:
     align_prior_px: float = 0.5  # prior standard deviation of a correction, pixels
     align_max_px: float = 8.0  # a correction moving the polygon's edge further than this is rejected
     align_max_long_side: int = 1024  # align at levels up to this long side
+    # ... and from this long side (0: from the first level): on coarser levels a texel spans
+    # several of the photos' pixels, so their pose errors are a fraction of a texel there
+    align_min_long_side: int = 0
+    align_points: int = 16384  # texels per photo and Gauss-Newton step (a strided subset above it)
+    # what the photos are aligned to after the first level: the previous level's texture,
+    # upsampled (texture), the per-texel median of the photos at this level (median), or the
+    # previous level's blend of the photos mapped at this level (blend); both at full detail
+    align_consensus: AlignConsensus = "texture"
     # what the corrections cannot tell apart and is taken out of them: the median correction
     # (median), or a common in-plane shift and a common depth along the normal per texel axis (plane:
     # relief pulls the fit to the layer with the most contrast; difftex.method.alignment)
@@ -230,6 +239,11 @@ class OptimizeConfig:
         _check_choice("render_units", self.render_units, ("noise", "raw"))
         _check_choice("align_model", self.align_model, ("translation", "affine"))
         _check_choice("align_gauge", self.align_gauge, ("median", "plane"))
+        _check_choice("align_consensus", self.align_consensus, ("texture", "median", "blend"))
+        if self.align_min_long_side < 0:
+            raise ValueError(f"align_min_long_side must be >= 0, got {self.align_min_long_side}")
+        if self.align_points < 64:
+            raise ValueError(f"align_points must be >= 64, got {self.align_points}")
         if self.align_min_photos < 0:
             raise ValueError(f"align_min_photos must be >= 0, got {self.align_min_photos}")
         if not self.align_robust > 0:

@@ -148,19 +148,20 @@ def optimize_polygon(
         advance = functools.partial(bar.advance, bar.add_task(f"optimize {inp.polygon_id}", total=total))
     bar.start()
     stats["alignment"] = []
-    aligning = cfg.align
+    aligning, first_fit = cfg.align, True
     try:
         for li, side in enumerate(sides):
             tl = time.perf_counter()
             frame = level_frame(inp.frame, side)
             aligned = False
-            if aligning and side <= cfg.align_max_long_side:
+            if aligning and cfg.align_min_long_side <= side <= cfg.align_max_long_side:
                 rep = _align(photos, frame, transfers, prev, cfg)
                 stats["alignment"].append(rep)
                 aligned = "skipped" not in rep
                 # Converged: the corrections no longer move at this resolution; finer levels
                 # would refit the same ones at the cost of mapping every photo again.
-                aligning = li == 0 or rep["max_update_px"] > cfg.align_tol_px
+                aligning = first_fit or rep["max_update_px"] > cfg.align_tol_px
+                first_fit = False
             lv = build_level(
                 photos,
                 frame,
@@ -236,7 +237,8 @@ def optimize_polygon(
 
 def _align(photos: PhotoSet, frame, transfers, prev: LevelState | None, cfg: OptimizeConfig) -> dict:
     """Refine the photos' mapping corrections at this level against the consensus texture: the
-    per-texel median of the photos at the first level, the previous level's texture after it.
+    per-texel median of the photos at the first level; after it, by ``align_consensus``, the
+    previous level's texture upsampled, its blend of the photos mapped at this level, or their median.
 
     After the first level only the photos that hold weight somewhere (> tau) are refined: the
     others do not appear in the texture, and a photo that comes back keeps its last correction.
@@ -252,18 +254,24 @@ def _align(photos: PhotoSet, frame, transfers, prev: LevelState | None, cfg: Opt
     if refined < cfg.align_min_photos:  # too few to tell pose errors from relief: registration kept
         return {"long_side": max(frame.shape), "photos": {}, "aligned": 0, "max_update_px": 0.0,
                 "skipped": f"{refined} photos to refine, fewer than align_min_photos", "time_s": 0.0}
-    if prev is None:
+    if prev is None or cfg.align_consensus == "median":
         consensus, defined = alignment.consensus_median(photos, frame, mask, transfers)
-        noise = 0.05
+        noise = 0.05 if prev is None else prev.level.sharp_noise
     else:
         plv = prev.level
-        U = losses.compose(W, plv.sharp)  # registration needs the full detail
-        consensus = upsample_field(U, plv.frame, frame)
         defined = upsample_field((plv.visible.sum(0) >= 2).float()[None], plv.frame, frame)[0] > 0.99
         noise = plv.sharp_noise
+        if cfg.align_consensus == "blend":
+            per_photo = {int(n): upsample_field((W * (plv.idx == n)).sum(0)[None], plv.frame, frame)[0]
+                         for n in torch.unique(plv.idx[W > 0]).tolist() if n >= 0}
+            consensus, seen = alignment.consensus_blend(photos, frame, mask, transfers, per_photo)
+            defined = defined & seen
+        else:
+            U = losses.compose(W, plv.sharp)  # registration needs the full detail
+            consensus = upsample_field(U, plv.frame, frame)
     st = alignment.AlignSettings(
         cfg.align_model, cfg.align_iterations, cfg.align_prior_px, cfg.align_max_px, max(noise, cfg.sigma_min),
-        cfg.align_gauge, cfg.align_robust,
+        cfg.align_gauge, cfg.align_robust, cfg.align_points,
     )
     report = alignment.align_level(
         photos, frame, mask, transfers, consensus, defined & torch.from_numpy(mask).to(defined.device), st, which
