@@ -291,9 +291,10 @@ def test_too_few_photos_keep_their_registration(scene):
 
 
 @pytest.mark.gpu
-def test_alignment_on_cuda_matches_cpu():
-    """The defaults' alignment (plane gauge, affine, Cauchy weights) on CUDA: the same corrections
-    as on the CPU, to float32's reach, for a dozen photos off by about 2 px."""
+@pytest.mark.parametrize("consensus", ["texture", "blend"])
+def test_alignment_on_cuda_matches_cpu(consensus):
+    """The defaults' alignment (plane gauge, affine, Cauchy weights), and with the blend consensus,
+    on CUDA: the same corrections as on the CPU, to float32's reach, for a dozen photos off by about 2 px."""
     if not torch.cuda.is_available():
         pytest.skip("no CUDA")
     f = 300.0
@@ -306,7 +307,8 @@ def test_alignment_on_cuda_matches_cpu():
     ang = rng.uniform(0, 2 * np.pi, 12)
     given = [rotated(ph, 2.0 * np.sin(a) / f, 2.0 * np.cos(a) / f) for ph, a in zip(true, ang)]
     inp = make_input(given, imgs, long_side=128)
-    cfg, compute = fast_cfg(align=True), {d: ComputeConfig(device=d, compile="off") for d in ("cpu", "cuda")}
+    cfg = fast_cfg(align=True, align_consensus=consensus)
+    compute = {d: ComputeConfig(device=d, compile="off") for d in ("cpu", "cuda")}
     tps = {d: texture_polygon(inp, cfg, compute[d]) for d in ("cpu", "cuda")}
     ty, tx = np.nonzero(inp.texel_mask)
     moved = 0
