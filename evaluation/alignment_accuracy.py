@@ -88,8 +88,8 @@ def polygon_rows(results: Path, pid: str, photos: dict, true: dict, kinds: dict)
     from difftex.sampling.crops import polygon_input_from_visibility
 
     vis = results / "visibility" / f"{pid}.npz"
-    if not vis.is_file():
-        vis = results.parent / "common" / "visibility" / f"{pid}.npz"  # a table's work folder
+    if not vis.is_file() and (results / "visibility.txt").is_file():  # an evaluation script's run folder
+        vis = Path((results / "visibility.txt").read_text().strip()) / f"{pid}.npz"
     inp = polygon_input_from_visibility(load_visibility(vis), photos)
     opt = results / "optimized" / pid
     stats = json.loads((opt / "stats.json").read_text())
