@@ -19,6 +19,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
+import math
 import sys
 import time
 from pathlib import Path
@@ -32,14 +33,17 @@ from evaluation import common as C  # noqa: E402
 MAX_TEXELS = 20000  # per photo, a strided subset of the texels it sees
 
 
-def true_photos(scene: Path, photos: dict) -> dict:
-    """The scene's photos by name with their true poses (synth.json ``R_true``, ``t_true``)."""
+def true_photos(scene: Path, photos: dict) -> tuple[dict, dict]:
+    """The scene's photos by name with their true poses (synth.json ``R_true``, ``t_true``), and
+    each view's kind (drone, street) by name."""
     from difftex.errors import DifftexError
 
     meta_path = scene / "synth.json"
     if not meta_path.is_file():
         raise DifftexError(f"{meta_path}: missing (a difftex synth scene, which keeps the true poses, is needed)")
     views = {v["name"]: v for v in json.loads(meta_path.read_text())["views"] if "R_true" in v}
+    if not set(views) & set(photos):
+        raise DifftexError(f"{meta_path}: none of its views is a photo of the scene's model")
     out = {}
     for name, ph in photos.items():
         if name in views:
@@ -58,20 +62,21 @@ def photo_error(frame, given, true, visible: np.ndarray, corr: dict | None) -> t
     from difftex.sampling.photos import Correction
 
     ty, tx = np.nonzero(visible)
-    step = max(1, len(tx) // MAX_TEXELS)
+    step = max(1, math.ceil(len(tx) / MAX_TEXELS))
     tx, ty = tx[::step] + 0.5, ty[::step] + 0.5
     pg, _ = texel_to_pixel(frame, given, tx, ty)
     pt, _ = texel_to_pixel(frame, true, tx, ty)
     px, _ = texel_to_pixel(frame, true, tx + 1.0, ty)
     py, _ = texel_to_pixel(frame, true, tx, ty + 1.0)
     ax, ay = px - pt, py - pt
-    per_texel = float(np.sqrt(np.abs(ax[:, 0] * ay[:, 1] - ax[:, 1] * ay[:, 0])).mean())  # sqrt of pixel area
-    before = float(np.linalg.norm(pg - pt, axis=1).mean())
+    # texels projected behind a camera (not finite) are left out of every mean
+    per_texel = float(np.nanmean(np.sqrt(np.abs(ax[:, 0] * ay[:, 1] - ax[:, 1] * ay[:, 0]))))  # sqrt of pixel area
+    before = float(np.nanmean(np.linalg.norm(pg - pt, axis=1)))
     if corr is None:
         return before, before, per_texel
     c = Correction(torch.tensor(corr["params"], dtype=torch.float64), tuple(corr["centre"]), corr["scale"])
     pc = c.apply(torch.from_numpy(pg)).numpy()
-    return before, float(np.linalg.norm(pc - pt, axis=1).mean()), per_texel
+    return before, float(np.nanmean(np.linalg.norm(pc - pt, axis=1))), per_texel
 
 
 def weight_shares(path: Path) -> dict[str, float]:
@@ -84,14 +89,18 @@ def weight_shares(path: Path) -> dict[str, float]:
 
 
 def polygon_rows(results: Path, pid: str, photos: dict, true: dict, kinds: dict) -> list[dict]:
+    from difftex.errors import DifftexError
     from difftex.geometry.visibility import load_visibility
     from difftex.sampling.crops import polygon_input_from_visibility
 
     vis = results / "visibility" / f"{pid}.npz"
     if not vis.is_file() and (results / "visibility.txt").is_file():  # an evaluation script's run folder
         vis = Path((results / "visibility.txt").read_text().strip()) / f"{pid}.npz"
-    inp = polygon_input_from_visibility(load_visibility(vis), photos)
     opt = results / "optimized" / pid
+    for need in (vis, opt / "stats.json", opt / "weights.npz"):
+        if not need.is_file():
+            raise DifftexError(f"{need}: missing (polygon '{pid}' of a finished run is needed)")
+    inp = polygon_input_from_visibility(load_visibility(vis), photos)
     stats = json.loads((opt / "stats.json").read_text())
     shares = weight_shares(opt / "weights.npz")
     rows = []
@@ -149,7 +158,9 @@ def main(argv=None) -> int:
         "Per photo and polygon: the mean distance (pixels) over the texels the photo sees between the written "
         "pose's mapping (before; after: with the run's alignment correction) and the true pose's.",
         "W-weighted: in texels (each photo's pixels over its pixels per texel there), each photo weighed by its "
-        "share of the polygon's final blend weights W: the misregistration of the photos the texture is made of.",
+        "share of the polygon's final blend weights W: the misregistration of the photos the texture is made of. "
+        "After alignment it includes the shift of every photo together, which aligning photos to each other "
+        "cannot see.",
     ]).rstrip("\n"), "", "| photos | n | median before (px) | median after (px) | W-weighted before (texels) | "
         "W-weighted after (texels) | closer | worse by > 0.5 px |", "|---|---|---|---|---|---|---|---|"]
     out = {}

@@ -347,6 +347,44 @@ def test_alignment_options_keep_recovering_the_poses(scene, over):
     corr = tp.stats["corrections"]
     after = [reprojection_error(inp, given[k], true[k], corr.get(name)) for k, name in enumerate(NAMES)]
     assert max(after) < 0.5, after
+    _, ref, _ = run(given, imgs, align=True, align_min_photos=0, **BEFORE)
+    moved = max(abs(a - b) for n in NAMES for a, b in zip(corr[n]["params"], ref.stats["corrections"][n]["params"]))
+    assert moved > 1e-3  # the option changed the fit: it is not ignored
+
+
+def test_first_aligned_level_goes_on_to_the_next(scene):
+    """With align_min_long_side the first aligned level is a first level: every candidate is refined
+    and the next level is aligned whatever the update, as after the first level (align_tol_px far
+    above any update here; counted as a later level, alignment would stop after it)."""
+    _, given, imgs = scene
+    _, tp, _ = run(given, imgs, align=True, align_min_photos=0, align_min_long_side=64, align_tol_px=100.0, **BEFORE)
+    reps = tp.stats["alignment"]
+    assert [a["long_side"] for a in reps] == [64, 128]
+    assert reps[0]["aligned"] == len(NAMES)
+
+
+def test_blend_consensus_is_the_weighted_blend_of_the_mapped_photos():
+    """alignment.consensus_blend: two photos of the analytic wall with weights 1 and 3 give their
+    mapped colours' weighted mean where both see the texel, one photo's colours where it alone
+    holds weight, and is undefined where the photos mapped hold under half of the weight."""
+    from difftex.method import alignment
+    from difftex.sampling.photos import PhotoSet
+
+    photos = [make_photo("a", -10.0), make_photo("b", 10.0)]
+    inp = make_input(photos, [render(ph) for ph in photos], long_side=48)
+    ps = PhotoSet.load(inp, "cpu")
+    frame, mask = inp.frame, inp.texel_mask
+    h, w = frame.shape
+    maps = {n: ps.map(n, frame, mask) for n in (0, 1)}
+    ones = torch.ones(h, w)
+    c, ok = alignment.consensus_blend(ps, frame, mask, None, [0, 1], lambda n: ones * (1.0 + 2.0 * n))
+    both = maps[0].visible & maps[1].visible
+    want = (maps[0].colour + 3.0 * maps[1].colour) / 4.0
+    assert torch.allclose(c[:, both], want[:, both], atol=1e-5) and bool(ok[both].all())
+    c1, ok1 = alignment.consensus_blend(ps, frame, mask, None, [0, 1], lambda n: ones * (1.0 - n))
+    seen0 = maps[0].visible
+    assert torch.allclose(c1[:, seen0], maps[0].colour[:, seen0], atol=1e-5) and bool(ok1[seen0].all())
+    assert not bool(ok1[~seen0].any())
 
 
 def test_alignment_accuracy_measures_each_photo_against_its_true_pose(scene, tmp_path):

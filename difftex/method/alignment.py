@@ -7,8 +7,9 @@ each level are optimized, every candidate photo's mapping is corrected in its ow
     f_k^i(t) -> f_k^i(t) + d + M (f_k^i(t) - c) / s,
 
 six parameters (translation d, affine part M normalised to the polygon's extent s in the photo)
-found by Gauss-Newton (Lucas-Kanade) against the consensus texture: the previous level's
-optimized texture, or at the first level the per-texel median of the photos. The photo is
+found by Gauss-Newton (Lucas-Kanade) against the consensus texture: at the first aligned level
+the per-texel median of the photos, after it (``align_consensus``) the previous level's optimized
+texture upsampled, its blend of the photos mapped at this level (consensus_blend), or their median. The photo is
 sampled through the same trilinear pyramid sampling as everywhere (difftex.sampling.photos); its
 gradient by central differences. A robust (Cauchy) weight ignores occluded texels, and a
 Gaussian prior of ``align_prior_px`` keeps corrections small where the texture says little
@@ -26,6 +27,7 @@ where the per-polygon fit is poorly conditioned, are held near zero by the prior
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -156,15 +158,21 @@ def consensus_median(
 
 
 def consensus_blend(
-    photos: PhotoSet, frame: UVFrame, mask: np.ndarray, transfers: list | None, weights: dict[int, torch.Tensor]
+    photos: PhotoSet,
+    frame: UVFrame,
+    mask: np.ndarray,
+    transfers: list | None,
+    held: list[int],
+    weight_of: Callable[[int], torch.Tensor],
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """The previous level's blend at this level's detail ((3, h, w)) and where it is defined.
 
     Args:
-        weights: per photo n, its blend weight (h, w) on this level's frame (the coarser level's
-            optimized W, upsampled). Each of those photos is mapped at this level with its current
-            correction and blended by them: the texture the optimizer chose, with this level's
-            detail, where the upsampled texture would be a level blurrier.
+        held: the photos that hold blend weight; weight_of(n): photo n's weight (h, w) on this
+            level's frame (the coarser level's optimized W, upsampled), asked for one photo at a
+            time. Each photo is mapped at this level with its current correction and blended by
+            those weights: the texture the optimizer chose, with this level's detail, where the
+            upsampled texture would be a level blurrier.
 
     Returns:
         (consensus, defined): defined where the photos mapped hold at least half of the weight.
@@ -173,7 +181,8 @@ def consensus_blend(
     num = torch.zeros(3, h, w, device=photos.device)
     den = torch.zeros(h, w, device=photos.device)
     total = torch.zeros(h, w, device=photos.device)
-    for n, wn in sorted(weights.items()):
+    for n in sorted(held):
+        wn = weight_of(n)
         total += wn
         mp = photos.map(n, frame, mask, transfers[n] if transfers else None)
         if mp is None:

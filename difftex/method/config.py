@@ -183,8 +183,9 @@ class OptimizeConfig:
     align_min_long_side: int = 0
     align_points: int = 16384  # texels per photo and Gauss-Newton step (a strided subset above it)
     # what the photos are aligned to after the first level: the previous level's texture,
-    # upsampled (texture), the per-texel median of the photos at this level (median), or the
-    # previous level's blend of the photos mapped at this level (blend); both at full detail
+    # upsampled (texture: a level blurrier than the photos), the per-texel median of the photos
+    # at this level (median), or the previous level's blend of the photos mapped at this level
+    # (blend); median and blend have this level's detail
     align_consensus: AlignConsensus = "texture"
     # what the corrections cannot tell apart and is taken out of them: the median correction
     # (median), or a common in-plane shift and a common depth along the normal per texel axis (plane:
@@ -240,8 +241,11 @@ class OptimizeConfig:
         _check_choice("align_model", self.align_model, ("translation", "affine"))
         _check_choice("align_gauge", self.align_gauge, ("median", "plane"))
         _check_choice("align_consensus", self.align_consensus, ("texture", "median", "blend"))
-        if self.align_min_long_side < 0:
-            raise ValueError(f"align_min_long_side must be >= 0, got {self.align_min_long_side}")
+        if not 0 <= self.align_min_long_side <= self.align_max_long_side:
+            raise ValueError(
+                f"align_min_long_side must be in [0, align_max_long_side = {self.align_max_long_side}], "
+                f"got {self.align_min_long_side}"
+            )
         if self.align_points < 64:
             raise ValueError(f"align_points must be >= 64, got {self.align_points}")
         if self.align_min_photos < 0:

@@ -155,7 +155,7 @@ def optimize_polygon(
             frame = level_frame(inp.frame, side)
             aligned = False
             if aligning and cfg.align_min_long_side <= side <= cfg.align_max_long_side:
-                rep = _align(photos, frame, transfers, prev, cfg)
+                rep = _align(photos, frame, transfers, prev, cfg, first=first_fit)
                 stats["alignment"].append(rep)
                 aligned = "skipped" not in rep
                 # Converged: the corrections no longer move at this resolution; finer levels
@@ -235,26 +235,29 @@ def optimize_polygon(
     )
 
 
-def _align(photos: PhotoSet, frame, transfers, prev: LevelState | None, cfg: OptimizeConfig) -> dict:
+def _align(
+    photos: PhotoSet, frame, transfers, prev: LevelState | None, cfg: OptimizeConfig, first: bool = True
+) -> dict:
     """Refine the photos' mapping corrections at this level against the consensus texture: the
-    per-texel median of the photos at the first level; after it, by ``align_consensus``, the
-    previous level's texture upsampled, its blend of the photos mapped at this level, or their median.
+    per-texel median of every candidate at the first aligned level (``first``: the first level,
+    or the first from ``align_min_long_side``); after it, by ``align_consensus``, the previous
+    level's texture upsampled, its blend of the photos mapped at this level, or their median.
 
-    After the first level only the photos that hold weight somewhere (> tau) are refined: the
-    others do not appear in the texture, and a photo that comes back keeps its last correction.
+    After the first aligned level only the photos that hold weight somewhere (> tau) are refined:
+    the others do not appear in the texture, and a photo that comes back keeps its last correction.
     """
     t0 = time.perf_counter()
     inp = photos.inp
     mask = resample_nearest(inp.texel_mask, inp.frame, frame)
     which = None
-    if prev is not None:
+    if prev is not None and not first:
         W = losses.blend_weights(prev.z, prev.active, cfg.weights)
         which = set(torch.unique(prev.level.idx[(W > cfg.tau) & prev.level.visible]).tolist()) - {-1}
     refined = len(photos.samplers) if which is None else len(which)
     if refined < cfg.align_min_photos:  # too few to tell pose errors from relief: registration kept
         return {"long_side": max(frame.shape), "photos": {}, "aligned": 0, "max_update_px": 0.0,
                 "skipped": f"{refined} photos to refine, fewer than align_min_photos", "time_s": 0.0}
-    if prev is None or cfg.align_consensus == "median":
+    if first or cfg.align_consensus == "median":
         consensus, defined = alignment.consensus_median(photos, frame, mask, transfers)
         noise = 0.05 if prev is None else prev.level.sharp_noise
     else:
@@ -262,9 +265,11 @@ def _align(photos: PhotoSet, frame, transfers, prev: LevelState | None, cfg: Opt
         defined = upsample_field((plv.visible.sum(0) >= 2).float()[None], plv.frame, frame)[0] > 0.99
         noise = plv.sharp_noise
         if cfg.align_consensus == "blend":
-            per_photo = {int(n): upsample_field((W * (plv.idx == n)).sum(0)[None], plv.frame, frame)[0]
-                         for n in torch.unique(plv.idx[W > 0]).tolist() if n >= 0}
-            consensus, seen = alignment.consensus_blend(photos, frame, mask, transfers, per_photo)
+            def weight_of(n: int) -> torch.Tensor:  # one photo's W, upsampled: one (h, w) map at a time
+                return upsample_field((W * (plv.idx == n)).sum(0)[None], plv.frame, frame)[0]
+
+            held = [n for n in torch.unique(plv.idx[W > 0]).tolist() if n >= 0]
+            consensus, seen = alignment.consensus_blend(photos, frame, mask, transfers, held, weight_of)
             defined = defined & seen
         else:
             U = losses.compose(W, plv.sharp)  # registration needs the full detail
