@@ -261,6 +261,7 @@ def _align(
         consensus, defined = alignment.consensus_median(photos, frame, mask, transfers)
         noise = 0.05 if prev is None else prev.level.sharp_noise
     else:
+        assert prev is not None  # only the first aligned level can have none
         plv = prev.level
         defined = upsample_field((plv.visible.sum(0) >= 2).float()[None], plv.frame, frame)[0] > 0.99
         noise = plv.sharp_noise
