@@ -147,7 +147,9 @@ def main(argv=None) -> int:
         raise DifftexError(f"{a.results}: no optimized/ folder (a finished run's results are needed)")
     photos = {p.name: p for p in load_scene(a.scene, check_images=False).photos}
     true, kinds = true_photos(a.scene, photos)
-    pids = C.polygon_ids(a.polygons) or sorted(p.name for p in (a.results / "optimized").iterdir() if p.is_dir())
+    pids = C.polygon_ids(a.polygons) or sorted(
+        p.name for p in (a.results / "optimized").iterdir() if (p / "stats.json").is_file()  # not the jobs/ lists
+    )
     rows = [r for pid in pids for r in polygon_rows(a.results, pid, photos, true, kinds)]
     kinds_seen = sorted({r["kind"] for r in rows})
     groups = {"all": rows, **{f"kind {k}": [r for r in rows if r["kind"] == k] for k in kinds_seen}}
