@@ -60,17 +60,18 @@ def photo_error(frame, given, true, visible: np.ndarray, corr: dict | None) -> t
 
     from difftex.geometry.frames import texel_to_pixel
     from difftex.sampling.photos import Correction
+    from difftex.sampling.texels import texel_map
 
     ty, tx = np.nonzero(visible)
     step = max(1, math.ceil(len(tx) / MAX_TEXELS))
-    tx, ty = tx[::step] + 0.5, ty[::step] + 0.5
-    pg, _ = texel_to_pixel(frame, given, tx, ty)
-    pt, _ = texel_to_pixel(frame, true, tx, ty)
-    px, _ = texel_to_pixel(frame, true, tx + 1.0, ty)
-    py, _ = texel_to_pixel(frame, true, tx, ty + 1.0)
-    ax, ay = px - pt, py - pt
-    # texels projected behind a camera (not finite) are left out of every mean
-    per_texel = float(np.nanmean(np.sqrt(np.abs(ax[:, 0] * ay[:, 1] - ax[:, 1] * ay[:, 0]))))  # sqrt of pixel area
+    ty, tx = ty[::step], tx[::step]
+    pg, _ = texel_to_pixel(frame, given, tx + 0.5, ty + 0.5)
+    pt, _ = texel_to_pixel(frame, true, tx + 0.5, ty + 0.5)
+    # the texel's footprint in the true photo, as the sampling uses it, over the visible box only
+    y0, x0 = int(ty.min()), int(tx.min())
+    fp = texel_map(frame, true, "cpu", (y0, int(ty.max()) + 1, x0, int(tx.max()) + 1)).footprint.numpy()
+    per_texel = float(fp[ty - y0, tx - x0].mean())
+    # texels projected behind a camera (not finite) are left out of the means
     before = float(np.nanmean(np.linalg.norm(pg - pt, axis=1)))
     if corr is None:
         return before, before, per_texel
