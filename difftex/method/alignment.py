@@ -34,15 +34,11 @@ import numpy as np
 import torch
 
 from difftex.geometry.frames import UVFrame
+from difftex.method.config import OptimizeConfig
 from difftex.sampling.colour import apply_transfer_torch
 from difftex.sampling.photos import Correction, PhotoSet
 from difftex.sampling.texels import resample_nearest, texel_map
 
-# Texels per photo and Gauss-Newton step (a strided subset above it; align_points' default). A 2-
-# or 6-parameter fit from 16 k texels is limited by the texture's blur and the pose error's non-affine part, not by
-# the number of points: 64 k gave corrections within 0.02 px of these on the analytic wall, at
-# four times the cost (alignment was 85-90 % of a `fast` polygon's time with 64 k).
-MAX_POINTS = 16384
 # Photos refined together below which the plane gauge falls back to the median: it fits four
 # parameters from two equations per photo, and with few photos a chance correlation of their pose
 # errors with their parallax is taken for height (docs/optimizer.md, "Alignment refinement").
@@ -59,7 +55,7 @@ class AlignSettings:
     noise: float  # colour noise (sigma_c): the prior's and the robust weight's scale
     gauge: str = "median"  # what is taken out of the corrections: their median, or plane_gauge's fit
     robust: float = 3.0  # Cauchy scale, robust standard deviations of a photo's residuals
-    points: int = MAX_POINTS  # texels per photo and step, at most (a strided subset above it)
+    points: int = OptimizeConfig.align_points  # texels per photo and step, at most (a strided subset above it)
 
 
 def _basis(pix: torch.Tensor, centre: tuple[float, float], scale: float) -> torch.Tensor:
