@@ -98,7 +98,7 @@ def run_one(args) -> dict:
     torch.set_num_threads(args.threads)
     sc = load_scene(args.scene, check_images=False)
     vis = load_visibility(args.vis)
-    inp = polygon_input_from_visibility(vis, {p.name: p for p in sc.photos})
+    inp = polygon_input_from_visibility(vis, {p.name: p for p in sc.photos}, up=sc.up)
     if max(inp.frame.shape) != args.one:
         frame = inp.frame.resized(args.one)
         inp = dataclasses.replace(inp, frame=frame, texel_visible=resample_nearest(inp.texel_visible, inp.frame, frame),

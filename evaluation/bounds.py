@@ -98,7 +98,7 @@ def run(scene: Path, density_scale: float, max_long_side: int, preset: str, patc
     made_of: dict[str, list[tuple[dict, int]]] = {}  # row -> per polygon (blend_summary, texels)
     for v in vis:
         t0 = time.perf_counter()
-        inp = polygon_input_from_visibility(v, by_name)
+        inp = polygon_input_from_visibility(v, by_name, up=sc.up)
         gframe = UVFrame.from_dict(read_json(gt / "frames" / f"{v.polygon_id}.json"))
         ref = read_image(gt / "maps" / f"{v.polygon_id}.png")
         gmask = read_image(gt / "masks" / f"{v.polygon_id}.png")[..., 0] > 0.5

@@ -69,7 +69,7 @@ def run(
         errs, ssims, weights, sharp, gsharp, detail, neff, seconds = [], [], [], [], [], [], [], 0.0
         lps: list[float] = []
         for v in vis:
-            inp = polygon_input_from_visibility(v, by_name)
+            inp = polygon_input_from_visibility(v, by_name, up=sc.up)
             t0 = time.perf_counter()
             if overrides is None or "baseline" in overrides:
                 base = overrides or {}

@@ -170,3 +170,95 @@ def test_frontality_weight_is_checked():
     assert OptimizeConfig(frontality_weight=0.0).frontality_weight == 0.0
     with pytest.raises(ValueError, match="frontality_weight"):
         OptimizeConfig(frontality_weight=-1.0)
+
+
+def test_tilt_frontality_is_the_cosine_of_the_views_tilt_alone():
+    """cos of the view's angle to the normal in the wall's vertical plane: 1 for a photo level with
+    the texel whatever its angle sideways, cos(tilt) for one above or below it, 0 at grazing or
+    from behind; shapes are checked."""
+    from difftex.method.quality import tilt_frontality
+
+    normal = torch.tensor([0.0, -1.0, 0.0])  # the wall faces -y
+    axis = torch.tensor([0.0, 0.0, 1.0])
+    to_cam = []  # texel-to-camera directions
+    for side, tilt in ((0, 0), (60, 0), (0, 45), (30, -60), (0, 89.999), (0, 0)):
+        a, t = np.radians(side), np.radians(tilt)
+        to_cam.append([np.sin(a) * np.cos(t), -np.cos(a) * np.cos(t), np.sin(t)])
+    to_cam[-1] = [0.0, 1.0, 0.0]  # behind the wall
+    view = -torch.tensor(to_cam, dtype=torch.float32).T.reshape(3, 1, 6)
+    out = tilt_frontality(view, normal, axis)[0]
+    # 30 degrees sideways and 60 below: the tilt of its projection on the vertical plane,
+    # atan(sin 60 / (cos 30 cos 60)), steeper than its elevation
+    c30, c60, s60 = np.cos(np.radians(30)), np.cos(np.radians(60)), np.sin(np.radians(60))
+    side_and_below = c30 * c60 / np.hypot(c30 * c60, s60)
+    expected = torch.tensor([1.0, 1.0, np.cos(np.radians(45)), side_and_below, 0.0, 0.0], dtype=torch.float32)
+    assert torch.allclose(out, expected, atol=1e-4)
+    grazing = -torch.tensor([1.0, 0.0, 0.0]).reshape(3, 1, 1)  # along the wall: no tilt defined
+    assert float(tilt_frontality(grazing, normal, axis)) == 0.0
+    with pytest.raises(ValueError, match="tilt_frontality"):
+        tilt_frontality(view[0], normal, axis)
+
+
+def test_wall_tilt_axis_is_the_in_plane_up_of_walls_only():
+    from difftex.method.quality import WALL_MAX_UP_COS, wall_tilt_axis
+
+    up = np.array([0.0, 0.0, 1.0])
+    assert np.allclose(wall_tilt_axis(np.array([0.0, -1.0, 0.0]), up), up)
+    lean = np.array([0.0, -np.cos(0.3), np.sin(0.3)])  # a wall leaning back by 0.3 rad
+    axis = wall_tilt_axis(lean, up)
+    assert abs(float(axis @ lean)) < 1e-12 and float(axis @ up) > 0.9 and np.isclose(np.linalg.norm(axis), 1.0)
+    assert wall_tilt_axis(up, up) is None  # a flat roof
+    steep = np.arccos(WALL_MAX_UP_COS) - 1e-6  # a roof just past the limit
+    assert wall_tilt_axis(np.array([0.0, -np.sin(steep), np.cos(steep)]), up) is None
+
+
+def test_frontality_tilt_lowers_photos_from_above_on_a_wall_and_not_on_a_roof():
+    """In a level's blend Q, frontality_tilt p multiplies each photo's Q at each texel by (cos(tilt) /
+    the texel's most level candidate's)^p on a wall, the tilt measured from the texel to the
+    photo's centre in the wall's vertical plane: a photo 50 degrees above the wall loses about
+    cos(50)^3 against one level with it (40 degrees sideways, which keeps its Q). With the
+    scene's up along the normal (the same plane as a roof) Q is unchanged, p = 0 is bit for bit
+    the earlier Q, and the witnesses' Q has the tilt only with frontality_tilt_witnesses."""
+    import dataclasses
+
+    from difftex.method.levels import build_level
+    from difftex.sampling.photos import PhotoSet
+
+    photos = [make_photo("level", 40.0), make_photo("above", 0.0, pitch_deg=50.0)]
+    inp = make_input(photos, [render(ph) for ph in photos], long_side=64)
+
+    def level(cfg, up):
+        lv = build_level(PhotoSet.load(dataclasses.replace(inp, up=up), "cpu"), inp.frame, cfg)
+        assert lv.fixed_slots  # slot j is photo j
+        return lv
+
+    up = np.array([0.0, 0.0, 1.0])
+    off, on = level(fast_cfg(), up), level(fast_cfg(frontality_tilt=3.0), up)
+    fr = inp.frame
+    X = fr.texel_to_world(*fr.centres())
+    tilt = []
+    for ph in photos:
+        d = ph.center - X
+        cn, ca = d @ fr.normal, d @ up
+        tilt.append(torch.from_numpy(cn / np.hypot(cn, ca)).float())
+    best = torch.maximum(*[torch.where(off.visible[j], tilt[j], 0.0) for j in range(2)])
+    for j, ph in enumerate(photos):
+        expected = (tilt[j] / best) ** 3  # relative to the texel's most level candidate
+        seen = off.visible[j] & (off.blend_Q[j] > 1e-3)
+        assert bool(seen.any())
+        assert torch.allclose(on.blend_Q[j][seen] / off.blend_Q[j][seen], expected[seen], rtol=0.02), ph.name
+    both = off.visible.all(0)
+    ratio = [float(on.blend_Q[j][both].mean() / off.blend_Q[j][both].mean()) for j in range(2)]
+    assert ratio[0] == pytest.approx(1.0) and 0.2 < ratio[1] < 0.4  # cos(50)^3 = 0.27 against a level view
+    assert torch.equal(on.Q, off.Q)  # the witnesses' Q: no tilt (a street photo's occluder is still outvoted)
+    witnesses = level(fast_cfg(frontality_tilt=3.0, frontality_tilt_witnesses=True), up)
+    assert torch.equal(witnesses.blend_Q, on.blend_Q)
+    for j in range(2):  # ... unless they are tilted too
+        seen = off.visible[j] & (off.Q[j] > 1e-3)
+        tilted = on.blend_Q[j][seen] / off.blend_Q[j][seen]
+        assert torch.allclose(witnesses.Q[j][seen] / off.Q[j][seen], tilted, rtol=1e-4)
+    roof = level(fast_cfg(frontality_tilt=3.0), -fr.normal)  # up along the normal: a roof
+    assert torch.equal(roof.blend_Q, off.blend_Q)
+    assert torch.equal(level(fast_cfg(frontality_tilt=0.0), up).blend_Q, off.blend_Q)
+    with pytest.raises(ValueError, match="frontality_tilt"):
+        fast_cfg(frontality_tilt=-1.0)

@@ -69,5 +69,5 @@ def load_many(args, visibility: list[str], torch_threads: bool = True):
     compute = dataclasses.replace(compute, **{k: v for k, v in over.items() if v is not None})
     scene = load_scene(args.scene, check_images=False)
     photos = {p.name: p for p in scene.photos}
-    inputs = (polygon_input_from_visibility(load_visibility(v), photos) for v in visibility)
+    inputs = (polygon_input_from_visibility(load_visibility(v), photos, up=scene.up) for v in visibility)
     return cfg, compute, inputs

@@ -121,6 +121,15 @@ class OptimizeConfig:
     # camera (1: the paper's Q_a). Steeper, frontal photos outrank oblique ones more: the relief a
     # proxy lacks (reveals, sills) shows most in oblique views
     frontality_weight: float = 1.0
+    # exponent of the tilt frontality on walls (difftex.method.quality.tilt_frontality): the
+    # cosine of a view's angle to the normal in the wall's vertical plane, to this power, times
+    # Q_a. Photos from above see the tops of the relief a proxy lacks (sills, the lower reveals
+    # of recessed windows, balcony slabs) on one side only, so a blend cannot average them away
+    # as it does the side reveals that photos from the left and the right show; 0: off
+    frontality_tilt: float = 0.0
+    # the tilt also weighs the photos as witnesses (L_Render, elimination, settling): the sills
+    # go, but the level (street) photos then outvote the photos from above, their occluders too
+    frontality_tilt_witnesses: bool = False
     sigma_min: float = 0.02  # noise floor of colour standard deviations (Q_c and elimination)
     # "loo": leave-one-out mean/std with a noise floor, one slot per texel and pass; "paper": the
     # paper's test (Sec. 4.3), every selected pixel beyond sigma_k std of all selected ones
@@ -261,6 +270,8 @@ class OptimizeConfig:
             raise ValueError(f"resolution_weight must be >= 0, got {self.resolution_weight}")
         if not self.frontality_weight >= 0:
             raise ValueError(f"frontality_weight must be >= 0, got {self.frontality_weight}")
+        if not self.frontality_tilt >= 0:
+            raise ValueError(f"frontality_tilt must be >= 0, got {self.frontality_tilt}")
         if not self.resolution_knee >= 1.0:
             raise ValueError(f"resolution_knee must be >= 1, got {self.resolution_knee}")
         _check_choice("histmatch_reference", self.histmatch_reference, ("best", "median", "pooled"))

@@ -21,10 +21,20 @@ from difftex.geometry.frames import UVFrame
 from difftex.method import losses
 from difftex.method.config import OptimizeConfig
 from difftex.method.filters import masked_blur
-from difftex.method.quality import level_noise, quality, relative_footprint, resolution_factor, robust_noise
+from difftex.method.quality import (
+    level_noise,
+    quality,
+    relative_footprint,
+    resolution_factor,
+    robust_noise,
+    tilt_factor,
+    tilt_frontality,
+    wall_tilt_axis,
+)
 from difftex.method.witnesses import candidate_footprints, witness_sigma
 from difftex.sampling.photos import MappedPhoto, PhotoSet
 from difftex.sampling.texels import Region, resample_nearest
+from difftex.scene.camera import scene_up
 
 MAP_CACHE_BYTES = 1 << 30  # mapped photos held at once while a level is built
 
@@ -310,6 +320,14 @@ def build_level(
     cnt = torch.zeros(h, w, device=device)
     gsum = torch.zeros(h, w, device=device)
     fpbest = torch.zeros(h, w, device=device)  # the most pixels per texel of any candidate (Q_r's reference)
+    normal = torch.tensor(frame.normal, dtype=torch.float32, device=device)
+    tilt_axis = None
+    if cfg.frontality_tilt > 0:
+        up = inp.up if inp.up is not None else scene_up(inp.photos)  # one-sided candidates tilt that estimate
+        axis = wall_tilt_axis(frame.normal, up)
+        tilt_axis = None if axis is None else torch.tensor(axis, dtype=torch.float32, device=device)
+    # the most level candidate's tilt frontality: the reference of each photo's, as fpbest is Q_r's
+    tbest = torch.zeros(h, w, device=device) if tilt_axis is not None else None
     vsum = []
     seen = []
     for n in order:
@@ -326,6 +344,9 @@ def build_level(
         cnt[y0:y1, x0:x1] += v
         gsum[y0:y1, x0:x1] += gradient_magnitude(mp.colour, mp.visible) * v
         fpbest[y0:y1, x0:x1] = torch.maximum(fpbest[y0:y1, x0:x1], torch.where(mp.visible, mp.footprint, 0.0))
+        if tbest is not None and tilt_axis is not None:
+            tf = torch.where(mp.visible, tilt_frontality(mp.view, normal, tilt_axis), 0.0)
+            tbest[y0:y1, x0:x1] = torch.maximum(tbest[y0:y1, x0:x1], tf)
         vd = (mp.view * v).sum((1, 2))
         vsum.append(vd / vd.norm().clamp_min(1e-12))
         if keep_all:
@@ -336,7 +357,6 @@ def build_level(
     mu = mu64.float()
     G = gsum / c
     noise = level_noise(msd, cnt, cfg.sigma_min)
-    normal = torch.tensor(frame.normal, dtype=torch.float32, device=device)
     if prev is not None:  # the guidance direction of the first level, whose photos are all the candidates
         v_tilde = torch.from_numpy(prev[0].v_tilde).to(device)
     else:
@@ -380,9 +400,19 @@ def build_level(
         sl = (slice(y0, y1), slice(x0, x1))
         c = compared(n, mp)
         qac = quality(mp.cos, c, mu[:, y0:y1, x0:x1], msd[sl], mp.visible, cfg.sigma_min, cfg.frontality_weight)
+        # The tilt weighs the blend; as witnesses of what a texel shows (L_Render, elimination,
+        # settling) the photos from above keep their votes unless frontality_tilt_witnesses: the
+        # street photos' trees are outvoted by the drone photos that see past them, and so are
+        # their views of a window's lower pane where the drone photos see the sill.
+        qa_blend = qac
+        if tbest is not None:
+            assert tilt_axis is not None  # tbest exists only with it
+            qa_blend = qac * tilt_factor(tilt_frontality(mp.view, normal, tilt_axis), tbest[sl], cfg.frontality_tilt)
+            if cfg.frontality_tilt_witnesses:
+                qac = qa_blend
         best = fpbest[sl] if cfg.resolution_reference == "best" else None
         rw = cfg.resolution_weight
-        qb = qac * resolution_factor(relative_footprint(mp.footprint, best, cfg.resolution_knee), rw, mp.visible)
+        qb = qa_blend * resolution_factor(relative_footprint(mp.footprint, best, cfg.resolution_knee), rw, mp.visible)
         rw_w = rw if cfg.witness_resolution_weight is None else cfg.witness_resolution_weight
         q = qac * resolution_factor(relative_footprint(mp.footprint, None), rw_w, mp.visible) if split else qb
         pc = losses.persp_cost(mp.view[None], v_tilde)[0]

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
 import torch
 
 
@@ -41,6 +42,75 @@ def quality(
     qa = cos if frontality_weight == 1.0 else cos.clamp_min(0.0) ** frontality_weight
     q = qa * torch.exp(-0.5 * d2 / (msd + sigma_min**2))
     return torch.where(visible, q, torch.zeros_like(q))
+
+
+# A polygon whose normal is within this cosine of horizontal (steeper than 60 degrees) is a wall
+# for the tilt frontality: its relief's horizontal surfaces face up. Roofs keep Q_a alone: seen
+# from above by every photo, their tilt is no sign of relief, and their frontal (nadir) photos
+# are often the farthest.
+WALL_MAX_UP_COS = 0.5
+
+
+def wall_tilt_axis(normal: np.ndarray, up: np.ndarray) -> np.ndarray | None:
+    """The in-plane vertical axis of a wall: the scene's up with its normal component removed.
+
+    Args:
+        normal: (3,) the polygon's unit normal; up: (3,) the scene's unit up.
+
+    Returns:
+        (3,) unit axis, or None where the polygon is not a wall (abs(normal . up) >= WALL_MAX_UP_COS).
+    """
+    n, u = np.asarray(normal, np.float64), np.asarray(up, np.float64)
+    if abs(float(n @ u)) >= WALL_MAX_UP_COS:
+        return None
+    a = u - (u @ n) * n
+    return a / np.linalg.norm(a)
+
+
+def tilt_frontality(view: torch.Tensor, normal: torch.Tensor, axis: torch.Tensor) -> torch.Tensor:
+    """The cosine of a view's angle to the normal in the plane of the normal and ``axis``: the
+    frontality of its tilt alone (1 for a photo level with the texel, whatever its angle sideways).
+
+    A photo from above sees the tops of a wall's relief (sills, lower reveals, balcony slabs) at
+    the proxy's plane, and every drone photo sees them from the same side, so a blend keeps them;
+    the side reveals, seen from the left and the right, average out. Weighing Q_a by this cosine
+    to a power (``frontality_tilt``) lowers the photos from above where level ones exist, and
+    leaves captures taken from one height (all photos tilted alike) nearly as they were.
+
+    Args:
+        view: (3, h, w) unit camera-to-texel directions (MappedPhoto.view).
+        normal: (3,) the polygon's unit normal; axis: (3,) unit in-plane vertical (wall_tilt_axis).
+
+    Returns:
+        (h, w) in [0, 1].
+    """
+    if view.dim() != 3 or view.shape[0] != 3 or normal.shape != (3,) or axis.shape != (3,):
+        raise ValueError(
+            f"tilt_frontality: view {tuple(view.shape)} must be (3, h, w), normal {tuple(normal.shape)} "
+            f"and axis {tuple(axis.shape)} (3,)"
+        )
+    cn = -(view * normal[:, None, None]).sum(0)
+    ca = (view * axis[:, None, None]).sum(0)
+    r = torch.sqrt(cn * cn + ca * ca)
+    return torch.where(r > 1e-12, cn.clamp_min(0.0) / r.clamp_min(1e-12), torch.zeros_like(r))
+
+
+def tilt_factor(tilt: torch.Tensor, best: torch.Tensor, power: float) -> torch.Tensor:
+    """The factor of Q_a for the tilt: (tilt / best)^power, ``best`` the most level candidate's
+    tilt frontality at the texel, so that texel's most level photo keeps its Q and the others
+    fall by how much more they are tilted. Relative, as Q_r is: where every photo is tilted alike
+    (street photos looking up at a tall facade) Q keeps its scale, and the activation threshold
+    tau, which the weights start against, means what it did.
+
+    Args:
+        tilt: (h, w) a photo's tilt_frontality; best: (h, w) the largest over the texel's candidates.
+        power: the exponent (``frontality_tilt``, >= 0).
+
+    Returns:
+        (h, w) in [0, 1]; 1 where no candidate has a tilt above 0 (best = 0).
+    """
+    r = torch.where(best > 0, tilt / best.clamp_min(1e-12), torch.ones_like(tilt))
+    return r.clamp(0.0, 1.0) ** power
 
 
 def resolution_factor(footprint: torch.Tensor, weight: float, visible: torch.Tensor) -> torch.Tensor:

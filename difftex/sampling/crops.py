@@ -49,6 +49,7 @@ class PolygonInput:
     load_image: Callable[[Photo], np.ndarray] | None = None  # float32 RGB (h, w, 3); None: decode_photo
     a_bbox: np.ndarray | None = None  # (N, 4) x0, y0, x1, y1 of a_k^i (render mode)
     a_masks: list[np.ndarray] | None = None  # N crops of a_k^i
+    up: np.ndarray | None = None  # (3,) the scene's unit up (None: estimated from the candidates)
 
     def __post_init__(self):
         N = len(self.photos)
@@ -63,8 +64,11 @@ class PolygonInput:
             )
 
 
-def polygon_input_from_visibility(vis, scene_photos: dict[str, Photo], load_image=None) -> PolygonInput:
-    """PolygonInput from a difftex.geometry.visibility.PolygonVisibility and the scene's photos by name."""
+def polygon_input_from_visibility(
+    vis, scene_photos: dict[str, Photo], load_image=None, up: np.ndarray | None = None
+) -> PolygonInput:
+    """PolygonInput from a difftex.geometry.visibility.PolygonVisibility and the scene's photos by
+    name; ``up``: the scene's up (difftex.scene.loading.Scene.up)."""
     missing = [n for n in vis.photos if n not in scene_photos]
     if missing:
         raise DifftexError(
@@ -79,6 +83,7 @@ def polygon_input_from_visibility(vis, scene_photos: dict[str, Photo], load_imag
         load_image=load_image,
         a_bbox=vis.a_bbox,
         a_masks=vis.a_masks,
+        up=up,
     )
 
 
