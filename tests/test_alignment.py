@@ -60,16 +60,11 @@ def run(photos, imgs, **kw):
 
 
 def reprojection_error(inp, given, true, correction: dict | None) -> float:
-    """Mean distance (px) over the polygon between the corrected mapping and the true one."""
-    ty, tx = np.nonzero(inp.texel_mask)
-    pg, _ = texel_to_pixel(inp.frame, given, tx + 0.5, ty + 0.5)
-    pt, _ = texel_to_pixel(inp.frame, true, tx + 0.5, ty + 0.5)
-    if correction is not None:
-        c = Correction(
-            torch.tensor(correction["params"], dtype=torch.float64), tuple(correction["centre"]), correction["scale"]
-        )
-        pg = c.apply(torch.from_numpy(pg)).numpy()
-    return float(np.linalg.norm(pg - pt, axis=1).mean())
+    """Mean distance (px) over the polygon between the corrected mapping and the true one
+    (evaluation/alignment_accuracy.py's measure, over every texel of the polygon)."""
+    from evaluation.alignment_accuracy import photo_error
+
+    return photo_error(inp.frame, given, true, inp.texel_mask, correction)[1]
 
 
 def test_corrections_recover_the_poses_and_the_texture(scene):
