@@ -440,3 +440,48 @@ def test_true_pose_scene_carries_the_poses_the_photos_were_rendered_at(survey_ti
         moved = max(moved, float(np.abs(g.t - t.t).max()))
     assert moved > 1e-4  # the written poses are the noisy ones
     assert true_poses(["--scene", str(tmp_path / "nowhere"), "--out", str(tmp_path / "x")]) == 2
+
+
+def test_relief_bound_rebuilds_the_true_height_field(survey_tiny, tmp_path):
+    """evaluation/relief_bound.py: the scene's building rebuilt from synth.json gives each wall
+    the relief its geometry has (the openings' panes at -relief_depth, what stands in front
+    above 0, the plain wall at 0, roofs flat), and the bound runs through variants.py with the
+    true field in place of the sweep; a folder without synth.json is one DifftexError."""
+    import json
+
+    import difftex.compose.texturing as texturing
+    from difftex.errors import DifftexError
+    from evaluation.relief_bound import main, synth_model, true_heights, true_relief
+
+    faces, layouts, relief = synth_model(survey_tiny)
+    assert relief == _manifest(survey_tiny)["config"]["relief_depth"] > 0
+    walls = [f for f in faces.values() if f.kind == "wall"]
+    opened = 0
+    for face in walls:
+        lay = layouts[face.id]
+        for u0, v0, u1, v1 in lay.openings():
+            centre = face.to3d(np.array([(u0 + u1) / 2, (max(v0, 0.02) + v1) / 2]))
+            in_front = true_heights(face, lay, relief, centre[None])[0]
+            assert in_front == -relief or in_front > 0  # a pane, or a balcony or course before it
+            opened += in_front == -relief
+        lo = face.to3d(np.array([-5.0, -5.0]))  # off the wall's rectangle: plane
+        assert true_heights(face, lay, relief, lo[None])[0] == 0.0
+    assert opened > 0
+    roofs = [f for f in faces.values() if f.kind == "roof"]
+    pts = np.stack([f.to3d(f.poly2d.mean(0)) for f in roofs])
+    assert all(true_heights(f, layouts[f.id], relief, p[None])[0] == 0.0 for f, p in zip(roofs, pts))
+
+    saved = texturing.estimate_relief
+    with true_relief(survey_tiny):
+        assert texturing.estimate_relief is not saved
+    assert texturing.estimate_relief is saved  # restored
+    wall = walls[0].id
+    out = tmp_path / "bound"
+    assert main(["--scene", str(survey_tiny), "--polygons", wall, "--max-long-side", "96",
+                 "--density-scale", "3.0", "--out", str(out)]) == 0
+    res = json.loads(out.with_suffix(".json").read_text())
+    assert set(res["variants"]) == {"defaults", "true relief"}
+    # the field changed the mapping (the sweep finds nothing on so few, so small photos)
+    assert res["variants"]["true relief"]["ssim"] != res["variants"]["defaults"]["ssim"]
+    with pytest.raises(DifftexError, match="synth.json"):
+        synth_model(tmp_path)

@@ -271,12 +271,23 @@ def estimate_relief(photos: PhotoSet, s: ReliefSettings) -> tuple[Relief, dict]:
             "levels": {f"{v:.4g}": float((h[mask] == v).mean()) for v in np.unique(h[mask])},
         }
     )
-    relief = Relief(frame, h)
+    return occluding_relief(photos, frame, h, mask), stats
+
+
+def occluding_relief(photos: PhotoSet, frame: UVFrame, heights: np.ndarray, mask: np.ndarray) -> Relief:
+    """The Relief of a height field at ``frame``, with each candidate photo's self-occlusion
+    through it (the texels of ``mask`` that the relief hides from the photo).
+
+    Args:
+        heights: (h, w) scene units along the normal, at ``frame``; mask: (h, w) bool.
+    """
+    relief = Relief(frame, heights)
     if not relief.flat:
+        none = np.zeros(frame.shape, bool)
         relief.hidden = np.stack(
             [
-                ~relief_visibility(frame, ph, h, mask) & mask if n in photos.samplers else np.zeros(frame.shape, bool)
-                for n, ph in enumerate(inp.photos)
+                ~relief_visibility(frame, ph, heights, mask) & mask if n in photos.samplers else none
+                for n, ph in enumerate(photos.inp.photos)
             ]
         )
-    return relief, stats
+    return relief

@@ -1,0 +1,131 @@
+"""The relief bound: relief-compensated mapping with a synthetic building's true height field.
+
+    python evaluation/relief_bound.py --scene data/synth/survey/gable --polygons wall03 \
+        --max-long-side 512 --density-scale 1.0 --out evaluation/results/relief_bound_survey_gable
+
+`difftex synth` builds every building from its seed (difftex.synth.pipeline.build_model), and
+the facade layouts that built its geometry give each wall's true relief along the outward
+normal: the openings' back panes at -relief_depth, the cornice at +relief_depth, the string
+courses at +relief_depth / 2, a balcony's slab and front rail at its depth (:func:`true_heights`,
+the same boxes as difftex.synth.detail.build_detail). This runs evaluation/variants.py with the
+sweep (``estimate_relief`` in difftex.compose.texturing) replaced by that field for as long as
+the run lasts, so the mapping through the displaced surface, its self-occlusion and everything
+after are the workflow's own: what `optimize.relief: true` would reach with a perfect sweep.
+The variants default to the defaults against `relief: true`; ``--variants`` as in variants.py.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from contextlib import contextmanager
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+if str(ROOT) not in sys.path:
+    sys.path.insert(0, str(ROOT))
+
+DEFAULT_VARIANTS = '{"defaults": {}, "true relief": {"relief": true}}'
+
+
+def synth_model(scene: Path):
+    """(faces by id, layouts by id, relief depth) of the building a `difftex synth` scene shows."""
+    from difftex.errors import DifftexError
+    from difftex.synth.pipeline import build_model
+    from difftex.synth.presets import get_preset
+
+    path = scene / "synth.json"
+    if not path.is_file():
+        raise DifftexError(f"{path}: missing (the relief bound needs a `difftex synth` scene)")
+    meta = json.loads(path.read_text())
+    cfg = get_preset(meta["preset"])
+    # the settings the layouts depend on, as the scene was made (a CLI flag may have changed them)
+    cfg = cfg.replace(**{k: meta["config"][k] for k in ("relief_depth", "balconies") if k in meta.get("config", {})})
+    name = meta["building"]["name"]
+    specs = [b for b in cfg.buildings if b.name == name]
+    if not specs:
+        raise DifftexError(f"{path}: building '{name}' is not in synth preset '{meta['preset']}'")
+    building, layouts, *_ = build_model(cfg, specs[0], meta["seed"], meta["building_index"])
+    return {f.id: f for f in building.faces}, layouts, float(cfg.relief_depth)
+
+
+def true_heights(face, layout, relief: float, X: np.ndarray) -> np.ndarray:
+    """A wall's true height along its outward normal at world points ``X`` (..., 3): the
+    front-most surface, as the orthographic ground truth sees it. Roofs: 0.
+
+    Returns:
+        (...) float32 scene units.
+    """
+    uv = face.to2d(X)
+    u, v = uv[..., 0], uv[..., 1]
+    h = np.zeros(u.shape, np.float32)
+    if face.kind != "wall" or relief <= 0:
+        return h
+    for u0, v0, u1, v1 in layout.openings():  # build_detail lifts an opening's sill to 0.02
+        h[(u >= u0) & (u <= u1) & (v >= max(v0, 0.02)) & (v <= v1)] = -relief
+    # what stands in front of the wall, drawn last: it hides the openings behind it
+    if layout.cornice:
+        h[(v >= face.eave - 0.45) & (v <= face.eave)] = relief
+    for c in layout.courses:
+        h[(v >= c - 0.2) & (v <= c + 0.05)] = 0.5 * relief
+    depth = float(np.clip(1.5 * relief, 0.0, 0.9))  # build_detail's balcony depth
+    for u0, u1, vs in layout.balconies:  # the slab, then the front rail a metre high
+        h[(u >= u0) & (u <= u1) & (v >= vs - 0.15) & (v <= vs + 1.0)] = depth
+    return h
+
+
+def true_relief_estimator(faces: dict, layouts: dict, relief: float):
+    """An ``estimate_relief`` that returns the true field at the sweep's frame, with the
+    self-occlusion the workflow computes for a swept one."""
+    from difftex.method.relief import occluding_relief
+    from difftex.sampling.texels import level_frame, resample_nearest
+
+    def estimate(photos, s):
+        inp = photos.inp
+        frame = level_frame(inp.frame, min(s.long_side, max(inp.frame.shape)))
+        mask = resample_nearest(inp.texel_mask, inp.frame, frame)
+        face = faces[inp.polygon_id]
+        h = true_heights(face, layouts[inp.polygon_id], relief, frame.texel_to_world(*frame.centres()))
+        h = np.where(mask, h, 0.0).astype(np.float32)
+        if float(np.dot(face.normal, frame.normal)) < 0:  # the field is along the frame's normal
+            h = -h
+        field = occluding_relief(photos, frame, h, mask)
+        share = float((h[mask] != 0).mean()) if mask.any() else 0.0
+        return field, {"photos": [], "long_side": max(frame.shape), "relief_share": share, "reason": "true field"}
+
+    return estimate
+
+
+@contextmanager
+def true_relief(scene: Path):
+    """For the block's duration, difftex.compose.texturing estimates relief as the truth."""
+    import difftex.compose.texturing as texturing
+
+    saved = texturing.estimate_relief
+    texturing.estimate_relief = true_relief_estimator(*synth_model(scene))
+    try:
+        yield
+    finally:
+        texturing.estimate_relief = saved
+
+
+def main(argv=None) -> int:
+    from evaluation import variants
+
+    args = list(sys.argv[1:] if argv is None else argv)
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0], add_help=False)
+    ap.add_argument("--scene", required=True, type=Path)
+    known, _ = ap.parse_known_args(args)
+    if "--variants" not in args:
+        args += ["--variants", DEFAULT_VARIANTS]
+    with true_relief(known.scene):
+        return variants.main(args)
+
+
+if __name__ == "__main__":
+    from evaluation.common import run_script
+
+    run_script(main)
