@@ -12,6 +12,12 @@ sweep (``estimate_relief`` in difftex.compose.texturing) replaced by that field 
 the run lasts, so the mapping through the displaced surface, its self-occlusion and everything
 after are the workflow's own: what `optimize.relief: true` would reach with a perfect sweep.
 The variants default to the defaults against `relief: true`; ``--variants`` as in variants.py.
+
+With ``--accuracy`` it scores the sweep itself instead: per wall, its field (the step limit
+lifted, ``--optimize`` for the relief_* settings) against the true one (:func:`field_accuracy`):
+
+    python evaluation/relief_bound.py --accuracy --scene data/synth/survey/gable \
+        --optimize '{"relief_min_cos": 0.3}' --out evaluation/results/relief_sweep_survey_gable
 """
 
 from __future__ import annotations
@@ -112,10 +118,100 @@ def true_relief(scene: Path):
         texturing.estimate_relief = saved
 
 
+def field_accuracy(est: np.ndarray, true: np.ndarray, mask: np.ndarray, depth: float, tol: float) -> dict:
+    """How a height field matches the true one over ``mask``.
+
+    Returns:
+        ``within``: share of the texels within ``tol``; ``recess_found``: share of the truly
+        recessed texels (below -depth / 2) estimated below -depth / 2; ``false_relief``: share of
+        the truly plane texels estimated off it by more than ``tol``.
+    """
+    e, t = est[mask], true[mask]
+    rec, flat = t < -depth / 2, t == 0
+    return {
+        "within": float((np.abs(e - t) <= tol).mean()) if e.size else float("nan"),
+        "recess_found": float((e[rec] < -depth / 2).mean()) if rec.any() else float("nan"),
+        "false_relief": float((np.abs(e[flat]) > tol).mean()) if flat.any() else float("nan"),
+    }
+
+
+def sweep_accuracy(scene: Path, polygons: list[str] | None, density_scale: float, max_long_side: int,
+                   overrides: dict, tol: float) -> list[dict]:
+    """Per polygon, the sweep's own field (its step limit lifted) against the true one."""
+    import dataclasses
+
+    import torch
+
+    from difftex.config import TextureConfig
+    from difftex.geometry.visibility import scene_visibility
+    from difftex.method.config import OptimizeConfig
+    from difftex.method.relief import estimate_relief
+    from difftex.sampling.photos import PhotoSet, polygon_input_from_visibility
+    from difftex.sampling.texels import resample_nearest
+    from difftex.scene.loading import load_scene
+
+    torch.set_num_threads(1)
+    faces, layouts, depth = synth_model(scene)
+    sc = load_scene(scene, check_images=False)
+    cands = {p.id: [ph.name for ph in sc.photos] for p in sc.proxy.polygons if polygons is None or p.id in polygons}
+    tex = TextureConfig(density="auto", density_scale=density_scale, max_long_side=max_long_side)
+    by_name = {p.name: p for p in sc.photos}
+    cfg = dataclasses.replace(OptimizeConfig(), relief=True, **overrides)
+    rows = []
+    for v in scene_visibility(sc.proxy, sc.photos, sc.up, cands, tex, progress=False):
+        if not v.photos or faces[v.polygon_id].kind != "wall":
+            continue
+        inp = polygon_input_from_visibility(v, by_name, up=sc.up)
+        field, st = estimate_relief(PhotoSet.load(inp, "cpu"), cfg.relief_settings(), max_steps=10**9)
+        fr = field.frame
+        mask = resample_nearest(inp.texel_mask, inp.frame, fr)
+        true = true_heights(faces[v.polygon_id], layouts[v.polygon_id], depth, fr.texel_to_world(*fr.centres()))
+        acc = field_accuracy(field.heights, true, mask, depth, tol) if st.get("reason") is None else {}
+        rows.append({"polygon": v.polygon_id, "photos": len(st["photos"]), "steps": st.get("steps"),
+                     "reason": st.get("reason"), **acc})
+        print(f"relief_bound: {v.polygon_id}: {rows[-1]}", flush=True)
+    return rows
+
+
+def accuracy_main(args) -> int:
+    from evaluation import common as C
+
+    over = json.loads(args.optimize) if args.optimize else {}
+    rows = sweep_accuracy(args.scene, C.polygon_ids(args.polygons) if args.polygons else None,
+                          args.density_scale, args.max_long_side, over, args.tolerance)
+    cmd = "python evaluation/relief_bound.py " + " ".join(sys.argv[1:])
+    lines = [
+        C.header(f"The relief sweep against the true field: {args.scene.name}", cmd, C.machine(), [
+            f"optimize overrides {json.dumps(over)}; the sweep's own field with its step limit lifted, at its frame; "
+            f"within: share of texels within {args.tolerance} of the truth; recess found: share of the recessed "
+            "texels (below -depth/2) estimated there; false relief: share of the plane's texels estimated off it."]),
+        "| polygon | photos compared | steps | within | recess found | false relief | note |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    for r in rows:
+        nums = [f"{r[k]:.3f}" if k in r else "-" for k in ("within", "recess_found", "false_relief")]
+        lines.append(f"| {r['polygon']} | {r['photos']} | {r['steps'] if r['steps'] is not None else '-'} | "
+                     f"{' | '.join(nums)} | {r['reason'] or ''} |")
+    C.write_outputs(Path(args.out), "\n".join(lines) + "\n", {"args": {k: str(v) for k, v in vars(args).items()},
+                                                              "rows": rows})
+    return 0
+
+
 def main(argv=None) -> int:
     from evaluation import variants
 
     args = list(sys.argv[1:] if argv is None else argv)
+    if "--accuracy" in args:
+        ap = argparse.ArgumentParser(description="the sweep's field against the true one")
+        ap.add_argument("--accuracy", action="store_true")
+        ap.add_argument("--scene", required=True, type=Path)
+        ap.add_argument("--polygons")
+        ap.add_argument("--density-scale", type=float, default=1.0)
+        ap.add_argument("--max-long-side", type=int, default=512)
+        ap.add_argument("--optimize", help="JSON optimize overrides (the relief_* settings)")
+        ap.add_argument("--tolerance", type=float, default=0.05, help="scene units")
+        ap.add_argument("--out", required=True)
+        return accuracy_main(ap.parse_args(args))
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0], add_help=False)
     ap.add_argument("--scene", required=True, type=Path)
     known, _ = ap.parse_known_args(args)

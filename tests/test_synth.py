@@ -483,5 +483,26 @@ def test_relief_bound_rebuilds_the_true_height_field(survey_tiny, tmp_path):
     assert set(res["variants"]) == {"defaults", "true relief"}
     # the field changed the mapping (the sweep finds nothing on so few, so small photos)
     assert res["variants"]["true relief"]["ssim"] != res["variants"]["defaults"]["ssim"]
+    acc = tmp_path / "acc"
+    assert main(["--accuracy", "--scene", str(survey_tiny), "--polygons", wall, "--max-long-side", "96",
+                 "--density-scale", "3.0", "--optimize", '{"relief_min_cos": 0.0}', "--out", str(acc)]) == 0
+    rows = json.loads(acc.with_suffix(".json").read_text())["rows"]
+    assert [r["polygon"] for r in rows] == [wall] and rows[0]["photos"] >= 1
     with pytest.raises(DifftexError, match="synth.json"):
         synth_model(tmp_path)
+
+
+def test_field_accuracy_counts_found_recesses_and_false_relief():
+    """relief_bound.field_accuracy at its extremes: the true field scores 1 / 1 / 0, a flat field
+    finds no recess and no false relief, a field off by more than the tolerance is within nowhere."""
+    from evaluation.relief_bound import field_accuracy
+
+    true = np.zeros((4, 6), np.float32)
+    true[1:3, 1:3] = -0.3
+    mask = np.ones_like(true, bool)
+    assert field_accuracy(true, true, mask, 0.3, 0.05) == {"within": 1.0, "recess_found": 1.0, "false_relief": 0.0}
+    flat = field_accuracy(np.zeros_like(true), true, mask, 0.3, 0.05)
+    assert flat == {"within": 20 / 24, "recess_found": 0.0, "false_relief": 0.0}
+    off = field_accuracy(true + 0.1, true, mask, 0.3, 0.05)
+    assert off["within"] == 0.0 and off["false_relief"] == 1.0 and off["recess_found"] == 1.0
+    assert np.isnan(field_accuracy(true, true, np.zeros_like(mask), 0.3, 0.05)["within"])  # no texel: NaN

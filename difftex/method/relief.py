@@ -238,8 +238,11 @@ def height_field(cost: torch.Tensor, heights: np.ndarray, mask: np.ndarray, marg
     return merge_steps(out, mask, 2.0 * step + 1e-9, 0.005)
 
 
-def estimate_relief(photos: PhotoSet, s: ReliefSettings) -> tuple[Relief, dict]:
+def estimate_relief(photos: PhotoSet, s: ReliefSettings, max_steps: int = MAX_STEPS) -> tuple[Relief, dict]:
     """The polygon's height field and each candidate photo's self-occlusion through it.
+
+    ``max_steps``: a field with more steps off the plane is rejected (the plane is kept); a
+    yardstick of the sweep itself (evaluation/relief_bound.py --accuracy) lifts it.
 
     Returns:
         (the Relief at the sweep's frame, statistics for stats.json).
@@ -260,13 +263,14 @@ def estimate_relief(photos: PhotoSet, s: ReliefSettings) -> tuple[Relief, dict]:
         cost, _ = sweep_cost(photos, which, frame, mask, heights, s.window)
     h = height_field(cost, heights, mask, s.margin, s.smooth)
     steps = len(np.unique(h[mask])) - int(bool((h[mask] == 0).any()))
-    if steps > MAX_STEPS:
+    if steps > max_steps:
         stats.update({"heights": [float(x) for x in heights], "relief_share": 0.0, "steps": steps,
-                      "reason": f"{steps} steps off the plane (more than {MAX_STEPS}): not a facade's relief"})
+                      "reason": f"{steps} steps off the plane (more than {max_steps}): not a facade's relief"})
         return flat, stats
     stats.update(
         {
             "heights": [float(x) for x in heights],
+            "steps": steps,
             "relief_share": float((h[mask] != 0).mean()) if mask.any() else 0.0,
             "levels": {f"{v:.4g}": float((h[mask] == v).mean()) for v in np.unique(h[mask])},
         }
