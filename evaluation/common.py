@@ -65,6 +65,13 @@ def machine() -> dict:
         commit = subprocess.run(
             ["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True, text=True
         ).stdout.strip()
+        # code that differs from the commit made the figures: say so (results and docs do not count)
+        changed = subprocess.run(
+            ["git", "diff", "--quiet", "HEAD", "--", "difftex", "evaluation/*.py", "workflow", "config"],
+            cwd=ROOT, capture_output=True,
+        ).returncode
+        if commit and changed == 1:
+            commit += " + uncommitted code"
     except OSError:
         commit = ""
     return {

@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import shlex
 import sys
 from contextlib import contextmanager
 from pathlib import Path
@@ -83,6 +84,18 @@ def true_heights(face, layout, relief: float, X: np.ndarray) -> np.ndarray:
     return h
 
 
+def true_field(face, layout, relief: float, frame, mask: np.ndarray) -> np.ndarray:
+    """The true heights at ``frame``'s texel centres along the frame's normal, 0 outside ``mask``.
+
+    Returns:
+        (h, w) float32 scene units.
+    """
+    h = true_heights(face, layout, relief, frame.texel_to_world(*frame.centres()))
+    if float(np.dot(face.normal, frame.normal)) < 0:  # the face's outward normal against the frame's
+        h = -h
+    return np.where(mask, h, 0.0).astype(np.float32)
+
+
 def true_relief_estimator(faces: dict, layouts: dict, relief: float):
     """An ``estimate_relief`` that returns the true field at the sweep's frame, with the
     self-occlusion the workflow computes for a swept one."""
@@ -93,11 +106,7 @@ def true_relief_estimator(faces: dict, layouts: dict, relief: float):
         inp = photos.inp
         frame = level_frame(inp.frame, min(s.long_side, max(inp.frame.shape)))
         mask = resample_nearest(inp.texel_mask, inp.frame, frame)
-        face = faces[inp.polygon_id]
-        h = true_heights(face, layouts[inp.polygon_id], relief, frame.texel_to_world(*frame.centres()))
-        h = np.where(mask, h, 0.0).astype(np.float32)
-        if float(np.dot(face.normal, frame.normal)) < 0:  # the field is along the frame's normal
-            h = -h
+        h = true_field(faces[inp.polygon_id], layouts[inp.polygon_id], relief, frame, mask)
         field = occluding_relief(photos, frame, h, mask)
         share = float((h[mask] != 0).mean()) if mask.any() else 0.0
         return field, {"photos": [], "long_side": max(frame.shape), "relief_share": share, "reason": "true field"}
@@ -165,7 +174,7 @@ def sweep_accuracy(scene: Path, polygons: list[str] | None, density_scale: float
         field, st = estimate_relief(PhotoSet.load(inp, "cpu"), cfg.relief_settings(), max_steps=10**9)
         fr = field.frame
         mask = resample_nearest(inp.texel_mask, inp.frame, fr)
-        true = true_heights(faces[v.polygon_id], layouts[v.polygon_id], depth, fr.texel_to_world(*fr.centres()))
+        true = true_field(faces[v.polygon_id], layouts[v.polygon_id], depth, fr, mask)
         acc = field_accuracy(field.heights, true, mask, depth, tol) if st.get("reason") is None else {}
         rows.append({"polygon": v.polygon_id, "photos": len(st["photos"]), "steps": st.get("steps"),
                      "reason": st.get("reason"), **acc})
@@ -179,7 +188,7 @@ def accuracy_main(args) -> int:
     over = json.loads(args.optimize) if args.optimize else {}
     rows = sweep_accuracy(args.scene, C.polygon_ids(args.polygons) if args.polygons else None,
                           args.density_scale, args.max_long_side, over, args.tolerance)
-    cmd = "python evaluation/relief_bound.py " + " ".join(sys.argv[1:])
+    cmd = "python evaluation/relief_bound.py " + shlex.join(args.argv)
     lines = [
         C.header(f"The relief sweep against the true field: {args.scene.name}", cmd, C.machine(), [
             f"optimize overrides {json.dumps(over)}; the sweep's own field with its step limit lifted, at its frame; "
@@ -192,8 +201,8 @@ def accuracy_main(args) -> int:
         nums = [f"{r[k]:.3f}" if k in r else "-" for k in ("within", "recess_found", "false_relief")]
         lines.append(f"| {r['polygon']} | {r['photos']} | {r['steps'] if r['steps'] is not None else '-'} | "
                      f"{' | '.join(nums)} | {r['reason'] or ''} |")
-    C.write_outputs(Path(args.out), "\n".join(lines) + "\n", {"args": {k: str(v) for k, v in vars(args).items()},
-                                                              "rows": rows})
+    kept = {k: str(v) for k, v in vars(args).items() if k != "argv"}
+    C.write_outputs(Path(args.out), "\n".join(lines) + "\n", {"args": kept, "rows": rows})
     return 0
 
 
@@ -211,14 +220,16 @@ def main(argv=None) -> int:
         ap.add_argument("--optimize", help="JSON optimize overrides (the relief_* settings)")
         ap.add_argument("--tolerance", type=float, default=0.05, help="scene units")
         ap.add_argument("--out", required=True)
-        return accuracy_main(ap.parse_args(args))
+        parsed = ap.parse_args(args)
+        parsed.argv = args
+        return accuracy_main(parsed)
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0], add_help=False)
     ap.add_argument("--scene", required=True, type=Path)
     known, _ = ap.parse_known_args(args)
     if "--variants" not in args:
         args += ["--variants", DEFAULT_VARIANTS]
     with true_relief(known.scene):
-        return variants.main(args)
+        return variants.main(args, command="python evaluation/relief_bound.py " + shlex.join(args))
 
 
 if __name__ == "__main__":

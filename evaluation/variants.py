@@ -133,7 +133,8 @@ def _slug(name: str) -> str:
     return "".join(c if c.isalnum() or c in "-_." else "_" for c in name).strip("_") or "variant"
 
 
-def main(argv=None) -> int:
+def main(argv=None, command: str | None = None) -> int:
+    """``command``: the command line the results file records (default: this script's own)."""
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--scene", required=True, type=Path)
     ap.add_argument("--density-scale", type=float, default=0.5)
@@ -160,7 +161,7 @@ def main(argv=None) -> int:
     lines = [
         C.header(
             f"Optimizer variants on {args.scene.name}",
-            "python evaluation/variants.py " + shlex.join(sys.argv[1:]),
+            command or "python evaluation/variants.py " + shlex.join(sys.argv[1:] if argv is None else argv),
             mach,
             [
                 f"density auto x {args.density_scale} (max {args.max_long_side}), "

@@ -257,6 +257,12 @@ def test_frontality_tilt_lowers_photos_from_above_on_a_wall_and_not_on_a_roof():
         seen = off.visible[j] & (off.Q[j] > 1e-3)
         tilted = on.blend_Q[j][seen] / off.blend_Q[j][seen]
         assert torch.allclose(witnesses.Q[j][seen] / off.Q[j][seen], tilted, rtol=1e-4)
+    # with one Q for blend and witnesses otherwise (resolution_reference: pixel), the tilt still
+    # leaves the witnesses' Q alone
+    pixel_off = level(fast_cfg(resolution_reference="pixel"), up)
+    pixel_on = level(fast_cfg(resolution_reference="pixel", frontality_tilt=3.0), up)
+    assert pixel_off.Qb is None and torch.equal(pixel_on.Q, pixel_off.Q)
+    assert not torch.equal(pixel_on.blend_Q, pixel_off.blend_Q)
     roof = level(fast_cfg(frontality_tilt=3.0), -fr.normal)  # up along the normal: a roof
     assert torch.equal(roof.blend_Q, off.blend_Q)
     assert torch.equal(level(fast_cfg(frontality_tilt=0.0), up).blend_Q, off.blend_Q)

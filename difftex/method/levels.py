@@ -344,7 +344,8 @@ def build_level(
         cnt[y0:y1, x0:x1] += v
         gsum[y0:y1, x0:x1] += gradient_magnitude(mp.colour, mp.visible) * v
         fpbest[y0:y1, x0:x1] = torch.maximum(fpbest[y0:y1, x0:x1], torch.where(mp.visible, mp.footprint, 0.0))
-        if tbest is not None and tilt_axis is not None:
+        if tbest is not None:
+            assert tilt_axis is not None  # tbest exists only with it
             tf = torch.where(mp.visible, tilt_frontality(mp.view, normal, tilt_axis), 0.0)
             tbest[y0:y1, x0:x1] = torch.maximum(tbest[y0:y1, x0:x1], tf)
         vd = (mp.view * v).sum((1, 2))
@@ -376,7 +377,9 @@ def build_level(
     # Q weighs the photos as witnesses (L_Render, ghost, settling); Qb, with the relative Q_r, the
     # blend (initial and settled weights). With one Q for both, the close photos that saw the tree
     # in front of archive's wall00 outvoted the farther ones that saw past it, and it came back.
-    split = not cfg.resolution_in_consensus and cfg.resolution_reference == "best"
+    res_split = not cfg.resolution_in_consensus and cfg.resolution_reference == "best"
+    # the tilt weighs the blend alone unless frontality_tilt_witnesses: that too needs a Qb
+    split = res_split or (tbest is not None and not cfg.frontality_tilt_witnesses)
     Qb = torch.zeros((K, h, w), device=device) if split else None
     # the per-slot tensors a photo's values go into, and the order of those values
     slot_data = [vis, cols, Q, cost, w0] + ([detail] if detail is not None else []) + ([Qb] if Qb is not None else [])
@@ -412,9 +415,13 @@ def build_level(
                 qac = qa_blend
         best = fpbest[sl] if cfg.resolution_reference == "best" else None
         rw = cfg.resolution_weight
-        qb = qa_blend * resolution_factor(relative_footprint(mp.footprint, best, cfg.resolution_knee), rw, mp.visible)
+        q_r = resolution_factor(relative_footprint(mp.footprint, best, cfg.resolution_knee), rw, mp.visible)
+        qb = qa_blend * q_r
         rw_w = rw if cfg.witness_resolution_weight is None else cfg.witness_resolution_weight
-        q = qac * resolution_factor(relative_footprint(mp.footprint, None), rw_w, mp.visible) if split else qb
+        if res_split:
+            q = qac * resolution_factor(relative_footprint(mp.footprint, None), rw_w, mp.visible)
+        else:
+            q = qac * q_r
         pc = losses.persp_cost(mp.view[None], v_tilde)[0]
         weight = qb  # as the paper (Sec. 4.2), the weights start at Q (here the blend's, with Q_r)
         if prev is not None:
