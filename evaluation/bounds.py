@@ -68,24 +68,18 @@ def run(scene: Path, density_scale: float, max_long_side: int, preset: str, patc
 
     from difftex.compose.fill import finish_texture
     from difftex.compose.texturing import texture_polygon
-    from difftex.config import TextureConfig
     from difftex.evaluation import metrics
     from difftex.evaluation.evaluate import resample_texture
     from difftex.evaluation.oracle import blend_oracle, blend_summary, patch_oracle, tail_causes
     from difftex.geometry.frames import UVFrame
-    from difftex.geometry.visibility import scene_visibility
     from difftex.method.config import ComputeConfig, OptimizeConfig
     from difftex.method.loop import photo_weight
     from difftex.sampling.photos import PhotoSet, polygon_input_from_visibility
     from difftex.scene.files import read_image, read_json
-    from difftex.scene.loading import load_scene
 
     torch.set_num_threads(1)
     cfg = OptimizeConfig.from_dict(C.base_config(None, preset if preset != "none" else "default")["optimize"])
-    sc = load_scene(scene, check_images=False)
-    cands = {p.id: [ph.name for ph in sc.photos] for p in sc.proxy.polygons if polygons is None or p.id in polygons}
-    tex = TextureConfig(density="auto", density_scale=density_scale, max_long_side=max_long_side)
-    vis = [v for v in scene_visibility(sc.proxy, sc.photos, sc.up, cands, tex, progress=False) if v.photos]
+    sc, vis = C.scene_polygons(scene, polygons, density_scale, max_long_side)
     by_name = {p.name: p for p in sc.photos}
     gt = scene / "ground_truth"
     names = ["ground truth at the texture's texel size", "average"] + [f"oracle, {p}x{p} patches" for p in patches]

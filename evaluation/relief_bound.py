@@ -151,24 +151,20 @@ def sweep_accuracy(scene: Path, polygons: list[str] | None, density_scale: float
 
     import torch
 
-    from difftex.config import TextureConfig
-    from difftex.geometry.visibility import scene_visibility
     from difftex.method.config import OptimizeConfig
     from difftex.method.relief import estimate_relief
     from difftex.sampling.photos import PhotoSet, polygon_input_from_visibility
     from difftex.sampling.texels import resample_nearest
-    from difftex.scene.loading import load_scene
+    from evaluation import common as C
 
     torch.set_num_threads(1)
     faces, layouts, depth = synth_model(scene)
-    sc = load_scene(scene, check_images=False)
-    cands = {p.id: [ph.name for ph in sc.photos] for p in sc.proxy.polygons if polygons is None or p.id in polygons}
-    tex = TextureConfig(density="auto", density_scale=density_scale, max_long_side=max_long_side)
+    sc, vis = C.scene_polygons(scene, polygons, density_scale, max_long_side)
     by_name = {p.name: p for p in sc.photos}
     cfg = dataclasses.replace(OptimizeConfig(), relief=True, **overrides)
     rows = []
-    for v in scene_visibility(sc.proxy, sc.photos, sc.up, cands, tex, progress=False):
-        if not v.photos or faces[v.polygon_id].kind != "wall":
+    for v in vis:
+        if faces[v.polygon_id].kind != "wall":
             continue
         inp = polygon_input_from_visibility(v, by_name, up=sc.up)
         field, st = estimate_relief(PhotoSet.load(inp, "cpu"), cfg.relief_settings(), max_steps=10**9)

@@ -44,24 +44,17 @@ def run(
 
     from difftex.compose.fill import finish_texture
     from difftex.compose.texturing import texture_polygon
-    from difftex.config import TextureConfig
     from difftex.evaluation import metrics
     from difftex.evaluation.baselines import baseline_texture
     from difftex.evaluation.evaluate import resample_texture
     from difftex.geometry.frames import UVFrame
-    from difftex.geometry.visibility import scene_visibility
     from difftex.method.config import ComputeConfig, OptimizeConfig
     from difftex.sampling import SUPERSAMPLE
     from difftex.sampling.photos import polygon_input_from_visibility
     from difftex.scene.files import read_image, read_json, write_image
-    from difftex.scene.loading import load_scene
 
     torch.set_num_threads(1)
-    sc = load_scene(scene, check_images=False)
-    cands = {p.id: [ph.name for ph in sc.photos] for p in sc.proxy.polygons if polygons is None or p.id in polygons}
-    tex = TextureConfig(density="auto", density_scale=density_scale, max_long_side=max_long_side)
-    vis = scene_visibility(sc.proxy, sc.photos, sc.up, cands, tex, progress=False, texel_candidates=texel_candidates)
-    vis = [v for v in vis if v.photos]
+    sc, vis = C.scene_polygons(scene, polygons, density_scale, max_long_side, texel_candidates)
     by_name = {p.name: p for p in sc.photos}
     gt = scene / "ground_truth"
     out = {}
