@@ -4,6 +4,8 @@ standing 0.4 m out, photographed from 15 directions, that the proxy (one plane) 
 
 from __future__ import annotations
 
+import dataclasses
+
 import analytic_relief as ar
 import numpy as np
 import pytest
@@ -15,9 +17,11 @@ from difftex.method.config import ComputeConfig, OptimizeConfig
 from difftex.method.relief import (
     ReliefSettings,
     box_filter,
+    directional_difference,
     estimate_relief,
     height_field,
     merge_steps,
+    parallax_directions,
     sweep_heights,
     sweep_photos,
     zncc,
@@ -174,6 +178,82 @@ def test_a_flat_wall_gets_no_relief():
     assert relief.hidden is None or relief.flat or stats["relief_share"] < 0.02
 
 
+def _banded_flat_wall(phs):
+    """Renders of the plane wall with faint plaster and one dark horizontal band (a string
+    course's shadow), with a camera's noise."""
+    saved = ar.RECESS, ar.BALCONY, ar.colour
+
+    def colour(x, z, surface):
+        if surface != "wall":
+            return saved[2](x, z, surface)
+        g = 0.6 + 0.02 * np.sin(37.0 * x + 3.0 * np.sin(23.0 * z)) * np.cos(29.0 * z) - 0.35 * ((z > 2.0) & (z < 2.15))
+        return np.stack([g, 0.9 * g, 0.7 * g], -1)
+
+    ar.RECESS, ar.BALCONY, ar.colour = 1e-9, 1e-9, colour
+    try:
+        imgs = [ar.render(p) for p in phs]
+    finally:
+        ar.RECESS, ar.BALCONY, ar.colour = saved
+    rng = np.random.default_rng(0)
+    return [np.clip(im + rng.normal(0, 0.01, im.shape).astype(np.float32), 0, 1) for im in imgs]
+
+
+def test_photos_from_above_pull_grey_plaster_to_a_band_but_not_the_parallax_sweep():
+    # drone-like: every photo 35-45 degrees from above, spread left to right. At a wrong height
+    # all of them move alike up the wall, so the band lands in the plaster's windows in all of
+    # them and their grey values agree there; along each photo's own parallax direction (left or
+    # right of the others') the band is uniform and tells nothing.
+    torch.set_num_threads(1)
+    phs = ar.photos(n_yaw=(-35, -20, -8, 8, 20, 35), pitches=(35, 45))
+    inp = ar.make_input(phs, _banded_flat_wall(phs), long_side=96)
+    ps = PhotoSet.load(inp, "cpu", relief_range=(-0.5, 0.5))
+    base = ReliefSettings(lo=-0.5, hi=0.5, long_side=96, window=9, smooth=5, min_cos=0.3)
+    off = {}
+    for name, s in {"grey": base, "parallax": dataclasses.replace(base, structure="parallax"),
+                    "parallax, semiglobal": dataclasses.replace(base, structure="parallax", regularise="semiglobal",
+                                                                smooth=1)}.items():
+        relief, _ = estimate_relief(ps, s, max_steps=10**9)
+        off[name] = float(np.mean(relief.heights[inp.texel_mask] != 0))
+    assert off["grey"] >= 0.15
+    assert off["parallax"] <= 0.02 and off["parallax, semiglobal"] <= 0.02
+
+
+def test_the_parallax_sweep_with_semiglobal_matching_recovers_the_recess_and_the_balcony(scene):
+    inp, ps, _, _ = scene
+    s = dataclasses.replace(SWEEP, structure="parallax", regularise="semiglobal", smooth=1)
+    relief, stats = estimate_relief(ps, s)
+    _, h = ar.truth(relief.frame)
+    got = relief.heights
+    recess, balcony = _interior(h < 0), _interior(h > 0)
+    wall = _interior(h == 0) & _interior(inp.texel_mask)
+    assert abs(np.median(got[recess]) + ar.RECESS) <= HEIGHT_TOL
+    assert abs(np.median(got[balcony]) - ar.BALCONY) <= HEIGHT_TOL
+    # differences of noise-free renders carry less than their grey values: 85 %, not 90 % (the grey sweep's)
+    assert np.mean(np.abs(got[recess] + ar.RECESS) <= HEIGHT_TOL) >= 0.85
+    assert np.mean(np.abs(got[balcony] - ar.BALCONY) <= HEIGHT_TOL) >= 0.9
+    assert np.mean(got[wall] == 0) >= 0.95
+    assert len(np.unique(got)) <= 6 and stats.get("reason") is None
+
+
+def test_parallax_directions_and_the_directional_difference():
+    par = np.array([[0.0, -2.0], [0.5, -2.0], [-0.5, -2.0], [0.0, 1.0], [0.0, -2.0]])
+    d = parallax_directions(par)  # median (0, -2): left, right, down; the median photos get (1, 0)
+    assert np.allclose(d, [[1, 0], [1, 0], [-1, 0], [0, 1], [1, 0]])
+    assert np.allclose(np.linalg.norm(d, axis=1), 1)
+    ramp = torch.arange(5.0)[None, :, None] * 2.0 + torch.arange(6.0)[None, None, :]  # 2 per row, 1 per column
+    x = ramp.expand(3, 5, 6).clone()
+    valid = torch.ones(3, 5, 6, dtype=torch.bool)
+    valid[2, 2, 3] = False
+    dirs = torch.tensor([[1.0, 0.0], [0.0, 1.0], [0.6, 0.8]])
+    diff, ok = directional_difference(x, valid, dirs)
+    assert torch.allclose(diff[0, :-1, :-1], torch.tensor(1.0)) and torch.allclose(diff[1, :-1, :-1], torch.tensor(2.0))
+    assert torch.allclose(diff[2, :-1, :-1], torch.tensor(0.6 + 1.6))
+    # the last row and column have no forward neighbour; an invalid texel spoils itself and its
+    # left and upper neighbours
+    assert not ok[:, -1].any() and not ok[:, :, -1].any()
+    assert not ok[2, 2, 3] and not ok[2, 2, 2] and not ok[2, 1, 3] and ok[2, 1, 2]
+
+
 def test_fewer_than_five_photos_give_a_flat_field():
     phs = ar.photos(n_yaw=(-10, 10), pitches=(-10, 20))
     inp = ar.make_input(phs, [ar.render(p) for p in phs], long_side=48)
@@ -263,11 +343,15 @@ def test_relief_and_settings_check_their_input():
         Relief(frame, np.zeros((3, 3), np.float32))
     with pytest.raises(ValueError, match="finite"):
         Relief(frame, np.full(frame.shape, np.nan, np.float32))
-    for bad in (dict(lo=0.1, hi=0.5), dict(lo=0.0, hi=0.0), dict(lo=-1, hi=1, window=4), dict(lo=-1, hi=1, smooth=0)):
+    for bad in (dict(lo=0.1, hi=0.5), dict(lo=0.0, hi=0.0), dict(lo=-1, hi=1, window=4), dict(lo=-1, hi=1, smooth=0),
+                dict(lo=-1, hi=1, share=0.0), dict(lo=-1, hi=1, share=1.5), dict(lo=-1, hi=1, p1=0.6, p2=0.5),
+                dict(lo=-1, hi=1, p1=-0.1), dict(lo=-1, hi=1, regularise="median"), dict(lo=-1, hi=1, structure="rgb")):
         with pytest.raises(ValueError):
             ReliefSettings(**bad)
     with pytest.raises(ValueError):
         OptimizeConfig(relief=True, relief_range=(0.2, 0.4))
+    with pytest.raises(ValueError):
+        OptimizeConfig(relief_regularise="graph-cut")
     assert OptimizeConfig(relief_range=[-0.3, 0.2]).relief_range == (-0.3, 0.2)
 
 

@@ -56,8 +56,24 @@ class ReliefSettings:
     # heights beyond this share of the polygon's shorter side are not swept: a scene in other units
     # than metres (COLMAP's are arbitrary unless scaled), or a small polygon, gets a range in scale
     max_share: float = 0.2
+    # per texel and height, the mean cost of this share of the photos that agree best (1: of all):
+    # the photos that a reveal hides the texel from disagree at the true height (semiglobal.py)
+    share: float = 1.0
+    # "mode": each texel's cheapest height where it beats the plane by ``margin``, mode-filtered;
+    # "semiglobal": the cost volume aggregated along 8 paths (semi-global matching) with the
+    # penalties p1 (one height step) and p2 (a larger jump), the plane favoured by ``margin``
+    regularise: Literal["mode", "semiglobal"] = "mode"
+    # what the ZNCC compares: grey values, or differences along each photo's parallax direction
+    # (difftex.method.relief.sweep_cost says why)
+    structure: Literal["grey", "parallax"] = "grey"
+    p1: float = 0.05
+    p2: float = 0.5
 
     def __post_init__(self):
+        if not 0 < self.share <= 1 or not 0 <= self.p1 <= self.p2 or self.regularise not in ("mode", "semiglobal") \
+                or self.structure not in ("grey", "parallax"):
+            raise ValueError(f"relief share in (0, 1], 0 <= p1 <= p2, regularise mode|semiglobal; got {self.share}, "
+                             f"{self.p1}, {self.p2}, {self.regularise!r}, structure {self.structure!r}")
         if not self.lo <= 0 <= self.hi or self.lo == self.hi:
             raise ValueError(f"relief range must hold 0 and not be empty, got [{self.lo}, {self.hi}]")
         if self.window < 3 or self.window % 2 == 0 or self.smooth < 1 or self.smooth % 2 == 0:
@@ -176,6 +192,11 @@ class OptimizeConfig:
     relief_min_cos: float = 0.5  # ... among those seen within arccos of this of the normal
     relief_margin: float = 0.15  # least gain in mean 1 - ZNCC over the plane for a height to be kept
     relief_smooth: int = 9  # mode filter of the height field, texels of the sweep's frame (odd; 1: off)
+    relief_share: float = 1.0  # per texel and height, the mean cost of this share of the best-agreeing photos
+    relief_regularise: Literal["mode", "semiglobal"] = "mode"  # the field's regulariser (difftex.method.semiglobal)
+    relief_structure: Literal["grey", "parallax"] = "grey"  # what the sweep's ZNCC compares (relief.sweep_cost)
+    relief_p1: float = 0.05  # semiglobal: penalty of one height step between neighbouring texels (cost units)
+    relief_p2: float = 0.5  # semiglobal: penalty of a larger jump
     coarse_to_fine: bool = True
     histogram_matching: bool = True
     # refine each photo's mapping (affine, pixels) against the consensus texture, where at least
@@ -364,7 +385,8 @@ class OptimizeConfig:
         return ReliefSettings(
             lo=lo, hi=hi, long_side=self.relief_long_side, window=self.relief_window, max_photos=self.relief_photos,
             min_cos=self.relief_min_cos, margin=self.relief_margin, smooth=self.relief_smooth,
-            max_share=self.relief_max_share,
+            max_share=self.relief_max_share, share=self.relief_share, regularise=self.relief_regularise,
+            p1=self.relief_p1, p2=self.relief_p2, structure=self.relief_structure,
         )
 
     def cap(self, level: int) -> int:

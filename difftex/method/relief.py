@@ -37,6 +37,7 @@ import torch.nn.functional as F
 
 from difftex.geometry.frames import UVFrame
 from difftex.method.config import ReliefSettings  # noqa: F401  (defined beside OptimizeConfig, re-exported)
+from difftex.method.semiglobal import aggregate, best_share_mean
 from difftex.sampling.photos import PhotoSet
 from difftex.sampling.relief import GreySweep, Relief, relief_visibility
 from difftex.sampling.texels import level_frame, resample_nearest, texel_map
@@ -69,27 +70,69 @@ def sweep_photos(photos: PhotoSet, frame: UVFrame, mask: np.ndarray, min_cos: fl
     return [n for c, n in scored if c >= min_cos][:max_photos]
 
 
+def photo_parallax(photos: PhotoSet, which: list[int], frame: UVFrame) -> np.ndarray:
+    """Each photo's parallax at the polygon's centre: a point at height h appears on the plane
+    displaced by h (v_u / v_n, v_v / v_n) texel units (times 1 / texel size) for a photo seen along v.
+
+    Returns:
+        (len(which), 2) the displacement per unit height along e_u and e_v.
+    """
+    centre = frame.texel_to_world(np.array(frame.width / 2), np.array(frame.height / 2))
+    out = []
+    for n in which:
+        v = photos.inp.photos[n].center - centre
+        vn = max(float(v @ frame.normal), 1e-6)
+        out.append([float(v @ frame.e_u) / vn, float(v @ frame.e_v) / vn])
+    return np.asarray(out, np.float64).reshape(-1, 2)
+
+
 def sweep_heights(photos: PhotoSet, which: list[int], frame: UVFrame, s: ReliefSettings) -> np.ndarray:
     """The swept heights: from ``lo`` to ``hi`` in steps that move the photos' parallax relative to
     each other by about one texel (finer steps tell nothing new), at most ``max_heights``, 0 among them.
 
-    A point at height h appears on the plane displaced by h (v_u / v_n, v_v / v_n) texel units for a
-    photo seen along v; the largest difference of that between two photos sets the step.
+    The largest difference of :func:`photo_parallax` between two photos sets the step.
     """
-    cu, cv = frame.width / 2, frame.height / 2
-    centre = frame.texel_to_world(np.array(cu), np.array(cv))
-    slants = []
-    for n in which:
-        v = photos.inp.photos[n].center - centre
-        vn = max(float(v @ frame.normal), 1e-6)
-        slants.append([float(v @ frame.e_u) / vn, float(v @ frame.e_v) / vn])
-    d = np.asarray(slants)
+    d = photo_parallax(photos, which, frame)
     spread = float(np.max(np.linalg.norm(d[:, None] - d[None], axis=-1))) if len(d) > 1 else 0.0
     step = frame.texel_size / max(spread, 1e-6)
     step = max(step, (s.hi - s.lo) / (s.max_heights - 1))
     below = -np.arange(0.0, -s.lo + 1e-9, step)[::-1]
     above = np.arange(step, s.hi + 1e-9, step)
     return np.concatenate([below, above]).astype(np.float64)
+
+
+def parallax_directions(parallax: np.ndarray) -> np.ndarray:
+    """Per photo, the unit direction (e_u, e_v) in which a wrong height moves it against the
+    consensus: its parallax minus the photos' median parallax (the consensus is their median).
+
+    Args:
+        parallax: (P, 2) from :func:`photo_parallax`.
+
+    Returns:
+        (P, 2) unit vectors; (1, 0) for a photo at the median itself (no direction of its own).
+    """
+    off = parallax - np.median(parallax, 0)
+    norm = np.linalg.norm(off, axis=1, keepdims=True)
+    return np.where(norm > 1e-9, off / np.maximum(norm, 1e-9), np.array([[1.0, 0.0]]))
+
+
+def directional_difference(
+    x: torch.Tensor, valid: torch.Tensor, direction: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Forward differences of ``x`` along a direction per image: d_u dx/du + d_v dx/dv.
+
+    Args:
+        x: (B, h, w); valid: (B, h, w) bool; direction: (B, 2) unit (d_u, d_v).
+
+    Returns:
+        ((B, h, w) the difference, 0 on the last row and column; (B, h, w) bool where it and its
+        two neighbours are valid).
+    """
+    du = F.pad(x[..., 1:] - x[..., :-1], (0, 1))
+    dv = F.pad(x[..., 1:, :] - x[..., :-1, :], (0, 0, 0, 1))
+    ok = valid & F.pad(valid[..., 1:], (0, 1)) & F.pad(valid[..., 1:, :], (0, 0, 0, 1))
+    a, b = direction[:, 0].view(-1, 1, 1).to(x), direction[:, 1].view(-1, 1, 1).to(x)
+    return a * du + b * dv, ok
 
 
 def box_filter(x: torch.Tensor, window: int) -> torch.Tensor:
@@ -137,9 +180,18 @@ def zncc(a: torch.Tensor, b: torch.Tensor, valid: torch.Tensor, window: int, eps
 
 
 def sweep_cost(
-    photos: PhotoSet, which: list[int], frame: UVFrame, mask: np.ndarray, heights: np.ndarray, window: int
+    photos: PhotoSet, which: list[int], frame: UVFrame, mask: np.ndarray, heights: np.ndarray, window: int,
+    share: float = 1.0, structure: str = "grey",
 ) -> tuple[torch.Tensor, torch.Tensor]:
-    """The plane sweep's cost volume: per height and texel, the mean of 1 - ZNCC(photo, median).
+    """The plane sweep's cost volume: per height and texel, the mean of 1 - ZNCC(photo, median)
+    over the ``share`` of the photos that agree best (difftex.method.semiglobal.best_share_mean).
+
+    ``structure``: "grey" compares the grey values; "parallax" compares each photo's and the
+    median's differences along that photo's :func:`parallax_directions`, the only direction in
+    which a wrong height moves it against the others. Grey values also agree at a wrong height
+    wherever the structure is uniform along that direction (drone photos, all from above, move
+    alike up and down the wall: a cornice or a sill line brought into the window by a wrong height
+    matches in all of them), and that pulls plain plaster to the height that shows it an edge.
 
     Each photo is sampled once per height, grey, at the pyramid level of the sweep frame's texels
     (difftex.sampling.relief.GreySweep), where it saw the plane at h = 0 and lands in its crop.
@@ -150,6 +202,7 @@ def sweep_cost(
     dev = photos.device
     m = torch.from_numpy(mask).to(dev)
     sweeps, seen = [], []
+    dirs = torch.from_numpy(parallax_directions(photo_parallax(photos, which, frame))).to(dev)
     for n in which:
         ok, fp = photos.footprint_on(n, frame, m)
         sweeps.append(GreySweep(photos.samplers[n], frame, photos.inp.photos[n], 1.0 if fp is None else fp))
@@ -163,10 +216,13 @@ def sweep_cost(
             inside.append(ok & within)
         g, v = torch.stack(cols), torch.stack(inside)
         med = torch.nanmedian(torch.where(v, g, torch.full_like(g, math.nan)), 0).values.nan_to_num(0.0)
+        if structure == "parallax":
+            g, v = directional_difference(g, v, dirs)
+            med = directional_difference(med.expand_as(g), torch.ones_like(v), dirs)[0]
         r = zncc(g, med, v, window)
         both = v & (r != 0)
         cnt = both.sum(0).float()
-        c = ((1.0 - r) * both).sum(0) / cnt.clamp_min(1)
+        c = best_share_mean(1.0 - r, both, share)
         costs.append(torch.where(cnt >= 3, c, torch.full_like(c, math.inf)))
         counts.append(cnt)
     return torch.stack(costs), torch.stack(counts)
@@ -238,6 +294,35 @@ def height_field(cost: torch.Tensor, heights: np.ndarray, mask: np.ndarray, marg
     return merge_steps(out, mask, 2.0 * step + 1e-9, 0.005)
 
 
+def height_field_semiglobal(
+    cost: torch.Tensor, heights: np.ndarray, mask: np.ndarray, margin: float, p1: float, p2: float, smooth: int
+) -> np.ndarray:
+    """The height field of least semi-globally aggregated cost (difftex.method.semiglobal), the
+    plane favoured by ``margin`` at every texel, mode-filtered and merged into flat steps as
+    :func:`height_field`'s.
+
+    Args:
+        cost: (D, h, w) the sweep's cost, heights in order; heights: (D,) 0 among them; mask: (h, w) bool.
+
+    Returns:
+        (h, w) float32 heights, 0 outside ``mask``.
+    """
+    zero = int(np.argmin(np.abs(heights)))
+    if abs(heights[zero]) > 1e-12:
+        raise ValueError("the swept heights must include 0")
+    m = torch.from_numpy(mask).to(cost.device)
+    c = cost.clone()
+    c[zero] -= margin
+    # outside the polygon no evidence: every height costs the same, so paths pass through unchanged
+    c = torch.where(m[None], c, torch.zeros_like(c))
+    label = aggregate(c, p1, p2).argmin(0)
+    label = torch.where(m, label, torch.full_like(label, zero))
+    label = mode_filter(label, len(heights), smooth, m)
+    out = (torch.from_numpy(heights.astype(np.float32)).to(cost.device)[label] * m).cpu().numpy()
+    step = float(np.min(np.diff(np.sort(heights)))) if len(heights) > 1 else 0.0
+    return merge_steps(out, mask, 2.0 * step + 1e-9, 0.005)
+
+
 def estimate_relief(photos: PhotoSet, s: ReliefSettings, max_steps: int = MAX_STEPS) -> tuple[Relief, dict]:
     """The polygon's height field and each candidate photo's self-occlusion through it.
 
@@ -260,8 +345,11 @@ def estimate_relief(photos: PhotoSet, s: ReliefSettings, max_steps: int = MAX_ST
     stats["range"] = [s.lo, s.hi]
     heights = sweep_heights(photos, which, frame, s)
     with torch.no_grad():
-        cost, _ = sweep_cost(photos, which, frame, mask, heights, s.window)
-    h = height_field(cost, heights, mask, s.margin, s.smooth)
+        cost, _ = sweep_cost(photos, which, frame, mask, heights, s.window, s.share, s.structure)
+        if s.regularise == "semiglobal":
+            h = height_field_semiglobal(cost, heights, mask, s.margin, s.p1, s.p2, s.smooth)
+        else:
+            h = height_field(cost, heights, mask, s.margin, s.smooth)
     steps = len(np.unique(h[mask])) - int(bool((h[mask] == 0).any()))
     if steps > max_steps:
         stats.update({"heights": [float(x) for x in heights], "relief_share": 0.0, "steps": steps,
