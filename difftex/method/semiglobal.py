@@ -121,5 +121,8 @@ def aggregate(cost: torch.Tensor, p1: float, p2: float, directions=DIRECTIONS_8)
     finite = torch.isfinite(cost)
     top = float(cost[finite].max()) if bool(finite.any()) else 0.0
     c = torch.where(finite, cost, torch.full_like(cost, top))
-    return sum(path_cost(c, d, p1, p2) for d in directions)
+    total = torch.zeros_like(c)
+    for d in directions:
+        total += path_cost(c, d, p1, p2)
+    return total
 
