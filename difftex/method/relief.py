@@ -21,6 +21,12 @@ h(t) along the normal (difftex.sampling.relief), they agree. h(t) is found by sw
 5. a sweep is trusted only with at least MIN_PHOTOS photos and at most MAX_STEPS steps off the
    plane: otherwise the polygon keeps its plane (``stats["reason"]`` says why).
 
+Options for photos that all see the wall from one side (drone surveys; docs/optimizer.md, "A sweep
+for drone photos"): ``structure="parallax"`` compares each photo's differences along its own
+parallax direction instead of its grey values (:func:`sweep_cost` says why), ``share`` < 1 the best
+agreeing photos only, and ``regularise="semiglobal"`` replaces step 4's per-texel choice and mode
+filter by semi-global matching (difftex.method.semiglobal, :func:`height_field_semiglobal`).
+
 The field is estimated at a frame of at most ``long_side`` texels and used at every level of
 the polygon (its steps are resampled nearest). Where the sweep finds nothing (too few photos,
 a flat wall), the field is 0 and texturing is exactly as without relief.
