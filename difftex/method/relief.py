@@ -128,11 +128,12 @@ def directional_difference(
     """Forward differences of ``x`` along a direction per image: d_u dx/du + d_v dx/dv.
 
     Args:
-        x: (B, h, w); valid: (B, h, w) bool; direction: (B, 2) unit (d_u, d_v).
+        x: (B, h, w), or (1, h, w) to difference one image along B directions; valid: bool, as ``x``;
+        direction: (B, 2) unit (d_u, d_v).
 
     Returns:
-        ((B, h, w) the difference, 0 on the last row and column; (B, h, w) bool where it and its
-        two neighbours are valid).
+        ((B, h, w) the difference, 0 on the last row and column; bool, as ``valid``, where it and
+        its two neighbours are valid).
     """
     du = F.pad(x[..., 1:] - x[..., :-1], (0, 1))
     dv = F.pad(x[..., 1:, :] - x[..., :-1, :], (0, 0, 0, 1))
@@ -224,7 +225,8 @@ def sweep_cost(
         med = torch.nanmedian(torch.where(v, g, torch.full_like(g, math.nan)), 0).values.nan_to_num(0.0)
         if structure == "parallax":
             g, v = directional_difference(g, v, dirs)
-            med = directional_difference(med.expand_as(g), torch.ones_like(v), dirs)[0]
+            # the median's differences once, combined along every photo's direction by broadcasting
+            med = directional_difference(med[None], torch.ones_like(v[:1]), dirs)[0]
         r = zncc(g, med, v, window)
         both = v & (r != 0)
         cnt = both.sum(0).float()
@@ -275,9 +277,35 @@ def merge_steps(h: np.ndarray, mask: np.ndarray, tol: float, min_share: float) -
     return np.where(mask, snapped, 0.0).astype(np.float32)
 
 
+def plane_label(heights: np.ndarray) -> int:
+    """The index of the plane (h = 0) among the swept heights; a sweep without it is an error."""
+    zero = int(np.argmin(np.abs(heights)))
+    if abs(heights[zero]) > 1e-12:
+        raise ValueError("the swept heights must include 0")
+    return zero
+
+
+def steps_of(label: torch.Tensor, heights: np.ndarray, mask: np.ndarray, smooth: int) -> np.ndarray:
+    """A label map as a field of flat steps: mode-filtered over ``smooth`` texels, the labels' heights,
+    merged by :func:`merge_steps` (within 2 sweep steps, at least 0.5 % of texels).
+
+    Args:
+        label: (h, w) long indices into ``heights``; mask: (h, w) bool.
+
+    Returns:
+        (h, w) float32 heights, 0 outside ``mask``.
+    """
+    m = torch.from_numpy(mask).to(label.device)
+    label = mode_filter(label, len(heights), smooth, m)
+    out_t = torch.from_numpy(heights.astype(np.float32)).to(label.device)[label]
+    out = torch.where(m, out_t, torch.zeros_like(out_t)).cpu().numpy()
+    step = float(np.min(np.diff(np.sort(heights)))) if len(heights) > 1 else 0.0
+    return merge_steps(out, mask, 2.0 * step + 1e-9, 0.005)
+
+
 def height_field(cost: torch.Tensor, heights: np.ndarray, mask: np.ndarray, margin: float, smooth: int) -> np.ndarray:
-    """Per texel the swept height of least cost, where it beats the plane by ``margin``, mode-filtered
-    and merged into flat steps (:func:`merge_steps`, within 2 sweep steps, at least 0.5 % of texels).
+    """Per texel the swept height of least cost, where it beats the plane by ``margin``, as flat
+    steps (:func:`steps_of`).
 
     Args:
         cost: (D, h, w) the sweep's cost; heights: (D,) its heights, 0 among them; mask: (h, w) bool.
@@ -285,27 +313,20 @@ def height_field(cost: torch.Tensor, heights: np.ndarray, mask: np.ndarray, marg
     Returns:
         (h, w) float32 heights, 0 outside ``mask`` and where no height beats the plane.
     """
-    zero = int(np.argmin(np.abs(heights)))
-    if abs(heights[zero]) > 1e-12:
-        raise ValueError("the swept heights must include 0")
+    zero = plane_label(heights)
     m = torch.from_numpy(mask).to(cost.device)
     best_cost, label = cost.min(0)
     plane = cost[zero]
     gain = torch.where(torch.isfinite(plane), plane - best_cost, torch.zeros_like(plane))
     label = torch.where((gain > margin) & m, label, torch.full_like(label, zero))
-    label = mode_filter(label, len(heights), smooth, m)
-    out_t = torch.from_numpy(heights.astype(np.float32)).to(cost.device)[label]
-    out = torch.where(m, out_t, torch.zeros_like(out_t)).cpu().numpy()
-    step = float(np.min(np.diff(np.sort(heights)))) if len(heights) > 1 else 0.0
-    return merge_steps(out, mask, 2.0 * step + 1e-9, 0.005)
+    return steps_of(label, heights, mask, smooth)
 
 
 def height_field_semiglobal(
     cost: torch.Tensor, heights: np.ndarray, mask: np.ndarray, margin: float, p1: float, p2: float, smooth: int
 ) -> np.ndarray:
     """The height field of least semi-globally aggregated cost (difftex.method.semiglobal), the
-    plane favoured by ``margin`` at every texel, mode-filtered and merged into flat steps as
-    :func:`height_field`'s.
+    plane favoured by ``margin`` at every texel, as flat steps (:func:`steps_of`).
 
     Args:
         cost: (D, h, w) the sweep's cost, heights in order; heights: (D,) 0 among them; mask: (h, w) bool.
@@ -313,9 +334,7 @@ def height_field_semiglobal(
     Returns:
         (h, w) float32 heights, 0 outside ``mask``.
     """
-    zero = int(np.argmin(np.abs(heights)))
-    if abs(heights[zero]) > 1e-12:
-        raise ValueError("the swept heights must include 0")
+    zero = plane_label(heights)
     m = torch.from_numpy(mask).to(cost.device)
     c = cost.clone()
     c[zero] -= margin
@@ -323,10 +342,7 @@ def height_field_semiglobal(
     c = torch.where(m[None], c, torch.zeros_like(c))
     label = aggregate(c, p1, p2).argmin(0)
     label = torch.where(m, label, torch.full_like(label, zero))
-    label = mode_filter(label, len(heights), smooth, m)
-    out = (torch.from_numpy(heights.astype(np.float32)).to(cost.device)[label] * m).cpu().numpy()
-    step = float(np.min(np.diff(np.sort(heights)))) if len(heights) > 1 else 0.0
-    return merge_steps(out, mask, 2.0 * step + 1e-9, 0.005)
+    return steps_of(label, heights, mask, smooth)
 
 
 def estimate_relief(photos: PhotoSet, s: ReliefSettings, max_steps: int = MAX_STEPS) -> tuple[Relief, dict]:
