@@ -216,16 +216,20 @@ def test_photos_from_above_pull_grey_plaster_to_a_band_but_not_the_parallax_swee
     off = {}
     for name, s in {"grey": base, "parallax": dataclasses.replace(base, structure="parallax"),
                     "parallax, semiglobal": dataclasses.replace(base, structure="parallax", regularise="semiglobal",
-                                                                smooth=1)}.items():
+                                                                smooth=1),
+                      "parallax, semiglobal, openings": dataclasses.replace(
+                          base, structure="parallax", regularise="semiglobal", smooth=1, openings="grow")}.items():
         relief, _ = estimate_relief(ps, s, max_steps=10**9)
         off[name] = float(np.mean(relief.heights[inp.texel_mask] != 0))
     assert off["grey"] >= 0.15
     assert off["parallax"] <= 0.02 and off["parallax, semiglobal"] <= 0.02
+    assert off["parallax, semiglobal, openings"] <= 0.02
 
 
-def test_the_parallax_sweep_with_semiglobal_matching_recovers_the_recess_and_the_balcony(scene):
+@pytest.mark.parametrize("openings", ["none", "grow"])
+def test_the_parallax_sweep_with_semiglobal_matching_recovers_the_recess_and_the_balcony(scene, openings):
     inp, ps, _, _ = scene
-    s = dataclasses.replace(SWEEP, structure="parallax", regularise="semiglobal", smooth=1)
+    s = dataclasses.replace(SWEEP, structure="parallax", regularise="semiglobal", smooth=1, openings=openings)
     relief, stats = estimate_relief(ps, s)
     # differences of noise-free renders carry less than their grey values: 85 %, not 90 % (the grey sweep's)
     _assert_recovers_the_recess_and_the_balcony(inp, relief, 0.85)
@@ -342,13 +346,16 @@ def test_relief_and_settings_check_their_input():
         Relief(frame, np.full(frame.shape, np.nan, np.float32))
     for bad in (dict(lo=0.1, hi=0.5), dict(lo=0.0, hi=0.0), dict(lo=-1, hi=1, window=4), dict(lo=-1, hi=1, smooth=0),
                 dict(lo=-1, hi=1, share=0.0), dict(lo=-1, hi=1, share=1.5), dict(lo=-1, hi=1, p1=0.6, p2=0.5),
-                dict(lo=-1, hi=1, p1=-0.1), dict(lo=-1, hi=1, regularise="median"), dict(lo=-1, hi=1, structure="rgb")):
+                dict(lo=-1, hi=1, p1=-0.1), dict(lo=-1, hi=1, regularise="median"), dict(lo=-1, hi=1, structure="rgb"),
+                dict(lo=-1, hi=1, openings="rectangle")):
         with pytest.raises(ValueError):
             ReliefSettings(**bad)
     with pytest.raises(ValueError):
         OptimizeConfig(relief=True, relief_range=(0.2, 0.4))
     with pytest.raises(ValueError):
         OptimizeConfig(relief_regularise="graph-cut")
+    with pytest.raises(ValueError):
+        OptimizeConfig(relief_openings="rectangle")
     assert OptimizeConfig(relief_range=[-0.3, 0.2]).relief_range == (-0.3, 0.2)
 
 

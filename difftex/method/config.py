@@ -68,8 +68,14 @@ class ReliefSettings:
     structure: Literal["grey", "parallax"] = "grey"
     p1: float = 0.05
     p2: float = 0.5
+    # "box": each step completed to its bounding box, "grow": grown first while the photos agree
+    # (difftex.method.openings); accepted where the box agrees at the step's height by ``openings_tol``
+    openings: Literal["none", "box", "grow"] = "none"
+    openings_tol: float = 0.0
 
     def __post_init__(self):
+        if self.openings not in ("none", "box", "grow"):
+            raise ValueError(f"relief openings none|box|grow, got {self.openings!r}")
         if not 0 < self.share <= 1 or not 0 <= self.p1 <= self.p2 or self.regularise not in ("mode", "semiglobal") \
                 or self.structure not in ("grey", "parallax"):
             raise ValueError(f"relief share in (0, 1], 0 <= p1 <= p2, regularise mode|semiglobal; got {self.share}, "
@@ -197,6 +203,8 @@ class OptimizeConfig:
     relief_structure: Literal["grey", "parallax"] = "grey"  # what the sweep's ZNCC compares (relief.sweep_cost)
     relief_p1: float = 0.05  # semiglobal: penalty of one height step between neighbouring texels (cost units)
     relief_p2: float = 0.5  # semiglobal: penalty of a larger jump
+    relief_openings: Literal["none", "box", "grow"] = "none"  # steps completed to rectangles (method.openings)
+    relief_openings_tol: float = 0.0  # ... where the box's cost gain over the plane is at most this
     coarse_to_fine: bool = True
     histogram_matching: bool = True
     # refine each photo's mapping (affine, pixels) against the consensus texture, where at least
@@ -387,6 +395,7 @@ class OptimizeConfig:
             min_cos=self.relief_min_cos, margin=self.relief_margin, smooth=self.relief_smooth,
             max_share=self.relief_max_share, share=self.relief_share, regularise=self.relief_regularise,
             p1=self.relief_p1, p2=self.relief_p2, structure=self.relief_structure,
+            openings=self.relief_openings, openings_tol=self.relief_openings_tol,
         )
 
     def cap(self, level: int) -> int:

@@ -25,7 +25,8 @@ Options for photos that all see the wall from one side (drone surveys; docs/opti
 for drone photos"): ``structure="parallax"`` compares each photo's differences along its own
 parallax direction instead of its grey values (:func:`sweep_cost` says why), ``share`` < 1 the best
 agreeing photos only, and ``regularise="semiglobal"`` replaces step 4's per-texel choice and mode
-filter by semi-global matching (difftex.method.semiglobal, :func:`height_field_semiglobal`).
+filter by semi-global matching (difftex.method.semiglobal, :func:`height_field_semiglobal`), and
+``openings`` completes each step to a rectangle (difftex.method.openings).
 
 The field is estimated at a frame of at most ``long_side`` texels and used at every level of
 the polygon (its steps are resampled nearest). Where the sweep finds nothing (too few photos,
@@ -43,6 +44,7 @@ import torch.nn.functional as F
 
 from difftex.geometry.frames import UVFrame
 from difftex.method.config import ReliefSettings  # noqa: F401  (defined beside OptimizeConfig, re-exported)
+from difftex.method.openings import fill_openings
 from difftex.method.semiglobal import aggregate, best_share_mean
 from difftex.sampling.photos import PhotoSet
 from difftex.sampling.relief import GreySweep, Relief, relief_visibility
@@ -372,6 +374,10 @@ def estimate_relief(photos: PhotoSet, s: ReliefSettings, max_steps: int = MAX_ST
             h = height_field_semiglobal(cost, heights, mask, s.margin, s.p1, s.p2, s.smooth)
         else:
             h = height_field(cost, heights, mask, s.margin, s.smooth)
+        if s.openings != "none":
+            # a component below a quarter of the ZNCC window's area is finer than the window resolves
+            h = fill_openings(h, mask, cost.cpu().numpy(), heights, s.openings, min_texels=s.window**2 // 4,
+                              tol=s.openings_tol)
     steps = len(np.unique(h[mask])) - int(bool((h[mask] == 0).any()))
     if steps > max_steps:
         stats.update({"heights": [float(x) for x in heights], "relief_share": 0.0, "steps": steps,
