@@ -21,6 +21,7 @@ from difftex.method.relief import (
     estimate_relief,
     height_field,
     merge_steps,
+    median_elevation,
     parallax_directions,
     sweep_heights,
     sweep_photos,
@@ -255,6 +256,21 @@ def test_parallax_directions_and_the_directional_difference():
     assert not ok[2, 2, 3] and not ok[2, 2, 2] and not ok[2, 1, 3] and ok[2, 1, 2]
 
 
+def test_the_sweep_runs_only_where_the_photos_look_from_as_high_as_asked():
+    # aimed at the wall's centre from 35 and 45 degrees above: the median elevation is 40 degrees
+    phs = ar.photos(n_yaw=(-20, 0, 20), pitches=(35, 45))
+    # the scene's up given (estimated from photos all on one side, it tilts: levels.py)
+    inp = dataclasses.replace(ar.make_input(phs, [ar.render(p) for p in phs], long_side=48), up=np.array([0, 0, 1.0]))
+    ps = PhotoSet.load(inp, "cpu")
+    assert median_elevation(ps, list(range(6)), inp.frame) == pytest.approx(40, abs=0.5)
+    assert median_elevation(ps, [0, 2, 4], inp.frame) == pytest.approx(35, abs=0.5)
+    s = ReliefSettings(lo=-0.5, hi=0.5, long_side=48, min_elevation=45)
+    relief, stats = estimate_relief(ps, s)
+    assert relief.flat and "not from above" in stats["reason"] and stats["elevation"] == pytest.approx(40, abs=0.5)
+    _, stats = estimate_relief(ps, dataclasses.replace(s, min_elevation=35))
+    assert "not from above" not in str(stats.get("reason")) and stats["heights"]
+
+
 def test_fewer_than_five_photos_give_a_flat_field():
     phs = ar.photos(n_yaw=(-10, 10), pitches=(-10, 20))
     inp = ar.make_input(phs, [ar.render(p) for p in phs], long_side=48)
@@ -347,7 +363,8 @@ def test_relief_and_settings_check_their_input():
     for bad in (dict(lo=0.1, hi=0.5), dict(lo=0.0, hi=0.0), dict(lo=-1, hi=1, window=4), dict(lo=-1, hi=1, smooth=0),
                 dict(lo=-1, hi=1, share=0.0), dict(lo=-1, hi=1, share=1.5), dict(lo=-1, hi=1, p1=0.6, p2=0.5),
                 dict(lo=-1, hi=1, p1=-0.1), dict(lo=-1, hi=1, regularise="median"), dict(lo=-1, hi=1, structure="rgb"),
-                dict(lo=-1, hi=1, openings="rectangle")):
+                dict(lo=-1, hi=1, openings="rectangle"),
+                dict(lo=-1, hi=1, min_elevation=91.0)):
         with pytest.raises(ValueError):
             ReliefSettings(**bad)
     with pytest.raises(ValueError):

@@ -72,10 +72,15 @@ class ReliefSettings:
     # (difftex.method.openings); accepted where the box agrees at the step's height by ``openings_tol``
     openings: Literal["none", "box", "grow"] = "none"
     openings_tol: float = 0.0
+    # the sweep runs where its photos' median elevation seen from the polygon (degrees above the
+    # horizontal) is at least this: -90 everywhere, > 0 only photos from above (relief.median_elevation)
+    min_elevation: float = -90.0
 
     def __post_init__(self):
         if self.openings not in ("none", "box", "grow"):
             raise ValueError(f"relief openings none|box|grow, got {self.openings!r}")
+        if not -90 <= self.min_elevation <= 90:
+            raise ValueError(f"relief min_elevation in [-90, 90] degrees, got {self.min_elevation}")
         if not 0 < self.share <= 1 or not 0 <= self.p1 <= self.p2 or self.regularise not in ("mode", "semiglobal") \
                 or self.structure not in ("grey", "parallax"):
             raise ValueError(f"relief share in (0, 1], 0 <= p1 <= p2, regularise mode|semiglobal; got {self.share}, "
@@ -205,6 +210,7 @@ class OptimizeConfig:
     relief_p2: float = 0.5  # semiglobal: penalty of a larger jump
     relief_openings: Literal["none", "box", "grow"] = "none"  # steps completed to rectangles (method.openings)
     relief_openings_tol: float = 0.0  # ... where the box's cost gain over the plane is at most this
+    relief_min_elevation: float = -90.0  # sweep only where the photos' median elevation is this high (degrees)
     coarse_to_fine: bool = True
     histogram_matching: bool = True
     # refine each photo's mapping (affine, pixels) against the consensus texture, where at least
@@ -396,6 +402,7 @@ class OptimizeConfig:
             max_share=self.relief_max_share, share=self.relief_share, regularise=self.relief_regularise,
             p1=self.relief_p1, p2=self.relief_p2, structure=self.relief_structure,
             openings=self.relief_openings, openings_tol=self.relief_openings_tol,
+            min_elevation=self.relief_min_elevation,
         )
 
     def cap(self, level: int) -> int:

@@ -47,6 +47,7 @@ from difftex.method.config import ReliefSettings  # noqa: F401  (defined beside 
 from difftex.method.openings import fill_openings
 from difftex.method.semiglobal import aggregate, best_share_mean
 from difftex.sampling.photos import PhotoSet
+from difftex.scene.camera import scene_up
 from difftex.sampling.relief import GreySweep, Relief, relief_visibility
 from difftex.sampling.texels import level_frame, resample_nearest, texel_map
 
@@ -92,6 +93,22 @@ def photo_parallax(photos: PhotoSet, which: list[int], frame: UVFrame) -> np.nda
         vn = max(float(v @ frame.normal), 1e-6)
         out.append([float(v @ frame.e_u) / vn, float(v @ frame.e_v) / vn])
     return np.asarray(out, np.float64).reshape(-1, 2)
+
+
+def median_elevation(photos: PhotoSet, which: list[int], frame: UVFrame) -> float:
+    """The median over ``which`` of each photo's elevation seen from the polygon's centre: the angle
+    of the ray to the photo above the horizontal (degrees; > 0 from above, as a drone's).
+
+    The scene's up is the polygon input's, else estimated from its photos (difftex.scene.camera).
+    """
+    up = photos.inp.up if photos.inp.up is not None else scene_up(photos.inp.photos)
+    up = np.asarray(up, np.float64) / np.linalg.norm(up)
+    centre = frame.texel_to_world(np.array(frame.width / 2), np.array(frame.height / 2))
+    el = []
+    for n in which:
+        v = photos.inp.photos[n].center - centre
+        el.append(math.degrees(math.asin(float(np.clip(v @ up / max(np.linalg.norm(v), 1e-12), -1, 1)))))
+    return float(np.median(el)) if el else 0.0
 
 
 def sweep_heights(photos: PhotoSet, which: list[int], frame: UVFrame, s: ReliefSettings) -> np.ndarray:
@@ -364,6 +381,10 @@ def estimate_relief(photos: PhotoSet, s: ReliefSettings, max_steps: int = MAX_ST
     flat = Relief(frame, np.zeros(frame.shape, np.float32))
     if len(which) < MIN_PHOTOS:
         return flat, {**stats, "heights": [], "relief_share": 0.0, "reason": f"fewer than {MIN_PHOTOS} photos"}
+    stats["elevation"] = median_elevation(photos, which, frame)
+    if stats["elevation"] < s.min_elevation:
+        why = f"photos' median elevation {stats['elevation']:.0f} deg below {s.min_elevation:g} deg (not from above)"
+        return flat, {**stats, "heights": [], "relief_share": 0.0, "reason": why}
     short = min(frame.width, frame.height) * frame.texel_size
     s = dataclasses.replace(s, lo=max(s.lo, -s.max_share * short), hi=min(s.hi, s.max_share * short))
     stats["range"] = [s.lo, s.hi]
