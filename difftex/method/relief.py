@@ -47,9 +47,9 @@ from difftex.method.config import ReliefSettings  # noqa: F401  (defined beside 
 from difftex.method.openings import fill_openings
 from difftex.method.semiglobal import aggregate, best_share_mean
 from difftex.sampling.photos import PhotoSet
-from difftex.scene.camera import scene_up
 from difftex.sampling.relief import GreySweep, Relief, relief_visibility
 from difftex.sampling.texels import level_frame, resample_nearest, texel_map
+from difftex.scene.camera import scene_up
 
 GREY = (0.299, 0.587, 0.114)  # Rec. 601 luma: ZNCC compares structure, not colour
 # Fewer photos than this within the angle give a median and a mean cost too noisy to tell a
