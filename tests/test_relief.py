@@ -12,6 +12,7 @@ import pytest
 import torch
 import torch.nn.functional as F
 
+from difftex.compose.stage_files import crop_relief_range
 from difftex.compose.texturing import texture_polygon
 from difftex.method.config import ComputeConfig, OptimizeConfig
 from difftex.method.relief import (
@@ -20,13 +21,13 @@ from difftex.method.relief import (
     directional_difference,
     estimate_relief,
     height_field,
-    median_elevation,
     merge_steps,
     parallax_directions,
     sweep_heights,
     sweep_photos,
     zncc,
 )
+from difftex.sampling.crops import median_elevation, relief_applies
 from difftex.sampling.photos import PhotoSet
 from difftex.sampling.relief import Relief, quantise_heights, relief_visibility, shifted_frame, texel_map_relief
 from difftex.sampling.texels import texel_map
@@ -262,13 +263,22 @@ def test_the_sweep_runs_only_where_the_photos_look_from_as_high_as_asked():
     # the scene's up given (estimated from photos all on one side, it tilts: levels.py)
     inp = dataclasses.replace(ar.make_input(phs, [ar.render(p) for p in phs], long_side=48), up=np.array([0, 0, 1.0]))
     ps = PhotoSet.load(inp, "cpu")
-    assert median_elevation(ps, list(range(6)), inp.frame) == pytest.approx(40, abs=0.5)
-    assert median_elevation(ps, [0, 2, 4], inp.frame) == pytest.approx(35, abs=0.5)
+    assert median_elevation(inp, 0.5) == pytest.approx(40, abs=0.5)
+    # within 41 degrees of the normal only the photos from 35 degrees above (45 * cos 0 > 41)
+    assert median_elevation(inp, 0.75) == pytest.approx(35, abs=0.5)
+    assert median_elevation(inp, 0.99) is None
     s = ReliefSettings(lo=-0.5, hi=0.5, long_side=48, min_elevation=45)
     relief, stats = estimate_relief(ps, s)
     assert relief.flat and "not from above" in stats["reason"] and stats["elevation"] == pytest.approx(40, abs=0.5)
+    assert not relief_applies(inp, 0.5, 45) and relief_applies(inp, 0.5, 35) and relief_applies(inp, 0.99, -90)
+    assert not relief_applies(inp, 0.99, 0)  # no photo within the angle: no sweep
     _, stats = estimate_relief(ps, dataclasses.replace(s, min_elevation=35))
     assert "not from above" not in str(stats.get("reason")) and stats["heights"]
+    # the initialization crops the photos for the sweep's heights only where it runs
+    cfg = OptimizeConfig(relief=True, relief_range=(-0.5, 0.5), relief_min_elevation=45)
+    assert crop_relief_range(cfg, inp) == (0.0, 0.0)
+    assert crop_relief_range(dataclasses.replace(cfg, relief_min_elevation=35), inp) == (-0.5, 0.5)
+    assert crop_relief_range(dataclasses.replace(cfg, relief=False, relief_min_elevation=35), inp) == (0.0, 0.0)
 
 
 def test_fewer_than_five_photos_give_a_flat_field():

@@ -84,13 +84,18 @@ def initialize_polygon(
     t0 = time.perf_counter()
     from difftex.sampling.crops import photo_crops
 
-    crops = dict(photo_crops(inp, None, cfg.exact_decode, decode, cfg.supersample, crop_relief_range(cfg)))
+    crops = dict(photo_crops(inp, None, cfg.exact_decode, decode, cfg.supersample, crop_relief_range(cfg, inp)))
     return crops, {"photo_reads": len(crops), "time_read_photos_s": time.perf_counter() - t0}
 
 
-def crop_relief_range(cfg: OptimizeConfig) -> tuple[float, float]:
-    """The heights along the normal that the photos' crops must hold (the relief sweep's range)."""
-    return cfg.relief_range if cfg.relief else (0.0, 0.0)
+def crop_relief_range(cfg: OptimizeConfig, inp: PolygonInput) -> tuple[float, float]:
+    """The heights along the normal that the photos' crops must hold: the relief sweep's range
+    where the sweep runs on the polygon (difftex.sampling.crops.relief_applies), else none."""
+    from difftex.sampling.crops import relief_applies
+
+    if not cfg.relief or not relief_applies(inp, cfg.relief_min_cos, cfg.relief_min_elevation):
+        return (0.0, 0.0)
+    return cfg.relief_range
 
 
 def write_init(path: str | Path, polygon_id: str, names: list[str], crops: dict[int, PhotoCrop], stats: dict) -> None:

@@ -195,7 +195,7 @@ def texture_polygon(
     t0 = time.perf_counter()
     photos = PhotoSet.load(
         inp, pick_device(compute.device), exact_decode=cfg.exact_decode, decode=decode, supersample=cfg.supersample,
-        relief_range=crop_relief_range(cfg),
+        relief_range=crop_relief_range(cfg, inp),
     )
     read = {"photo_reads": photos.reads, "time_read_photos_s": time.perf_counter() - t0}
     opt = optimize_photos(photos, cfg, compute, progress=progress, read_stats=read)

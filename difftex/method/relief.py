@@ -46,10 +46,10 @@ from difftex.geometry.frames import UVFrame
 from difftex.method.config import ReliefSettings  # noqa: F401  (defined beside OptimizeConfig, re-exported)
 from difftex.method.openings import fill_openings
 from difftex.method.semiglobal import aggregate, best_share_mean
+from difftex.sampling.crops import median_elevation, relief_applies
 from difftex.sampling.photos import PhotoSet
 from difftex.sampling.relief import GreySweep, Relief, relief_visibility
 from difftex.sampling.texels import level_frame, resample_nearest, texel_map
-from difftex.scene.camera import scene_up
 
 GREY = (0.299, 0.587, 0.114)  # Rec. 601 luma: ZNCC compares structure, not colour
 # Fewer photos than this within the angle give a median and a mean cost too noisy to tell a
@@ -93,22 +93,6 @@ def photo_parallax(photos: PhotoSet, which: list[int], frame: UVFrame) -> np.nda
         vn = max(float(v @ frame.normal), 1e-6)
         out.append([float(v @ frame.e_u) / vn, float(v @ frame.e_v) / vn])
     return np.asarray(out, np.float64).reshape(-1, 2)
-
-
-def median_elevation(photos: PhotoSet, which: list[int], frame: UVFrame) -> float:
-    """The median over ``which`` of each photo's elevation seen from the polygon's centre: the angle
-    of the ray to the photo above the horizontal (degrees; > 0 from above, as a drone's).
-
-    The scene's up is the polygon input's, else estimated from its photos (difftex.scene.camera).
-    """
-    up = photos.inp.up if photos.inp.up is not None else scene_up(photos.inp.photos)
-    up = np.asarray(up, np.float64) / np.linalg.norm(up)
-    centre = frame.texel_to_world(np.array(frame.width / 2), np.array(frame.height / 2))
-    el = []
-    for n in which:
-        v = photos.inp.photos[n].center - centre
-        el.append(math.degrees(math.asin(float(np.clip(v @ up / max(np.linalg.norm(v), 1e-12), -1, 1)))))
-    return float(np.median(el)) if el else 0.0
 
 
 def sweep_heights(photos: PhotoSet, which: list[int], frame: UVFrame, s: ReliefSettings) -> np.ndarray:
@@ -376,15 +360,18 @@ def estimate_relief(photos: PhotoSet, s: ReliefSettings, max_steps: int = MAX_ST
     inp = photos.inp
     frame = level_frame(inp.frame, min(s.long_side, max(inp.frame.shape)))
     mask = resample_nearest(inp.texel_mask, inp.frame, frame)
-    which = sweep_photos(photos, frame, mask, s.min_cos, s.max_photos)
-    stats: dict = {"photos": [inp.photos[n].name for n in which], "long_side": max(frame.shape)}
     flat = Relief(frame, np.zeros(frame.shape, np.float32))
+    if not relief_applies(inp, s.min_cos, s.min_elevation):
+        elevation = median_elevation(inp, s.min_cos)
+        why = f"photos' median elevation {elevation if elevation is None else round(elevation)} deg, below " \
+              f"{s.min_elevation:g} (not from above)"
+        return flat, {"photos": [], "long_side": max(frame.shape), "elevation": elevation, "heights": [],
+                      "relief_share": 0.0, "reason": why}
+    which = sweep_photos(photos, frame, mask, s.min_cos, s.max_photos)
+    stats: dict = {"photos": [inp.photos[n].name for n in which], "long_side": max(frame.shape),
+                   "elevation": median_elevation(inp, s.min_cos)}
     if len(which) < MIN_PHOTOS:
         return flat, {**stats, "heights": [], "relief_share": 0.0, "reason": f"fewer than {MIN_PHOTOS} photos"}
-    stats["elevation"] = median_elevation(photos, which, frame)
-    if stats["elevation"] < s.min_elevation:
-        why = f"photos' median elevation {stats['elevation']:.0f} deg below {s.min_elevation:g} deg (not from above)"
-        return flat, {**stats, "heights": [], "relief_share": 0.0, "reason": why}
     short = min(frame.width, frame.height) * frame.texel_size
     s = dataclasses.replace(s, lo=max(s.lo, -s.max_share * short), hi=min(s.hi, s.max_share * short))
     stats["range"] = [s.lo, s.hi]

@@ -27,7 +27,7 @@ from difftex.geometry.frames import (
     texel_to_pixel,
 )
 from difftex.sampling import SUPERSAMPLE
-from difftex.scene.camera import Photo
+from difftex.scene.camera import Photo, scene_up
 from difftex.scene.files import decode_photo
 
 PROBE_LONG_SIDE = 64  # texels of the probe level that sizes crops and decode scales
@@ -62,6 +62,41 @@ class PolygonInput:
             raise DifftexError(
                 f"polygon '{self.polygon_id}': texel mask shape {self.texel_mask.shape} != frame {self.frame.shape}"
             )
+
+
+def median_elevation(inp: PolygonInput, min_cos: float) -> float | None:
+    """The median elevation of the polygon's photos seen from its centre within arccos(``min_cos``)
+    of its normal: the angle of the ray to each photo above the horizontal (degrees; > 0 from
+    above, as a drone's). The relief sweep runs only above ``optimize.relief_min_elevation``, and
+    the initialization then crops the photos for it; both ask this, from the polygon input alone.
+
+    The scene's up is ``inp.up``, else estimated from the photos (difftex.scene.camera.scene_up;
+    photos all on one side tilt that estimate).
+
+    Returns:
+        degrees, or None where no photo is within the angle.
+    """
+    fr = inp.frame
+    up = np.asarray(inp.up if inp.up is not None else scene_up(inp.photos), np.float64)
+    up = up / np.linalg.norm(up)
+    centre = fr.texel_to_world(np.array(fr.width / 2), np.array(fr.height / 2))
+    el = []
+    for ph in inp.photos:
+        v = ph.center - centre
+        v = v / max(float(np.linalg.norm(v)), 1e-12)
+        if float(v @ fr.normal) >= min_cos:
+            el.append(math.degrees(math.asin(float(np.clip(v @ up, -1.0, 1.0)))))
+    return float(np.median(el)) if el else None
+
+
+def relief_applies(inp: PolygonInput, min_cos: float, min_elevation: float) -> bool:
+    """Whether the relief sweep runs on the polygon: always at ``min_elevation`` -90, else where
+    :func:`median_elevation` reaches it. The initialization asks the same to crop the photos for
+    the sweep's heights, so a polygon the sweep skips is textured exactly as without relief."""
+    if min_elevation <= -90:
+        return True
+    elevation = median_elevation(inp, min_cos)
+    return elevation is not None and elevation >= min_elevation
 
 
 def polygon_input_from_visibility(

@@ -24,8 +24,10 @@ STAGE_SECTIONS = {
     # the texel sizes' memory cap counts optimize.top_k slots per texel
     "visibility": ("texture", "visibility", "optimize.top_k"),
     # the initialization reads only what fixes the photos' crops (decode scale, supersampling, the
-    # relief sweep's range); the one-job texture stage and the optimization read the whole section
-    "initialize": ("optimize.exact_decode", "optimize.supersample", "optimize.relief", "optimize.relief_range"),
+    # relief sweep's range, and whether the sweep runs on a polygon); the one-job texture stage and
+    # the optimization read the whole section
+    "initialize": ("optimize.exact_decode", "optimize.supersample", "optimize.relief", "optimize.relief_range",
+                   "optimize.relief_min_cos", "optimize.relief_min_elevation"),
     "texture": ("optimize",),
     # device and compilation: read by the texture jobs, but not an input of them (no result changes)
     "compute": ("compute",),
