@@ -266,5 +266,11 @@ def test_frontality_tilt_lowers_photos_from_above_on_a_wall_and_not_on_a_roof():
     roof = level(fast_cfg(frontality_tilt=3.0), -fr.normal)  # up along the normal: a roof
     assert torch.equal(roof.blend_Q, off.blend_Q)
     assert torch.equal(level(fast_cfg(frontality_tilt=0.0), up).blend_Q, off.blend_Q)
+    # the photos' median elevation seen from the wall is 25 degrees (0 and 50): a limit above it
+    # leaves Q bit for bit, one below it tilts as without a limit
+    limited = [level(fast_cfg(frontality_tilt=3.0, frontality_tilt_min_elevation=e), up).blend_Q for e in (30.0, 20.0)]
+    assert torch.equal(limited[0], off.blend_Q) and torch.equal(limited[1], on.blend_Q)
     with pytest.raises(ValueError, match="frontality_tilt"):
         fast_cfg(frontality_tilt=-1.0)
+    with pytest.raises(ValueError, match="frontality_tilt_min_elevation"):
+        fast_cfg(frontality_tilt_min_elevation=100.0)

@@ -27,7 +27,7 @@ from difftex.method.relief import (
     sweep_photos,
     zncc,
 )
-from difftex.sampling.crops import median_elevation, relief_applies
+from difftex.sampling.crops import median_elevation, seen_from_above
 from difftex.sampling.photos import PhotoSet
 from difftex.sampling.relief import Relief, quantise_heights, relief_visibility, shifted_frame, texel_map_relief
 from difftex.sampling.texels import texel_map
@@ -270,8 +270,8 @@ def test_the_sweep_runs_only_where_the_photos_look_from_as_high_as_asked():
     s = ReliefSettings(lo=-0.5, hi=0.5, long_side=48, min_elevation=45)
     relief, stats = estimate_relief(ps, s)
     assert relief.flat and "not from above" in stats["reason"] and stats["elevation"] == pytest.approx(40, abs=0.5)
-    assert not relief_applies(inp, 0.5, 45) and relief_applies(inp, 0.5, 35) and relief_applies(inp, 0.99, -90)
-    assert not relief_applies(inp, 0.99, 0)  # no photo within the angle: no sweep
+    assert not seen_from_above(inp, 0.5, 45) and seen_from_above(inp, 0.5, 35) and seen_from_above(inp, 0.99, -90)
+    assert not seen_from_above(inp, 0.99, 0)  # no photo within the angle: no sweep
     _, stats = estimate_relief(ps, dataclasses.replace(s, min_elevation=35))
     assert "not from above" not in str(stats.get("reason")) and stats["heights"]
     # the initialization crops the photos for the sweep's heights only where it runs

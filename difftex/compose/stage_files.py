@@ -90,10 +90,10 @@ def initialize_polygon(
 
 def crop_relief_range(cfg: OptimizeConfig, inp: PolygonInput) -> tuple[float, float]:
     """The heights along the normal that the photos' crops must hold: the relief sweep's range
-    where the sweep runs on the polygon (difftex.sampling.crops.relief_applies), else none."""
-    from difftex.sampling.crops import relief_applies
+    where the sweep runs on the polygon (difftex.sampling.crops.seen_from_above), else none."""
+    from difftex.sampling.crops import seen_from_above
 
-    if not cfg.relief or not relief_applies(inp, cfg.relief_min_cos, cfg.relief_min_elevation):
+    if not cfg.relief or not seen_from_above(inp, cfg.relief_min_cos, cfg.relief_min_elevation):
         return (0.0, 0.0)
     return cfg.relief_range
 

@@ -157,6 +157,9 @@ class OptimizeConfig:
     # the tilt also weighs the photos as witnesses (L_Render, elimination, settling): the sills
     # go, but the level (street) photos then outvote the photos from above, their occluders too
     frontality_tilt_witnesses: bool = False
+    # the tilt only where the median elevation of the photos in front of the polygon, seen from its
+    # centre, is at least this (degrees; difftex.sampling.crops.median_elevation); -90: everywhere
+    frontality_tilt_min_elevation: float = -90.0
     sigma_min: float = 0.02  # noise floor of colour standard deviations (Q_c and elimination)
     # "loo": leave-one-out mean/std with a noise floor, one slot per texel and pass; "paper": the
     # paper's test (Sec. 4.3), every selected pixel beyond sigma_k std of all selected ones
@@ -307,6 +310,8 @@ class OptimizeConfig:
             raise ValueError(f"frontality_weight must be >= 0, got {self.frontality_weight}")
         if not self.frontality_tilt >= 0:
             raise ValueError(f"frontality_tilt must be >= 0, got {self.frontality_tilt}")
+        if not -90 <= self.frontality_tilt_min_elevation <= 90:
+            raise ValueError(f"frontality_tilt_min_elevation in [-90, 90], got {self.frontality_tilt_min_elevation}")
         if not self.resolution_knee >= 1.0:
             raise ValueError(f"resolution_knee must be >= 1, got {self.resolution_knee}")
         _check_choice("histmatch_reference", self.histmatch_reference, ("best", "median", "pooled"))

@@ -32,6 +32,7 @@ from difftex.method.quality import (
     wall_tilt_axis,
 )
 from difftex.method.witnesses import candidate_footprints, witness_sigma
+from difftex.sampling.crops import seen_from_above
 from difftex.sampling.photos import MappedPhoto, PhotoSet
 from difftex.sampling.texels import Region, resample_nearest
 from difftex.scene.camera import scene_up
@@ -322,7 +323,7 @@ def build_level(
     fpbest = torch.zeros(h, w, device=device)  # the most pixels per texel of any candidate (Q_r's reference)
     normal = torch.tensor(frame.normal, dtype=torch.float32, device=device)
     tilt_axis = None
-    if cfg.frontality_tilt > 0:
+    if cfg.frontality_tilt > 0 and seen_from_above(inp, 0.0, cfg.frontality_tilt_min_elevation):
         up = inp.up if inp.up is not None else scene_up(inp.photos)  # one-sided candidates tilt that estimate
         axis = wall_tilt_axis(frame.normal, up)
         tilt_axis = None if axis is None else torch.tensor(axis, dtype=torch.float32, device=device)

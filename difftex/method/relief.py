@@ -46,7 +46,7 @@ from difftex.geometry.frames import UVFrame
 from difftex.method.config import ReliefSettings  # noqa: F401  (defined beside OptimizeConfig, re-exported)
 from difftex.method.openings import fill_openings
 from difftex.method.semiglobal import aggregate, best_share_mean
-from difftex.sampling.crops import median_elevation, relief_applies
+from difftex.sampling.crops import median_elevation, seen_from_above
 from difftex.sampling.photos import PhotoSet
 from difftex.sampling.relief import GreySweep, Relief, relief_visibility
 from difftex.sampling.texels import level_frame, resample_nearest, texel_map
@@ -361,7 +361,7 @@ def estimate_relief(photos: PhotoSet, s: ReliefSettings, max_steps: int = MAX_ST
     frame = level_frame(inp.frame, min(s.long_side, max(inp.frame.shape)))
     mask = resample_nearest(inp.texel_mask, inp.frame, frame)
     flat = Relief(frame, np.zeros(frame.shape, np.float32))
-    if not relief_applies(inp, s.min_cos, s.min_elevation):
+    if not seen_from_above(inp, s.min_cos, s.min_elevation):
         elevation = median_elevation(inp, s.min_cos)
         why = f"photos' median elevation {elevation if elevation is None else round(elevation)} deg, below " \
               f"{s.min_elevation:g} (not from above)"

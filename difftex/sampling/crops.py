@@ -89,10 +89,11 @@ def median_elevation(inp: PolygonInput, min_cos: float) -> float | None:
     return float(np.median(el)) if el else None
 
 
-def relief_applies(inp: PolygonInput, min_cos: float, min_elevation: float) -> bool:
-    """Whether the relief sweep runs on the polygon: always at ``min_elevation`` -90, else where
-    :func:`median_elevation` reaches it. The initialization asks the same to crop the photos for
-    the sweep's heights, so a polygon the sweep skips is textured exactly as without relief."""
+def seen_from_above(inp: PolygonInput, min_cos: float, min_elevation: float) -> bool:
+    """Whether :func:`median_elevation` reaches ``min_elevation`` (always at -90): the relief
+    sweep and the tilt frontality run only there, when asked. The initialization asks the same to
+    crop the photos for the sweep's heights, so a polygon the sweep skips is textured exactly as
+    without relief."""
     if min_elevation <= -90:
         return True
     elevation = median_elevation(inp, min_cos)
