@@ -363,8 +363,8 @@ def estimate_relief(photos: PhotoSet, s: ReliefSettings, max_steps: int = MAX_ST
     flat = Relief(frame, np.zeros(frame.shape, np.float32))
     if not seen_from_above(inp, s.min_cos, s.min_elevation):
         elevation = median_elevation(inp, s.min_cos)
-        why = f"photos' median elevation {elevation if elevation is None else round(elevation)} deg, below " \
-              f"{s.min_elevation:g} (not from above)"
+        why = ("no photo within the angle" if elevation is None else
+               f"photos' median elevation {elevation:.0f} deg, below {s.min_elevation:g} (not from above)")
         return flat, {"photos": [], "long_side": max(frame.shape), "elevation": elevation, "heights": [],
                       "relief_share": 0.0, "reason": why}
     which = sweep_photos(photos, frame, mask, s.min_cos, s.max_photos)
