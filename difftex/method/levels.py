@@ -35,7 +35,6 @@ from difftex.method.witnesses import candidate_footprints, witness_sigma
 from difftex.sampling.crops import seen_from_above
 from difftex.sampling.photos import MappedPhoto, PhotoSet
 from difftex.sampling.texels import Region, resample_nearest
-from difftex.scene.camera import scene_up
 
 MAP_CACHE_BYTES = 1 << 30  # mapped photos held at once while a level is built
 
@@ -324,8 +323,7 @@ def build_level(
     normal = torch.tensor(frame.normal, dtype=torch.float32, device=device)
     tilt_axis = None
     if cfg.frontality_tilt > 0 and seen_from_above(inp, 0.0, cfg.frontality_tilt_min_elevation):
-        up = inp.up if inp.up is not None else scene_up(inp.photos)  # one-sided candidates tilt that estimate
-        axis = wall_tilt_axis(frame.normal, up)
+        axis = wall_tilt_axis(frame.normal, inp.up_vector())
         tilt_axis = None if axis is None else torch.tensor(axis, dtype=torch.float32, device=device)
     # the most level candidate's tilt frontality: the reference of each photo's, as fpbest is Q_r's
     tbest = torch.zeros(h, w, device=device) if tilt_axis is not None else None

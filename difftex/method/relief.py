@@ -46,7 +46,7 @@ from difftex.geometry.frames import UVFrame
 from difftex.method.config import ReliefSettings  # noqa: F401  (defined beside OptimizeConfig, re-exported)
 from difftex.method.openings import fill_openings
 from difftex.method.semiglobal import aggregate, best_share_mean
-from difftex.sampling.crops import median_elevation, seen_from_above
+from difftex.sampling.crops import elevation_reaches, median_elevation
 from difftex.sampling.photos import PhotoSet
 from difftex.sampling.relief import GreySweep, Relief, relief_visibility
 from difftex.sampling.texels import level_frame, resample_nearest, texel_map
@@ -361,15 +361,15 @@ def estimate_relief(photos: PhotoSet, s: ReliefSettings, max_steps: int = MAX_ST
     frame = level_frame(inp.frame, min(s.long_side, max(inp.frame.shape)))
     mask = resample_nearest(inp.texel_mask, inp.frame, frame)
     flat = Relief(frame, np.zeros(frame.shape, np.float32))
-    if not seen_from_above(inp, s.min_cos, s.min_elevation):
-        elevation = median_elevation(inp, s.min_cos)
+    elevation = median_elevation(inp, s.min_cos)  # the test of crops.seen_from_above, on its value
+    if not elevation_reaches(elevation, s.min_elevation):
         why = ("no photo within the angle" if elevation is None else
                f"photos' median elevation {elevation:.0f} deg, below {s.min_elevation:g} (not from above)")
         return flat, {"photos": [], "long_side": max(frame.shape), "elevation": elevation, "heights": [],
                       "relief_share": 0.0, "reason": why}
     which = sweep_photos(photos, frame, mask, s.min_cos, s.max_photos)
     stats: dict = {"photos": [inp.photos[n].name for n in which], "long_side": max(frame.shape),
-                   "elevation": median_elevation(inp, s.min_cos)}
+                   "elevation": elevation}
     if len(which) < MIN_PHOTOS:
         return flat, {**stats, "heights": [], "relief_share": 0.0, "reason": f"fewer than {MIN_PHOTOS} photos"}
     short = min(frame.width, frame.height) * frame.texel_size

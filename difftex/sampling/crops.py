@@ -51,6 +51,12 @@ class PolygonInput:
     a_masks: list[np.ndarray] | None = None  # N crops of a_k^i
     up: np.ndarray | None = None  # (3,) the scene's unit up (None: estimated from the candidates)
 
+    def up_vector(self) -> np.ndarray:
+        """The scene's unit up: ``up`` where given, else estimated from the candidate photos
+        (difftex.scene.camera.scene_up; photos all on one side tilt that estimate)."""
+        up = np.asarray(self.up if self.up is not None else scene_up(self.photos), np.float64)
+        return up / np.linalg.norm(up)
+
     def __post_init__(self):
         N = len(self.photos)
         if self.texel_visible.shape != (N, *self.frame.shape):
@@ -70,15 +76,11 @@ def median_elevation(inp: PolygonInput, min_cos: float) -> float | None:
     above, as a drone's). The relief sweep runs only above ``optimize.relief_min_elevation``, and
     the initialization then crops the photos for it; both ask this, from the polygon input alone.
 
-    The scene's up is ``inp.up``, else estimated from the photos (difftex.scene.camera.scene_up;
-    photos all on one side tilt that estimate).
-
     Returns:
         degrees, or None where no photo is within the angle.
     """
     fr = inp.frame
-    up = np.asarray(inp.up if inp.up is not None else scene_up(inp.photos), np.float64)
-    up = up / np.linalg.norm(up)
+    up = inp.up_vector()
     centre = fr.texel_to_world(np.array(fr.width / 2), np.array(fr.height / 2))
     el = []
     for ph in inp.photos:
@@ -89,15 +91,18 @@ def median_elevation(inp: PolygonInput, min_cos: float) -> float | None:
     return float(np.median(el)) if el else None
 
 
+def elevation_reaches(elevation: float | None, min_elevation: float) -> bool:
+    """Whether a :func:`median_elevation` reaches ``min_elevation`` (always at -90, even with no
+    photo within the angle)."""
+    return min_elevation <= -90 or (elevation is not None and elevation >= min_elevation)
+
+
 def seen_from_above(inp: PolygonInput, min_cos: float, min_elevation: float) -> bool:
-    """Whether :func:`median_elevation` reaches ``min_elevation`` (always at -90): the relief
-    sweep and the tilt frontality run only there, when asked. The initialization asks the same to
-    crop the photos for the sweep's heights, so a polygon the sweep skips is textured exactly as
+    """Whether the polygon's :func:`median_elevation` reaches ``min_elevation``: the relief sweep
+    and the tilt frontality run only there, when asked. The initialization asks the same to crop
+    the photos for the sweep's heights, so a polygon the sweep skips is textured exactly as
     without relief."""
-    if min_elevation <= -90:
-        return True
-    elevation = median_elevation(inp, min_cos)
-    return elevation is not None and elevation >= min_elevation
+    return elevation_reaches(median_elevation(inp, min_cos), min_elevation)
 
 
 def polygon_input_from_visibility(
