@@ -233,7 +233,10 @@ def test_frontality_tilt_lowers_photos_from_above_on_a_wall_and_not_on_a_roof():
         return lv
 
     up = np.array([0.0, 0.0, 1.0])
-    off, on = level(fast_cfg(), up), level(fast_cfg(frontality_tilt=3.0), up)
+    off = level(fast_cfg(frontality_tilt=0.0), up)
+    on = level(fast_cfg(frontality_tilt=3.0, frontality_tilt_min_elevation=-90.0), up)
+    # the default: the tilt 3 where the photos' median elevation reaches 20 degrees (here 25)
+    assert torch.equal(level(fast_cfg(), up).blend_Q, on.blend_Q)
     fr = inp.frame
     X = fr.texel_to_world(*fr.centres())
     tilt = []
@@ -259,17 +262,26 @@ def test_frontality_tilt_lowers_photos_from_above_on_a_wall_and_not_on_a_roof():
         assert torch.allclose(witnesses.Q[j][seen] / off.Q[j][seen], tilted, rtol=1e-4)
     # with one Q for blend and witnesses otherwise (resolution_reference: pixel), the tilt still
     # leaves the witnesses' Q alone
-    pixel_off = level(fast_cfg(resolution_reference="pixel"), up)
+    pixel_off = level(fast_cfg(resolution_reference="pixel", frontality_tilt=0.0), up)
     pixel_on = level(fast_cfg(resolution_reference="pixel", frontality_tilt=3.0), up)
     assert pixel_off.Qb is None and torch.equal(pixel_on.Q, pixel_off.Q)
     assert not torch.equal(pixel_on.blend_Q, pixel_off.blend_Q)
     roof = level(fast_cfg(frontality_tilt=3.0), -fr.normal)  # up along the normal: a roof
     assert torch.equal(roof.blend_Q, off.blend_Q)
-    assert torch.equal(level(fast_cfg(frontality_tilt=0.0), up).blend_Q, off.blend_Q)
     # the photos' median elevation seen from the wall is 25 degrees (0 and 50): a limit above it
     # leaves Q bit for bit, one below it tilts as without a limit
     limited = [level(fast_cfg(frontality_tilt=3.0, frontality_tilt_min_elevation=e), up).blend_Q for e in (30.0, 20.0)]
     assert torch.equal(limited[0], off.blend_Q) and torch.equal(limited[1], on.blend_Q)
+    # the same decision, as the optimizer's stats.json reports it
+    from difftex.method.levels import tilt_axis
+
+    walled = dataclasses.replace(inp, up=up)
+    assert np.allclose(tilt_axis(walled, fast_cfg()), up)
+    assert tilt_axis(walled, fast_cfg(frontality_tilt_min_elevation=30.0)) is None
+    assert tilt_axis(walled, fast_cfg(frontality_tilt=0.0)) is None
+    assert tilt_axis(dataclasses.replace(inp, up=-fr.normal), fast_cfg()) is None  # a roof
+    stats = optimize(walled, fast_cfg(max_iters_per_level=(2,), min_iters_per_level=1)).stats
+    assert stats["frontality_tilt_on"] is True and stats["photo_elevation_deg"] == pytest.approx(25.0, abs=1.0)
     with pytest.raises(ValueError, match="frontality_tilt"):
         fast_cfg(frontality_tilt=-1.0)
     with pytest.raises(ValueError, match="frontality_tilt_min_elevation"):

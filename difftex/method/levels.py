@@ -32,7 +32,7 @@ from difftex.method.quality import (
     wall_tilt_axis,
 )
 from difftex.method.witnesses import candidate_footprints, witness_sigma
-from difftex.sampling.crops import seen_from_above
+from difftex.sampling.crops import PolygonInput, seen_from_above
 from difftex.sampling.photos import MappedPhoto, PhotoSet
 from difftex.sampling.texels import Region, resample_nearest
 
@@ -236,6 +236,20 @@ def _bbox(m: torch.Tensor) -> Region:
     return int(ys[0]), int(ys[-1]) + 1, int(xs[0]), int(xs[-1]) + 1
 
 
+def tilt_axis(inp: PolygonInput, cfg: OptimizeConfig) -> np.ndarray | None:
+    """The axis the tilt frontality measures views' tilt about (the wall's in-plane up), or None
+    where it is off: ``frontality_tilt`` 0, a roof (quality.wall_tilt_axis), or photos whose
+    median elevation is below ``frontality_tilt_min_elevation`` (street photos see the relief
+    square on; only photos from above see sills on one side).
+
+    Returns:
+        (3,) unit vector, or None.
+    """
+    if cfg.frontality_tilt <= 0 or not seen_from_above(inp, 0.0, cfg.frontality_tilt_min_elevation):
+        return None
+    return wall_tilt_axis(inp.frame.normal, inp.up_vector())
+
+
 def build_level(
     photos: PhotoSet,
     frame: UVFrame,
@@ -321,12 +335,10 @@ def build_level(
     gsum = torch.zeros(h, w, device=device)
     fpbest = torch.zeros(h, w, device=device)  # the most pixels per texel of any candidate (Q_r's reference)
     normal = torch.tensor(frame.normal, dtype=torch.float32, device=device)
-    tilt_axis = None
-    if cfg.frontality_tilt > 0 and seen_from_above(inp, 0.0, cfg.frontality_tilt_min_elevation):
-        axis = wall_tilt_axis(frame.normal, inp.up_vector())
-        tilt_axis = None if axis is None else torch.tensor(axis, dtype=torch.float32, device=device)
+    axis = tilt_axis(inp, cfg)
+    tilt_axis_t = None if axis is None else torch.tensor(axis, dtype=torch.float32, device=device)
     # the most level candidate's tilt frontality: the reference of each photo's, as fpbest is Q_r's
-    tbest = torch.zeros(h, w, device=device) if tilt_axis is not None else None
+    tbest = torch.zeros(h, w, device=device) if tilt_axis_t is not None else None
     vsum = []
     seen = []
     for n in order:
@@ -344,8 +356,8 @@ def build_level(
         gsum[y0:y1, x0:x1] += gradient_magnitude(mp.colour, mp.visible) * v
         fpbest[y0:y1, x0:x1] = torch.maximum(fpbest[y0:y1, x0:x1], torch.where(mp.visible, mp.footprint, 0.0))
         if tbest is not None:
-            assert tilt_axis is not None  # tbest exists only with it
-            tf = torch.where(mp.visible, tilt_frontality(mp.view, normal, tilt_axis), 0.0)
+            assert tilt_axis_t is not None  # tbest exists only with it
+            tf = torch.where(mp.visible, tilt_frontality(mp.view, normal, tilt_axis_t), 0.0)
             tbest[y0:y1, x0:x1] = torch.maximum(tbest[y0:y1, x0:x1], tf)
         vd = (mp.view * v).sum((1, 2))
         vsum.append(vd / vd.norm().clamp_min(1e-12))
@@ -408,8 +420,8 @@ def build_level(
         # their views of a window's lower pane where the drone photos see the sill.
         qa_blend = qac
         if tbest is not None:
-            assert tilt_axis is not None  # tbest exists only with it
-            qa_blend = qac * tilt_factor(tilt_frontality(mp.view, normal, tilt_axis), tbest[sl], cfg.frontality_tilt)
+            assert tilt_axis_t is not None  # tbest exists only with it
+            qa_blend = qac * tilt_factor(tilt_frontality(mp.view, normal, tilt_axis_t), tbest[sl], cfg.frontality_tilt)
             if cfg.frontality_tilt_witnesses:
                 qac = qa_blend
         best = fpbest[sl] if cfg.resolution_reference == "best" else None

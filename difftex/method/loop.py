@@ -33,7 +33,7 @@ from difftex.method.elimination import (
     update_activation,
 )
 from difftex.method.gradient import Adam
-from difftex.method.levels import Level, build_level, upsample_field
+from difftex.method.levels import Level, build_level, tilt_axis, upsample_field
 from difftex.method.objective import (
     LevelState,
     compiled_objective,
@@ -43,6 +43,7 @@ from difftex.method.objective import (
     value_and_grad,
 )
 from difftex.method.render import build_pixel_sets
+from difftex.sampling.crops import median_elevation
 from difftex.sampling.photos import MappedPhoto, PhotoSet
 from difftex.sampling.texels import level_frame, resample_nearest
 
@@ -132,6 +133,10 @@ def optimize_polygon(
         # with preset paper), and the weights' parametrisation
         "departures_from_paper": cfg.departures(),
         "weights": cfg.weights,
+        # the photos' median elevation (degrees, photos in front, seen from the centre) and
+        # whether the tilt frontality weighs this polygon's blend: it does only above its limit
+        "photo_elevation_deg": median_elevation(inp, 0.0),
+        "frontality_tilt_on": tilt_axis(inp, cfg) is not None,
     }
     sides = level_sides(max(inp.frame.shape), cfg.long_side_start, cfg.coarse_to_fine, cfg.level_step)
     dropped: set[int] = set()
