@@ -199,6 +199,53 @@ def test_tilt_frontality_is_the_cosine_of_the_views_tilt_alone():
         tilt_frontality(view[0], normal, axis)
 
 
+
+def test_tilt_weighs_the_witnesses_where_the_level_photos_agree():
+    """frontality_tilt_witness_agree k: the witnesses' Q takes the blend's tilt at the texels
+    where two or more level photos agree within k sigma_c (they see the pane a drone photo sees
+    the sill over), and keeps its untilted Q where one level photo shows an occluder the other
+    does not (a street tree, far in front of the wall, lands on different texels in each); 0 or
+    fewer than two level photos: the witnesses are never tilted."""
+    import dataclasses
+
+    from difftex.method.levels import build_level
+    from difftex.sampling.photos import PhotoSet
+
+    photos = [make_photo("left", -30.0), make_photo("right", 30.0), make_photo("above", 0.0, pitch_deg=50.0)]
+    photos += [make_photo("above_l", -20.0, pitch_deg=40.0), make_photo("above_r", 20.0, pitch_deg=45.0)]
+    images = [render(ph) for ph in photos]  # the photos' median elevation: 40 degrees
+    images[0] = paint_occluder(photos[0], images[0])  # a tree in the left street photo only
+    up = np.array([0.0, 0.0, 1.0])
+    inp = dataclasses.replace(make_input(photos, images, long_side=64), up=up)
+
+    def level(**kw):
+        lv = build_level(PhotoSet.load(inp, "cpu"), inp.frame, fast_cfg(**kw))
+        assert lv.fixed_slots  # slot j is photo j
+        return lv
+
+    plain, agree = level(frontality_tilt_witness_agree=0.0), level(frontality_tilt_witness_agree=1.0)
+    assert torch.equal(level().Q, agree.Q)  # the default
+    assert torch.equal(agree.blend_Q, plain.blend_Q)  # the blend is tilted alike
+    both = plain.visible[0] & plain.visible[1] & plain.visible[2] & (plain.Q[2] > 1e-3)
+    occ = torch.from_numpy(occluded_region(inp)) & both
+    clear = both & ~torch.from_numpy(occluded_region(inp))
+    clear &= ~torch.nn.functional.max_pool2d(occ[None, None].float(), 9, 1, 4)[0, 0].bool()  # away from its edge
+    assert bool(occ.any()) and bool(clear.any())
+    ratio = agree.Q[2] / plain.Q[2]  # the photo from above as a witness
+    untilted = level(frontality_tilt=0.0, frontality_tilt_witness_agree=0.0)
+    tilt = (plain.blend_Q[2] / untilted.blend_Q[2])[clear]  # the blend's tilt factor
+    tilted = ratio < 0.99
+    # tilted where the street photos agree (the checker's edges, sampled differently by each, aside)
+    assert float(tilted[clear].float().mean()) > 0.7 and float(ratio[clear].median()) < 0.5
+    assert torch.allclose(ratio[clear][tilted[clear]], tilt[tilted[clear]], rtol=1e-4)  # by that factor
+    assert not bool(tilted[occ].any())  # untilted where they disagree
+    assert torch.equal(level(frontality_tilt=0.0).Q, plain.Q)  # no tilt: nothing to weigh them by
+    inp1 = dataclasses.replace(make_input(photos[1:], images[1:], long_side=64), up=up)
+    q1 = [build_level(PhotoSet.load(inp1, "cpu"), inp1.frame, fast_cfg(frontality_tilt_witness_agree=k)).Q for k in (0.0, 1.0)]
+    assert torch.equal(q1[0], q1[1])  # one level photo agrees with nothing
+    with pytest.raises(ValueError, match="frontality_tilt_witness_agree"):
+        fast_cfg(frontality_tilt_witness_agree=-1.0)
+
 def test_wall_tilt_axis_is_the_in_plane_up_of_walls_only():
     from difftex.method.quality import WALL_MAX_UP_COS, wall_tilt_axis
 
@@ -286,3 +333,19 @@ def test_frontality_tilt_lowers_photos_from_above_on_a_wall_and_not_on_a_roof():
         fast_cfg(frontality_tilt=-1.0)
     with pytest.raises(ValueError, match="frontality_tilt_min_elevation"):
         fast_cfg(frontality_tilt_min_elevation=100.0)
+
+
+def test_level_photos_agree_needs_two_photos_within_k_sigma():
+    from difftex.method.quality import level_photos_agree
+
+    a = torch.tensor([0.2, 0.4, 0.6], dtype=torch.float64)[:, None, None].expand(3, 1, 4)
+    b = a + torch.tensor([0.0, 0.1, 0.5, 0.0], dtype=torch.float64)  # the 4th texel: one photo only
+    count = torch.tensor([[2.0, 2.0, 2.0, 1.0]])
+    s1 = a + b * (count > 1)
+    s2 = (a * a).sum(0) + (b * b).sum(0) * (count > 1)
+    # RMS distance to the mean: 0, 0.05 * sqrt(3), 0.25 * sqrt(3)
+    assert level_photos_agree(s1, s2, count, 0.1, 1.0).tolist() == [[True, True, False, False]]
+    assert level_photos_agree(s1, s2, count, 0.1, 5.0).tolist() == [[True, True, True, False]]
+    assert level_photos_agree(s1, s2, count, 0.1, 1e-6).tolist() == [[True, False, False, False]]
+    with pytest.raises(ValueError, match="k must be > 0"):
+        level_photos_agree(s1, s2, count, 0.1, 0.0)

@@ -159,6 +159,13 @@ class OptimizeConfig:
     # the tilt also weighs the photos as witnesses (L_Render, elimination, settling): the sills
     # go, but the level (street) photos then outvote the photos from above, their occluders too
     frontality_tilt_witnesses: bool = False
+    # > 0: the tilt also weighs the witnesses at the texels where two or more level photos (tilted
+    # less than frontality_tilt_min_elevation, or 20 degrees) agree within this many sigma_c: they
+    # see the pane where the photos from above see the sill, while a street occluder, far in front
+    # of the wall, lands on different texels in each and is left to the photos from above. The
+    # default gained all three metrics on every survey building over the blend-only tilt
+    # (docs/optimizer.md, "Tilt frontality"); it acts only where the tilt does
+    frontality_tilt_witness_agree: float = 1.0
     # the tilt only where the median elevation of the photos in front of the polygon, seen from its
     # centre, is at least this (degrees; difftex.sampling.crops.median_elevation); -90: everywhere.
     # Street photos see the relief square on; only drone photos see sills on one side
@@ -313,6 +320,8 @@ class OptimizeConfig:
             raise ValueError(f"frontality_weight must be >= 0, got {self.frontality_weight}")
         if not self.frontality_tilt >= 0:
             raise ValueError(f"frontality_tilt must be >= 0, got {self.frontality_tilt}")
+        if not self.frontality_tilt_witness_agree >= 0:
+            raise ValueError(f"frontality_tilt_witness_agree must be >= 0, got {self.frontality_tilt_witness_agree}")
         if not -90 <= self.frontality_tilt_min_elevation <= 90:
             raise ValueError(f"frontality_tilt_min_elevation in [-90, 90], got {self.frontality_tilt_min_elevation}")
         if not self.resolution_knee >= 1.0:

@@ -11,6 +11,7 @@ counts the mappings).
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -23,6 +24,7 @@ from difftex.method.config import OptimizeConfig
 from difftex.method.filters import masked_blur
 from difftex.method.quality import (
     level_noise,
+    level_photos_agree,
     quality,
     relative_footprint,
     resolution_factor,
@@ -339,6 +341,13 @@ def build_level(
     tilt_axis_t = None if axis is None else torch.tensor(axis, dtype=torch.float32, device=device)
     # the most level candidate's tilt frontality: the reference of each photo's, as fpbest is Q_r's
     tbest = torch.zeros(h, w, device=device) if tilt_axis_t is not None else None
+    # the level photos' (tilted less than the elevation limit) colour statistics: where two or
+    # more agree, the tilt may weigh the witnesses too (frontality_tilt_witness_agree)
+    agree_k = cfg.frontality_tilt_witness_agree if tbest is not None and not cfg.frontality_tilt_witnesses else 0.0
+    level_cos = math.cos(math.radians(max(cfg.frontality_tilt_min_elevation, 0.0) or 20.0))
+    ls1 = torch.zeros(3, h, w, device=device, dtype=torch.float64) if agree_k > 0 else None
+    ls2 = torch.zeros(h, w, device=device, dtype=torch.float64) if agree_k > 0 else None
+    lcnt = torch.zeros(h, w, device=device) if agree_k > 0 else None
     vsum = []
     seen = []
     for n in order:
@@ -359,6 +368,11 @@ def build_level(
             assert tilt_axis_t is not None  # tbest exists only with it
             tf = torch.where(mp.visible, tilt_frontality(mp.view, normal, tilt_axis_t), 0.0)
             tbest[y0:y1, x0:x1] = torch.maximum(tbest[y0:y1, x0:x1], tf)
+            if ls1 is not None and ls2 is not None and lcnt is not None:
+                lv = (tf >= level_cos).double()
+                ls1[:, y0:y1, x0:x1] += c * lv
+                ls2[y0:y1, x0:x1] += (c * c).sum(0) * lv
+                lcnt[y0:y1, x0:x1] += lv.float()
         vd = (mp.view * v).sum((1, 2))
         vsum.append(vd / vd.norm().clamp_min(1e-12))
         if keep_all:
@@ -369,6 +383,9 @@ def build_level(
     mu = mu64.float()
     G = gsum / c
     noise = level_noise(msd, cnt, cfg.sigma_min)
+    level_agree = None
+    if ls1 is not None and ls2 is not None and lcnt is not None:
+        level_agree = level_photos_agree(ls1, ls2, lcnt, noise, agree_k)
     if prev is not None:  # the guidance direction of the first level, whose photos are all the candidates
         v_tilde = torch.from_numpy(prev[0].v_tilde).to(device)
     else:
@@ -424,6 +441,8 @@ def build_level(
             qa_blend = qac * tilt_factor(tilt_frontality(mp.view, normal, tilt_axis_t), tbest[sl], cfg.frontality_tilt)
             if cfg.frontality_tilt_witnesses:
                 qac = qa_blend
+            elif level_agree is not None:
+                qac = torch.where(level_agree[sl], qa_blend, qac)
         best = fpbest[sl] if cfg.resolution_reference == "best" else None
         rw = cfg.resolution_weight
         q_r = resolution_factor(relative_footprint(mp.footprint, best, cfg.resolution_knee), rw, mp.visible)

@@ -163,6 +163,30 @@ def relative_footprint(footprint: torch.Tensor, best: torch.Tensor | None, knee:
     return (rel * knee).clamp(max=1.0) if knee > 1.0 else rel
 
 
+def level_photos_agree(s1: torch.Tensor, s2: torch.Tensor, count: torch.Tensor, noise: float, k: float) -> torch.Tensor:
+    """Texels where two or more level photos agree: the RMS distance of their colours to their
+    mean is at most ``k`` sigma_c. There they see a recessed window's pane, which photos from
+    above see the sill over, and the tilt frontality may weigh the witnesses too
+    (``frontality_tilt_witness_agree``); a street occluder far in front of the wall lands on
+    different texels in each level photo, so they disagree where it stands.
+
+    Args:
+        s1: (3, h, w) float64 sum of the level photos' colours.
+        s2: (h, w) float64 sum of their squared norms.
+        count: (h, w) level photos per texel.
+        noise: sigma_c of the level (:func:`level_noise`).
+        k: agreement in units of sigma_c (> 0).
+
+    Returns:
+        (h, w) bool.
+    """
+    if not k > 0:
+        raise ValueError(f"k must be > 0, got {k}")
+    c = count.clamp_min(1.0).double()
+    mu = s1 / c
+    msd = (s2 / c - (mu * mu).sum(0)).clamp_min(0.0).float()
+    return (count >= 2) & (msd <= (k * noise) ** 2)
+
 def level_noise(msd: torch.Tensor, count: torch.Tensor, floor: float) -> float:
     """sigma_c from the streaming statistics: the median over texels seen by two photos or more
     of the RMS distance of their colours to their mean, at least ``floor``.
