@@ -241,7 +241,8 @@ def test_tilt_weighs_the_witnesses_where_the_level_photos_agree():
     assert not bool(tilted[occ].any())  # untilted where they disagree
     assert torch.equal(level(frontality_tilt=0.0).Q, plain.Q)  # no tilt: nothing to weigh them by
     inp1 = dataclasses.replace(make_input(photos[1:], images[1:], long_side=64), up=up)
-    q1 = [build_level(PhotoSet.load(inp1, "cpu"), inp1.frame, fast_cfg(frontality_tilt_witness_agree=k)).Q for k in (0.0, 1.0)]
+    photos1 = PhotoSet.load(inp1, "cpu")
+    q1 = [build_level(photos1, inp1.frame, fast_cfg(frontality_tilt_witness_agree=k)).Q for k in (0.0, 1.0)]
     assert torch.equal(q1[0], q1[1])  # one level photo agrees with nothing
     with pytest.raises(ValueError, match="frontality_tilt_witness_agree"):
         fast_cfg(frontality_tilt_witness_agree=-1.0)
