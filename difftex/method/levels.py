@@ -29,6 +29,7 @@ from difftex.method.quality import (
     relative_footprint,
     resolution_factor,
     robust_noise,
+    streamed_spread,
     tilt_factor,
     tilt_frontality,
     wall_tilt_axis,
@@ -39,6 +40,9 @@ from difftex.sampling.photos import MappedPhoto, PhotoSet
 from difftex.sampling.texels import Region, resample_nearest
 
 MAP_CACHE_BYTES = 1 << 30  # mapped photos held at once while a level is built
+# a photo is level (a street photo) within this tilt where frontality_tilt_min_elevation is not
+# above 0 degrees and cannot say where photos from above begin
+LEVEL_TILT_DEG = 20.0
 
 
 @dataclass
@@ -344,10 +348,14 @@ def build_level(
     # the level photos' (tilted less than the elevation limit) colour statistics: where two or
     # more agree, the tilt may weigh the witnesses too (frontality_tilt_witness_agree)
     agree_k = cfg.frontality_tilt_witness_agree if tbest is not None and not cfg.frontality_tilt_witnesses else 0.0
-    level_cos = math.cos(math.radians(max(cfg.frontality_tilt_min_elevation, 0.0) or 20.0))
-    ls1 = torch.zeros(3, h, w, device=device, dtype=torch.float64) if agree_k > 0 else None
-    ls2 = torch.zeros(h, w, device=device, dtype=torch.float64) if agree_k > 0 else None
-    lcnt = torch.zeros(h, w, device=device) if agree_k > 0 else None
+    level_cos = math.cos(math.radians(max(cfg.frontality_tilt_min_elevation, 0.0) or LEVEL_TILT_DEG))
+    # (colour sum, squared-norm sum, count) of the level photos, as s1, s2, cnt are of all
+    level_sums = (
+        (torch.zeros(3, h, w, device=device, dtype=torch.float64),
+         torch.zeros(h, w, device=device, dtype=torch.float64),
+         torch.zeros(h, w, device=device))
+        if agree_k > 0 else None
+    )
     vsum = []
     seen = []
     for n in order:
@@ -368,24 +376,20 @@ def build_level(
             assert tilt_axis_t is not None  # tbest exists only with it
             tf = torch.where(mp.visible, tilt_frontality(mp.view, normal, tilt_axis_t), 0.0)
             tbest[y0:y1, x0:x1] = torch.maximum(tbest[y0:y1, x0:x1], tf)
-            if ls1 is not None and ls2 is not None and lcnt is not None:
+            if level_sums is not None:
                 lv = (tf >= level_cos).double()
-                ls1[:, y0:y1, x0:x1] += c * lv
-                ls2[y0:y1, x0:x1] += (c * c).sum(0) * lv
-                lcnt[y0:y1, x0:x1] += lv.float()
+                level_sums[0][:, y0:y1, x0:x1] += c * lv
+                level_sums[1][y0:y1, x0:x1] += (c * c).sum(0) * lv
+                level_sums[2][y0:y1, x0:x1] += lv.float()
         vd = (mp.view * v).sum((1, 2))
         vsum.append(vd / vd.norm().clamp_min(1e-12))
         if keep_all:
             cache[n] = mp
-    c = cnt.clamp_min(1.0)
-    mu64 = s1 / c
-    msd = (s2 / c - (mu64 * mu64).sum(0)).clamp_min(0.0).float()  # mean squared distance to the mean
+    mu64, msd = streamed_spread(s1, s2, cnt)  # msd: mean squared distance to the mean
     mu = mu64.float()
-    G = gsum / c
+    G = gsum / cnt.clamp_min(1.0)
     noise = level_noise(msd, cnt, cfg.sigma_min)
-    level_agree = None
-    if ls1 is not None and ls2 is not None and lcnt is not None:
-        level_agree = level_photos_agree(ls1, ls2, lcnt, noise, agree_k)
+    level_agree = level_photos_agree(*level_sums, noise, agree_k) if level_sums is not None else None
     if prev is not None:  # the guidance direction of the first level, whose photos are all the candidates
         v_tilde = torch.from_numpy(prev[0].v_tilde).to(device)
     else:

@@ -163,6 +163,23 @@ def relative_footprint(footprint: torch.Tensor, best: torch.Tensor | None, knee:
     return (rel * knee).clamp(max=1.0) if knee > 1.0 else rel
 
 
+def streamed_spread(s1: torch.Tensor, s2: torch.Tensor, count: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """The mean colour and the mean squared distance to it of the photos summed into streaming
+    statistics (a level's candidates in ``build_level``, or its level photos).
+
+    Args:
+        s1: (3, h, w) float64 sum of the photos' colours.
+        s2: (h, w) float64 sum of their squared norms.
+        count: (h, w) photos per texel.
+
+    Returns:
+        (3, h, w) float64 mean, and (h, w) float32 mean squared distance to it (0 where no photo).
+    """
+    c = count.clamp_min(1.0)
+    mu = s1 / c
+    return mu, (s2 / c - (mu * mu).sum(0)).clamp_min(0.0).float()
+
+
 def level_photos_agree(s1: torch.Tensor, s2: torch.Tensor, count: torch.Tensor, noise: float, k: float) -> torch.Tensor:
     """Texels where two or more level photos agree: the RMS distance of their colours to their
     mean is at most ``k`` sigma_c. There they see a recessed window's pane, which photos from
@@ -182,10 +199,9 @@ def level_photos_agree(s1: torch.Tensor, s2: torch.Tensor, count: torch.Tensor, 
     """
     if not k > 0:
         raise ValueError(f"k must be > 0, got {k}")
-    c = count.clamp_min(1.0).double()
-    mu = s1 / c
-    msd = (s2 / c - (mu * mu).sum(0)).clamp_min(0.0).float()
+    _, msd = streamed_spread(s1, s2, count)
     return (count >= 2) & (msd <= (k * noise) ** 2)
+
 
 def level_noise(msd: torch.Tensor, count: torch.Tensor, floor: float) -> float:
     """sigma_c from the streaming statistics: the median over texels seen by two photos or more
