@@ -313,8 +313,9 @@ def _interrupt_kill_and_resume(work, args, total, gate, runs, reference_run, tmp
     gate.limit(1)
     wait_for(lambda: gate.held(1), first, "the first texture, and the next finish job held")
     os.killpg(first.pid, signal.SIGINT)
-    assert first.wait(timeout=120) == 130
+    status = first.wait(timeout=120)
     said = [ln for ln in (tmp_path / "first.log").read_text().splitlines() if ln.strip()]
+    assert status == 130, said[-40:]
     assert said[-1] == "difftex: interrupted; run the same command again to resume", said[-5:]
     done = n_textures(work)
     assert done == 1

@@ -1,9 +1,11 @@
 """The run lock and the end-of-run report, without Snakemake runs (those are in
 test_failures_workflow.py): refusal of a second run, what a dead run leaves and what is cleaned,
-and the lines the console gets from job logs."""
+the lines the console gets from job logs, and Ctrl-C outside Snakemake's scheduler."""
 
 from __future__ import annotations
 
+import subprocess
+import sys
 from base64 import urlsafe_b64encode
 from pathlib import Path
 
@@ -123,3 +125,36 @@ def test_job_error_names_a_full_disk_when_the_log_ended_normally(tmp_path, monke
     assert line.startswith("difftex: error: ") and "No space left on device" in line
     monkeypatch.setattr(runlog.shutil, "disk_usage", lambda p: usage(10 << 30, 1 << 30, 9 << 30))
     assert "49x64 texels" in runlog.job_error([log], "texture", "pid=wall")
+
+
+def _python(code: str, cwd: Path) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=cwd, timeout=120)
+
+
+def test_ctrl_c_outside_the_scheduler_ends_with_one_line_and_status_130(tmp_path):
+    """A KeyboardInterrupt that reaches the top level (Ctrl-C while Snakemake reads the Snakefile,
+    say) ends the process with the interrupted line and 130: no traceback, no death by SIGINT
+    (-2). Installing twice is harmless, and other errors keep their traceback and status."""
+    head = "import os, signal, time\nfrom difftex.workflow import runguard\n"
+    head += "runguard.exit_on_interrupt(); runguard.exit_on_interrupt()\n"
+    for cause in ("raise KeyboardInterrupt", "os.kill(os.getpid(), signal.SIGINT); time.sleep(30)"):
+        r = _python(head + "print('before')\n" + cause, tmp_path)
+        assert r.returncode == runguard.INTERRUPTED_STATUS == 130, r.stderr
+        assert r.stderr.splitlines() == [runguard.INTERRUPTED_LINE] and r.stdout == "before\n"
+    r = _python(head + "raise ValueError('not an interrupt')", tmp_path)
+    assert r.returncode == 1 and "Traceback" in r.stderr and "ValueError: not an interrupt" in r.stderr
+
+
+def test_ctrl_c_after_the_run_ended_is_ignored(tmp_path):
+    """Once onsuccess/onerror has run (``finished``), a Ctrl-C while the summary prints or the
+    threads are joined neither raises nor counts as an interruption; before it, it does both."""
+    code = (
+        "import os, signal, time\nfrom difftex.workflow import runguard\n"
+        "g = runguard.RunGuard('results/s', workdir='.')\ng._note_interrupts()\n"
+        "g.finished = {finished}\n"
+        "try:\n    os.kill(os.getpid(), signal.SIGINT); time.sleep(0.5)\n"
+        "except KeyboardInterrupt:\n    print('raised')\n"
+        "print('interrupted', g.interrupted)\n"
+    )
+    assert _python(code.format(finished=True), tmp_path).stdout.splitlines() == ["interrupted False"]
+    assert _python(code.format(finished=False), tmp_path).stdout.splitlines() == ["raised", "interrupted True"]

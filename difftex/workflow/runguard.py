@@ -37,6 +37,39 @@ SNAKEMAKE_INCOMPLETE = Path(".snakemake") / "incomplete"
 TEMP_GLOB = ".*.part*"  # difftex.scene.files.atomic_path's temporary files
 
 
+INTERRUPTED_LINE = "difftex: interrupted; run the same command again to resume"
+INTERRUPTED_STATUS = 130  # 128 + SIGINT, as a shell reports a job stopped by Ctrl-C
+
+
+def exit_on_interrupt() -> None:
+    """For the rest of this process: a Ctrl-C (KeyboardInterrupt) that no handler caught ends it
+    with the one interrupted line and status 130, not a traceback and death by SIGINT.
+
+    Snakemake's scheduler catches Ctrl-C while jobs run (the onerror handler then says the
+    same); before it runs (while the Snakefile is read or the job graph built) and while it
+    stops, the KeyboardInterrupt reaches the top level. Python then prints a traceback and,
+    after finalizing, kills itself with SIGINT, so no exit status can be set but by leaving
+    at once: the hook flushes the streams and logs and calls ``os._exit``. Snakemake's ``finally``
+    blocks (its locks) have run by then, and the kernel releases the run lock.
+    """
+    if getattr(sys.excepthook, "difftex_interrupt", False):  # a Snakefile read twice in a process
+        return
+    previous = sys.excepthook
+
+    def hook(exc_type, exc, tb):
+        if not issubclass(exc_type, KeyboardInterrupt):
+            return previous(exc_type, exc, tb)
+        try:
+            print(INTERRUPTED_LINE, file=sys.stderr, flush=True)
+            sys.stdout.flush()
+            logging.shutdown()
+        finally:
+            os._exit(INTERRUPTED_STATUS)
+
+    hook.difftex_interrupt = True  # type: ignore[attr-defined]
+    sys.excepthook = hook
+
+
 def stop(message: str, code: int = 1) -> None:
     """Print ``difftex: error: <message>`` on one line and end the process (no traceback).
 
@@ -134,12 +167,16 @@ class RunGuard:
 
     def _note_interrupts(self) -> None:
         """Remember a Ctrl-C, then let Snakemake handle it as before (its scheduler turns the
-        KeyboardInterrupt into a plain failure, which the failure report must not blame on a job)."""
+        KeyboardInterrupt into a plain failure, which the failure report must not blame on a job).
+        Once the run has ended (``finished``), ignore it: raised while Python joins the threads
+        at exit, it would print an "Exception ignored" traceback after the summary."""
         previous = signal.getsignal(signal.SIGINT)
         if not callable(previous):
             return
 
         def handler(signum, frame):
+            if self.finished:  # the run has ended and is printing its summary or exiting
+                return None
             self.interrupted = True
             return previous(signum, frame)
 

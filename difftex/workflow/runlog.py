@@ -146,8 +146,10 @@ def report_failure(workflow, results: str | Path, since: float, interrupted: boo
     own lines after the handler's). After Ctrl-C: one line saying how to resume, status 130."""
     scheduler = getattr(workflow, "scheduler", None)
     if interrupted or getattr(scheduler, "_user_kill", None):
-        print("difftex: interrupted; run the same command again to resume", file=sys.stderr, flush=True)
-        raise SystemExit(130)
+        from difftex.workflow.runguard import INTERRUPTED_LINE, INTERRUPTED_STATUS
+
+        print(INTERRUPTED_LINE, file=sys.stderr, flush=True)
+        raise SystemExit(INTERRUPTED_STATUS)
     jobs = failed_jobs(workflow) or recent_error_logs(Path(results), since)
     print("\n".join(failure_report(jobs, results)), file=sys.stderr, flush=True)
     raise SystemExit(1)

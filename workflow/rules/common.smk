@@ -18,6 +18,8 @@ from difftex.workflow import runguard, runlog
 from difftex.errors import DifftexError
 from difftex.layout import Results
 
+# Ctrl-C before Snakemake's scheduler runs (or after it stopped): one line and status 130
+runguard.exit_on_interrupt()
 
 try:
     _user = wf.user_config(
