@@ -30,15 +30,12 @@ import time
 from pathlib import Path
 
 from difftex.errors import ERROR_PREFIX, one_line, os_error_message
+from difftex.workflow.runlog import INTERRUPTED_LINE, INTERRUPTED_STATUS
 
 LOCK_NAME = Path(".snakemake") / "difftex" / "run.lock"
 SNAKEMAKE_LOCKS = Path(".snakemake") / "locks"
 SNAKEMAKE_INCOMPLETE = Path(".snakemake") / "incomplete"
 TEMP_GLOB = ".*.part*"  # difftex.scene.files.atomic_path's temporary files
-
-
-INTERRUPTED_LINE = "difftex: interrupted; run the same command again to resume"
-INTERRUPTED_STATUS = 130  # 128 + SIGINT, as a shell reports a job stopped by Ctrl-C
 
 
 def exit_on_interrupt() -> None:

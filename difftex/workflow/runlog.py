@@ -16,6 +16,9 @@ from pathlib import Path
 from difftex.errors import ERROR_PREFIX, WARNING_PREFIX, one_line
 from difftex.layout import Results
 
+INTERRUPTED_LINE = "difftex: interrupted; run the same command again to resume"
+INTERRUPTED_STATUS = 130  # 128 + SIGINT, as a shell reports a job stopped by Ctrl-C
+
 # a log's last lines hold its error; no need to read a long optimizer log whole
 TAIL_BYTES = 64 * 1024
 
@@ -146,8 +149,6 @@ def report_failure(workflow, results: str | Path, since: float, interrupted: boo
     own lines after the handler's). After Ctrl-C: one line saying how to resume, status 130."""
     scheduler = getattr(workflow, "scheduler", None)
     if interrupted or getattr(scheduler, "_user_kill", None):
-        from difftex.workflow.runguard import INTERRUPTED_LINE, INTERRUPTED_STATUS
-
         print(INTERRUPTED_LINE, file=sys.stderr, flush=True)
         raise SystemExit(INTERRUPTED_STATUS)
     jobs = failed_jobs(workflow) or recent_error_logs(Path(results), since)
