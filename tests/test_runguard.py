@@ -4,6 +4,7 @@ the lines the console gets from job logs, and Ctrl-C outside Snakemake's schedul
 
 from __future__ import annotations
 
+import signal
 import subprocess
 import sys
 from base64 import urlsafe_b64encode
@@ -128,7 +129,10 @@ def test_job_error_names_a_full_disk_when_the_log_ended_normally(tmp_path, monke
 
 
 def _python(code: str, cwd: Path) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=cwd, timeout=120)
+    # SIGINT back to its default in the child: a shell's background job (CI under nohup ... &)
+    # starts with it ignored, and Python then keeps it ignored
+    return subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=cwd, timeout=120,
+                          preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
 
 
 def test_ctrl_c_outside_the_scheduler_ends_with_one_line_and_status_130(tmp_path):
