@@ -11,7 +11,6 @@ counts the mappings).
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -20,29 +19,25 @@ import torch.nn.functional as F
 
 from difftex.geometry.frames import UVFrame
 from difftex.method import losses
+from difftex.method.candidate_stats import CandidateStats
 from difftex.method.config import OptimizeConfig
 from difftex.method.filters import masked_blur
 from difftex.method.quality import (
-    level_noise,
-    level_photos_agree,
     quality,
     relative_footprint,
     resolution_factor,
     robust_noise,
-    streamed_spread,
     tilt_factor,
     tilt_frontality,
     wall_tilt_axis,
 )
+from difftex.method.slots import EMPTY_SCORE, Slots
 from difftex.method.witnesses import candidate_footprints, witness_sigma
 from difftex.sampling.crops import PolygonInput, seen_from_above
 from difftex.sampling.photos import MappedPhoto, PhotoSet
 from difftex.sampling.texels import Region, resample_nearest
 
 MAP_CACHE_BYTES = 1 << 30  # mapped photos held at once while a level is built
-# a photo is level (a street photo) within this tilt where frontality_tilt_min_elevation is not
-# above 0 degrees and cannot say where photos from above begin
-LEVEL_TILT_DEG = 20.0
 
 
 @dataclass
@@ -99,22 +94,6 @@ class Level:
         ts = [self.idx, self.visible, self.colours, self.Q, self.cost, self.G, self.z0]
         ts += [t for t in (self.detail, self.Qb) if t is not None]
         return int(sum(t.element_size() * t.numel() for t in ts))
-
-
-def gradient_magnitude(col: torch.Tensor, vis: torch.Tensor) -> torch.Tensor:
-    """Mean-over-channels colour gradient magnitude (h, w), zero across visibility borders.
-
-    Args:
-        col: (3, h, w) colours.
-        vis: (h, w) bool, where the colours are defined.
-    """
-    gx = torch.zeros_like(col)
-    gy = torch.zeros_like(col)
-    okx = (vis[:, 1:] & vis[:, :-1])[None]
-    oky = (vis[1:, :] & vis[:-1, :])[None]
-    gx[:, :, 1:] = (col[:, :, 1:] - col[:, :, :-1]) * okx
-    gy[:, 1:, :] = (col[:, 1:, :] - col[:, :-1, :]) * oky
-    return (gx * gx + gy * gy).sqrt().mean(0)
 
 
 def _scatter_photo_field(idx: torch.Tensor, values: torch.Tensor, n: int) -> tuple[torch.Tensor, torch.Tensor]:
@@ -256,6 +235,186 @@ def tilt_axis(inp: PolygonInput, cfg: OptimizeConfig) -> np.ndarray | None:
     return wall_tilt_axis(inp.frame.normal, inp.up_vector())
 
 
+def _photo_q(
+    mp: MappedPhoto, c: torch.Tensor, sl: tuple[slice, slice], stats: CandidateStats, cfg: OptimizeConfig,
+    res_split: bool,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """One candidate's witness Q and blend Q over its region ``sl`` of the level (Sec. 4.2:
+    Q = Q_a Q_c, times Q_r; the blend's with the tilt frontality).
+
+    Args:
+        mp: the photo mapped into the region.
+        c: (3, rh, rw) its colours as compared.
+        sl: the region's (rows, columns) slices.
+        stats: the level's candidate statistics (finished).
+        cfg: the optimizer config.
+        res_split: whether the witnesses' Q_r is absolute while the blend's is relative.
+
+    Returns:
+        (q, qb), each (rh, rw).
+    """
+    y0, x0 = sl[0].start, sl[1].start
+    y1, x1 = sl[0].stop, sl[1].stop
+    qac = quality(mp.cos, c, stats.mu[:, y0:y1, x0:x1], stats.msd[sl], mp.visible, cfg.sigma_min,
+                  cfg.frontality_weight)
+    # The tilt weighs the blend; as witnesses of what a texel shows (L_Render, elimination,
+    # settling) the photos from above keep their votes unless frontality_tilt_witnesses: the
+    # street photos' trees are outvoted by the drone photos that see past them, and so are
+    # their views of a window's lower pane where the drone photos see the sill. Where the level
+    # photos agree (frontality_tilt_witness_agree), the witnesses are tilted too.
+    qa_blend = qac
+    if stats.tbest is not None:
+        assert stats.tilt_axis is not None  # tbest exists only with it
+        tilt = tilt_frontality(mp.view, stats.normal, stats.tilt_axis)
+        qa_blend = qac * tilt_factor(tilt, stats.tbest[sl], cfg.frontality_tilt)
+        if cfg.frontality_tilt_witnesses:
+            qac = qa_blend
+        elif stats.level_agree is not None:
+            qac = torch.where(stats.level_agree[sl], qa_blend, qac)
+    best = stats.fpbest[sl] if cfg.resolution_reference == "best" else None
+    rw = cfg.resolution_weight
+    q_r = resolution_factor(relative_footprint(mp.footprint, best, cfg.resolution_knee), rw, mp.visible)
+    qb = qa_blend * q_r
+    rw_w = rw if cfg.witness_resolution_weight is None else cfg.witness_resolution_weight
+    if res_split:
+        return qac * resolution_factor(relative_footprint(mp.footprint, None), rw_w, mp.visible), qb
+    return qac * q_r, qb
+
+
+class _LevelPhotos:
+    """A level's candidates as mapped into its texels (``get``) and as compared (``compared``:
+    low-passed by ``sigma`` texels when it is above 0), held while ``keep_all`` (they fit in
+    MAP_CACHE_BYTES), else mapped again when asked (``maps`` counts the mappings).
+
+    Args:
+        photos: the polygon's decoded photos.
+        frame: the level's frame.
+        mask_np: (h, w) bool, the polygon's texels at this level.
+        transfers: per photo brightness transfer (or None).
+        regions: per photo, its region (y0, y1, x0, x1) of the level.
+        mapped: photos already mapped over the whole level by the caller, or None.
+        keep_all: hold every mapped photo.
+        sigma: the compared colours' low-pass in texels (0: full detail).
+    """
+
+    def __init__(
+        self, photos: PhotoSet, frame: UVFrame, mask_np: np.ndarray, transfers: list | None,
+        regions: dict[int, Region], mapped: dict[int, MappedPhoto | None] | None, keep_all: bool, sigma: float,
+    ) -> None:
+        self.photos, self.frame, self.mask_np, self.transfers = photos, frame, mask_np, transfers
+        self.regions, self.whole, self.keep_all, self.sigma = regions, mapped is not None, keep_all, sigma
+        self.cache: dict[int, MappedPhoto | None] = dict(mapped) if mapped is not None else {}
+        self.low: dict[int, torch.Tensor] = {}  # low-passed colours of the photos held in ``cache``
+        self.maps = 0
+
+    def get(self, n: int) -> MappedPhoto | None:
+        if n in self.cache:
+            return self.cache[n]
+        self.maps += 1
+        transfer = self.transfers[n] if self.transfers is not None else None
+        return self.photos.map(n, self.frame, self.mask_np, transfer, self.regions[n])
+
+    def hold(self, n: int, mp: MappedPhoto | None) -> None:
+        """Keep photo ``n``'s mapping for the second pass (None: it sees nothing here)."""
+        if mp is None or self.keep_all:
+            self.cache[n] = mp
+
+    def region(self, n: int) -> Region:
+        h, w = self.frame.shape
+        return (0, h, 0, w) if self.whole else self.regions[n]
+
+    def compared(self, n: int, mp: MappedPhoto) -> torch.Tensor:
+        if self.sigma <= 0:
+            return mp.colour
+        if n in self.low:
+            return self.low[n]
+        c = masked_blur(mp.colour, mp.visible, self.sigma)
+        if self.keep_all:
+            self.low[n] = c
+        return c
+
+
+def _compare_sigma(photos: PhotoSet, frame: UVFrame, order: list[int], cfg: OptimizeConfig) -> float:
+    """The low-pass (texels) of the colours the level compares: ``consistency_sigma``, or more at
+    the candidates' resolutions (``consistency_px``, difftex.method.witnesses). The render loss
+    compares the texture with the photos' own pixels (the paper's L_Render, difftex.method.render):
+    its level keeps comparing at full detail (0)."""
+    if cfg.loss_mode != "texel":
+        return 0.0
+    sig = cfg.consistency_sigma
+    if cfg.consistency_px > 0:
+        sig = max(sig, witness_sigma(candidate_footprints(photos, frame, order), cfg.consistency_px))
+    return sig
+
+
+def _stream_candidates(
+    lp: _LevelPhotos, order: list[int], stats: CandidateStats, prev: tuple[Level, torch.Tensor] | None,
+) -> tuple[list[int], torch.Tensor]:
+    """The first pass: every candidate into ``stats`` (finished here). Returns the photos that
+    see the level and the guidance direction v~ (the first level's, over all its candidates)."""
+    vsum = []
+    seen = []
+    for n in order:
+        mp = lp.get(n)
+        lp.hold(n, mp)
+        if mp is None:
+            continue
+        seen.append(n)
+        stats.add(mp, lp.compared(n, mp), lp.region(n))
+        vd = (mp.view * mp.visible.float()).sum((1, 2))
+        vsum.append(vd / vd.norm().clamp_min(1e-12))
+    stats.finish()
+    if prev is not None:
+        return seen, torch.from_numpy(prev[0].v_tilde).to(stats.normal.device)
+    return seen, losses.guidance_direction(torch.stack(vsum), stats.normal) if vsum else -stats.normal
+
+
+def _fill_slots(
+    lp: _LevelPhotos, seen: list[int], stats: CandidateStats, v_tilde: torch.Tensor, cfg: OptimizeConfig,
+    prev: tuple[Level, torch.Tensor] | None, prev_known: torch.Tensor | None, dropped: set[int],
+) -> Slots:
+    """The second pass: each candidate's Q, persp cost and starting weight into the top-K slots
+    (every candidate in its own slot when they all fit)."""
+    h, w = lp.frame.shape
+    fixed = len(seen) <= cfg.top_k  # every candidate fits: slot j is photo seen[j] at every texel
+    # Q weighs the photos as witnesses (L_Render, ghost, settling); Qb, with the relative Q_r, the
+    # blend (initial and settled weights). With one Q for both, the close photos that saw the tree
+    # in front of archive's wall00 outvoted the farther ones that saw past it, and it came back.
+    res_split = not cfg.resolution_in_consensus and cfg.resolution_reference == "best"
+    # the tilt weighs the blend alone unless frontality_tilt_witnesses: that too needs a Qb
+    split = res_split or (stats.tbest is not None and not cfg.frontality_tilt_witnesses)
+    slots = Slots(max(1, len(seen)) if fixed else cfg.top_k, (h, w), stats.normal.device,
+                  detail=lp.sigma > 0, blend_q=split)
+    for j, n in enumerate(seen):
+        mp = lp.get(n)
+        assert mp is not None
+        reg = lp.region(n)
+        sl = (slice(reg[0], reg[1]), slice(reg[2], reg[3]))
+        c = lp.compared(n, mp)
+        q, qb = _photo_q(mp, c, sl, stats, cfg, res_split)
+        pc = losses.persp_cost(mp.view[None], v_tilde)[0]
+        weight = qb  # as the paper (Sec. 4.2), the weights start at Q (here the blend's, with Q_r)
+        if prev is not None:
+            assert prev_known is not None  # set with prev
+            w_up, cov = upsample_photo_weight(prev[0], prev[1], n, lp.frame, reg)
+            # Where the coarser level had candidates but not this photo among its slots, the
+            # photo was outranked there: it starts at zero, not at Q (which would bring back
+            # the photos the coarser levels left out). Only texels the coarser level did not
+            # see at all start from Q.
+            weight = torch.where(cov, w_up, torch.where(prev_known[sl], torch.zeros_like(qb), qb))
+        values = [mp.visible, c, q, pc, weight] + ([mp.colour] if lp.sigma > 0 else []) + ([qb] if split else [])
+        if fixed:
+            slots.put(j, n, reg, values)
+            continue
+        # Rank: upsampled weight (or Q where the coarse level had no data); the small Q term
+        # breaks ties between photos that were both deactivated at the coarse level.
+        score = weight + 1e-3 * q - (2.0 if n in dropped else 0.0)  # dropped photos only fill empty slots
+        score = torch.where(mp.visible, score, torch.full_like(q, EMPTY_SCORE))
+        slots.rank(n, reg, score, values, defer=lp.keep_all)
+    slots.write_deferred()
+    return slots
+
+
 def build_level(
     photos: PhotoSet,
     frame: UVFrame,
@@ -276,9 +435,10 @@ def build_level(
         mapped: this level's photos already mapped (with ``transfers``), e.g. by the caller
             that estimated the transfers on them.
 
-    A streaming pass computes the candidates' colour statistics (for Q_c), the mean gradient
-    (G) and the mean viewing direction (v~); a second pass scores and keeps the top K. The
-    mapped photos of the first pass are reused by the second when they fit in MAP_CACHE_BYTES.
+    A streaming pass computes the candidates' statistics (difftex.method.candidate_stats: the
+    colours for Q_c, the mean gradient G, the references of Q_r and the tilt) and the mean
+    viewing direction (v~); a second pass scores and keeps the top K (difftex.method.slots).
+    The mapped photos of the first pass are reused by the second when they fit in MAP_CACHE_BYTES.
 
     With ``cfg.consistency_sigma`` > 0, Q_c, the statistics and the slots' ``colours`` (which
     L_Render, elimination and settling compare) are the photos' colours low-passed by a Gaussian
@@ -294,239 +454,46 @@ def build_level(
     device = photos.device
     mask_np = resample_nearest(inp.texel_mask, inp.frame, frame)
     mask = torch.from_numpy(mask_np).to(device)
-    h, w = frame.shape
-    K = cfg.top_k
-    dropped = dropped or set()
     prev_known = upsample_known(prev[0], frame) if prev is not None else None
     regions = photo_regions(photos, frame, mask_np, prev, prev_known, cfg.tau)
     order = list(regions)
     per_texel = 4 * 12  # colour, view, cos, footprint, visible; Q, persp cost, weight until the slots are written
     area = sum((y1 - y0) * (x1 - x0) for y0, y1, x0, x1 in regions.values())
-    keep_all = mapped is not None or len(order) <= K or area * per_texel <= MAP_CACHE_BYTES
-    cache: dict[int, MappedPhoto | None] = dict(mapped) if mapped is not None else {}
-    maps = 0
+    keep_all = mapped is not None or len(order) <= cfg.top_k or area * per_texel <= MAP_CACHE_BYTES
+    sig = _compare_sigma(photos, frame, order, cfg)
+    lp = _LevelPhotos(photos, frame, mask_np, transfers, regions, mapped, keep_all, sig)
 
-    # The render loss compares the texture with the photos' own pixels (the paper's L_Render,
-    # difftex.method.render): its level keeps comparing at full detail.
-    sig = 0.0
-    if cfg.loss_mode == "texel":
-        sig = cfg.consistency_sigma
-        if cfg.consistency_px > 0:  # at the candidates' resolutions (difftex.method.witnesses)
-            sig = max(sig, witness_sigma(candidate_footprints(photos, frame, order), cfg.consistency_px))
-
-    low: dict[int, torch.Tensor] = {}  # low-passed colours of the photos held in ``cache``
-
-    def compared(n: int, mp: MappedPhoto) -> torch.Tensor:
-        if sig <= 0:
-            return mp.colour
-        if n in low:
-            return low[n]
-        c = masked_blur(mp.colour, mp.visible, sig)
-        if keep_all:
-            low[n] = c
-        return c
-
-    def mapped_photo(n: int) -> MappedPhoto | None:
-        nonlocal maps
-        if n in cache:
-            return cache[n]
-        maps += 1
-        return photos.map(n, frame, mask_np, transfers[n] if transfers is not None else None, regions[n])
-
-    # float64 sums: msd = s2 / n - |mu|^2 cancels where the candidates agree, and in float32 its
-    # rounding (~1e-7) would swamp a small sigma_min^2 (the paper preset's 1e-6) in Q_c
-    s1 = torch.zeros(3, h, w, device=device, dtype=torch.float64)
-    s2 = torch.zeros(h, w, device=device, dtype=torch.float64)
-    cnt = torch.zeros(h, w, device=device)
-    gsum = torch.zeros(h, w, device=device)
-    fpbest = torch.zeros(h, w, device=device)  # the most pixels per texel of any candidate (Q_r's reference)
     normal = torch.tensor(frame.normal, dtype=torch.float32, device=device)
     axis = tilt_axis(inp, cfg)
-    tilt_axis_t = None if axis is None else torch.tensor(axis, dtype=torch.float32, device=device)
-    # the most level candidate's tilt frontality: the reference of each photo's, as fpbest is Q_r's
-    tbest = torch.zeros(h, w, device=device) if tilt_axis_t is not None else None
-    # the level photos' (tilted less than the elevation limit) colour statistics: where two or
-    # more agree, the tilt may weigh the witnesses too (frontality_tilt_witness_agree)
-    agree_k = cfg.frontality_tilt_witness_agree if tbest is not None and not cfg.frontality_tilt_witnesses else 0.0
-    level_cos = math.cos(math.radians(max(cfg.frontality_tilt_min_elevation, 0.0) or LEVEL_TILT_DEG))
-    # (colour sum, squared-norm sum, count) of the level photos, as s1, s2, cnt are of all
-    level_sums = (
-        (torch.zeros(3, h, w, device=device, dtype=torch.float64),
-         torch.zeros(h, w, device=device, dtype=torch.float64),
-         torch.zeros(h, w, device=device))
-        if agree_k > 0 else None
-    )
-    vsum = []
-    seen = []
-    for n in order:
-        mp = mapped_photo(n)
-        if mp is None:
-            cache[n] = None
-            continue
-        y0, y1, x0, x1 = regions[n] if mapped is None else (0, h, 0, w)
-        seen.append(n)
-        v = mp.visible.float()
-        c = compared(n, mp).double()
-        s1[:, y0:y1, x0:x1] += c * v
-        s2[y0:y1, x0:x1] += (c * c).sum(0) * v
-        cnt[y0:y1, x0:x1] += v
-        gsum[y0:y1, x0:x1] += gradient_magnitude(mp.colour, mp.visible) * v
-        fpbest[y0:y1, x0:x1] = torch.maximum(fpbest[y0:y1, x0:x1], torch.where(mp.visible, mp.footprint, 0.0))
-        if tbest is not None:
-            assert tilt_axis_t is not None  # tbest exists only with it
-            tf = torch.where(mp.visible, tilt_frontality(mp.view, normal, tilt_axis_t), 0.0)
-            tbest[y0:y1, x0:x1] = torch.maximum(tbest[y0:y1, x0:x1], tf)
-            if level_sums is not None:
-                lv = (tf >= level_cos).double()
-                level_sums[0][:, y0:y1, x0:x1] += c * lv
-                level_sums[1][y0:y1, x0:x1] += (c * c).sum(0) * lv
-                level_sums[2][y0:y1, x0:x1] += lv.float()
-        vd = (mp.view * v).sum((1, 2))
-        vsum.append(vd / vd.norm().clamp_min(1e-12))
-        if keep_all:
-            cache[n] = mp
-    mu64, msd = streamed_spread(s1, s2, cnt)  # msd: mean squared distance to the mean
-    mu = mu64.float()
-    G = gsum / cnt.clamp_min(1.0)
-    noise = level_noise(msd, cnt, cfg.sigma_min)
-    level_agree = level_photos_agree(*level_sums, noise, agree_k) if level_sums is not None else None
-    if prev is not None:  # the guidance direction of the first level, whose photos are all the candidates
-        v_tilde = torch.from_numpy(prev[0].v_tilde).to(device)
-    else:
-        v_tilde = losses.guidance_direction(torch.stack(vsum), normal) if vsum else -normal
+    axis_t = None if axis is None else torch.tensor(axis, dtype=torch.float32, device=device)
+    stats = CandidateStats(frame.shape, device, normal, axis_t, cfg)
+    seen, v_tilde = _stream_candidates(lp, order, stats, prev)
+    slots = _fill_slots(lp, seen, stats, v_tilde, cfg, prev, prev_known, dropped or set())
 
-    fixed = len(seen) <= K  # every candidate fits: slot j is photo seen[j] at every texel
-    if fixed:
-        K = max(1, len(seen))
-    best_score = torch.full((K, h, w), -10.0, device=device)
-    idx = torch.full((K, h, w), -1, dtype=torch.long, device=device)
-    vis = torch.zeros((K, h, w), dtype=torch.bool, device=device)
-    cols = torch.zeros((K, 3, h, w), device=device)
-    detail = torch.zeros((K, 3, h, w), device=device) if sig > 0 else None
-    Q = torch.zeros((K, h, w), device=device)
-    cost = torch.zeros((K, h, w), device=device)
-    w0 = torch.zeros((K, h, w), device=device)
-    # Q weighs the photos as witnesses (L_Render, ghost, settling); Qb, with the relative Q_r, the
-    # blend (initial and settled weights). With one Q for both, the close photos that saw the tree
-    # in front of archive's wall00 outvoted the farther ones that saw past it, and it came back.
-    res_split = not cfg.resolution_in_consensus and cfg.resolution_reference == "best"
-    # the tilt weighs the blend alone unless frontality_tilt_witnesses: that too needs a Qb
-    split = res_split or (tbest is not None and not cfg.frontality_tilt_witnesses)
-    Qb = torch.zeros((K, h, w), device=device) if split else None
-    # the per-slot tensors a photo's values go into, and the order of those values
-    slot_data = [vis, cols, Q, cost, w0] + ([detail] if detail is not None else []) + ([Qb] if Qb is not None else [])
-
-    def per_slot(m: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
-        """A (K, h, w) map shaped to index or mask ``t`` (K, [C,] h, w)."""
-        return m if t.dim() == 3 else m[:, None].expand(-1, t.shape[1], -1, -1)
-
-    def write(update, reg: Region, values: list[torch.Tensor]) -> None:
-        """Every slot tensor's ``reg`` replaced by ``update(its region, the photo's value)``."""
-        y0, y1, x0, x1 = reg
-        for t, new in zip(slot_data, values):
-            t[..., y0:y1, x0:x1] = update(t[..., y0:y1, x0:x1], new)
-
-    later: dict[int, tuple] = {}  # photo -> (region, its values), written once the ranking is final
-    for j, n in enumerate(seen):
-        mp = mapped_photo(n)
-        assert mp is not None
-        reg = regions[n] if mapped is None else (0, h, 0, w)
-        y0, y1, x0, x1 = reg
-        sl = (slice(y0, y1), slice(x0, x1))
-        c = compared(n, mp)
-        qac = quality(mp.cos, c, mu[:, y0:y1, x0:x1], msd[sl], mp.visible, cfg.sigma_min, cfg.frontality_weight)
-        # The tilt weighs the blend; as witnesses of what a texel shows (L_Render, elimination,
-        # settling) the photos from above keep their votes unless frontality_tilt_witnesses: the
-        # street photos' trees are outvoted by the drone photos that see past them, and so are
-        # their views of a window's lower pane where the drone photos see the sill.
-        qa_blend = qac
-        if tbest is not None:
-            assert tilt_axis_t is not None  # tbest exists only with it
-            qa_blend = qac * tilt_factor(tilt_frontality(mp.view, normal, tilt_axis_t), tbest[sl], cfg.frontality_tilt)
-            if cfg.frontality_tilt_witnesses:
-                qac = qa_blend
-            elif level_agree is not None:
-                qac = torch.where(level_agree[sl], qa_blend, qac)
-        best = fpbest[sl] if cfg.resolution_reference == "best" else None
-        rw = cfg.resolution_weight
-        q_r = resolution_factor(relative_footprint(mp.footprint, best, cfg.resolution_knee), rw, mp.visible)
-        qb = qa_blend * q_r
-        rw_w = rw if cfg.witness_resolution_weight is None else cfg.witness_resolution_weight
-        if res_split:
-            q = qac * resolution_factor(relative_footprint(mp.footprint, None), rw_w, mp.visible)
-        else:
-            q = qac * q_r
-        pc = losses.persp_cost(mp.view[None], v_tilde)[0]
-        weight = qb  # as the paper (Sec. 4.2), the weights start at Q (here the blend's, with Q_r)
-        if prev is not None:
-            w_up, cov = upsample_photo_weight(prev[0], prev[1], n, frame, reg)
-            # Where the coarser level had candidates but not this photo among its slots, the
-            # photo was outranked there: it starts at zero, not at Q (which would bring back
-            # the photos the coarser levels left out). Only texels the coarser level did not
-            # see at all start from Q.
-            weight = torch.where(cov, w_up, torch.where(prev_known[sl], torch.zeros_like(qb), qb))  # type: ignore[index]  # set with prev
-        values = [mp.visible, c, q, pc, weight] + ([mp.colour] if detail is not None else []) + ([qb] if split else [])
-        if fixed:
-            idx[j][sl] = n
-            for t, new in zip(slot_data, values):
-                t[j, ..., y0:y1, x0:x1] = new
-            continue
-        # Rank: upsampled weight (or Q where the coarse level had no data); the small Q term
-        # breaks ties between photos that were both deactivated at the coarse level.
-        score = weight + 1e-3 * q - (2.0 if n in dropped else 0.0)  # dropped photos only fill empty slots
-        score = torch.where(mp.visible, score, torch.full_like(q, -10.0))
-        all_score = torch.cat([best_score[:, y0:y1, x0:x1], score[None]])
-        top = torch.topk(all_score, K, dim=0)
-        sel = top.indices
-
-        def pick(old, new, sel=sel):
-            """``old`` (K, [C,] h, w) ranked with the photo's ``new`` as the (K + 1)-th candidate."""
-            return torch.gather(torch.cat([old, new[None]]), 0, per_slot(sel, old))
-
-        best_score[:, y0:y1, x0:x1] = top.values
-        idx[:, y0:y1, x0:x1] = pick(idx[:, y0:y1, x0:x1], torch.full_like(score, n, dtype=torch.long))
-        if keep_all:
-            # the slots' data are written once the ranking is final (below): one pass of
-            # masked writes instead of gathering every slot tensor for every photo
-            later[n] = (reg, values)
-            continue
-        write(pick, reg, values)
-    for n, (reg, values) in later.items():
-        y0, y1, x0, x1 = reg
-        # (slot, y, x) of every texel where photo n holds a slot (at most one slot per texel): its
-        # values are scattered there, not blended in by a where over every slot of its region
-        js, ys, xs = (idx[:, y0:y1, x0:x1] == n).nonzero(as_tuple=True)
-        if ys.numel() == 0:
-            continue
-        for t, new in zip(slot_data, values):
-            if t.dim() == 3:
-                t[js, ys + y0, xs + x0] = new[ys, xs]
-            else:
-                t[js, :, ys + y0, xs + x0] = new[:, ys, xs].T
-    idx = torch.where(vis, idx, torch.full_like(idx, -1))
-    robust = robust_noise(cols, vis & mask, cfg.sigma_min)
-    if robust is not None:
-        noise = robust
+    vis = slots.visible
+    noise = robust_noise(slots.colours, vis & mask, cfg.sigma_min)
+    if noise is None:
+        noise = stats.noise
     detail_noise = None
-    if detail is not None:
-        detail_noise = robust_noise(detail, vis & mask, cfg.sigma_min) or noise
+    if slots.detail is not None:
+        detail_noise = robust_noise(slots.detail, vis & mask, cfg.sigma_min) or noise
     return Level(
         frame=frame,
         mask=mask,
-        idx=idx,
+        idx=torch.where(vis, slots.idx, torch.full_like(slots.idx, -1)),
         visible=vis,
-        colours=cols,
-        Q=Q,
-        cost=cost,
-        G=G,
-        z0=losses.init_weights(w0 * vis, cfg.weights),
-        Qb=Qb,
+        colours=slots.colours,
+        Q=slots.Q,
+        cost=slots.cost,
+        G=stats.G,
+        z0=losses.init_weights(slots.w0 * vis, cfg.weights),
+        Qb=slots.Qb,
         v_tilde=v_tilde.cpu().numpy(),
         n_candidates=len(seen),
-        fixed_slots=fixed,
-        maps=maps,
+        fixed_slots=len(seen) <= cfg.top_k,
+        maps=lp.maps,
         noise=noise,
-        detail=detail,
+        detail=slots.detail,
         detail_noise=detail_noise,
         compare_sigma=sig,
     )
