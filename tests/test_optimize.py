@@ -425,7 +425,7 @@ def test_colour_change_ignores_weights_traded_between_agreeing_photos():
     (conv_colour) sees a converged texel where the weight criterion does not."""
     import torch
 
-    from difftex.method.loop import colour_change, weight_change
+    from difftex.method.level_run import colour_change, weight_change
 
     K, h, w = 3, 4, 5
     colours = torch.zeros(K, 3, h, w)
