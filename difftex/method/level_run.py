@@ -158,6 +158,35 @@ def _drop_and_eliminate(
     return drop_slots
 
 
+def _sparse_sublevel(
+    lv: Level, st: LevelState, cfg: OptimizeConfig, free_mask: torch.Tensor, settled: torch.Tensor,
+    drop_slots: torch.Tensor, base: torch.Tensor, N: int,
+):
+    """The free texels' sub-level (difftex.method.sparse) and its state, gathered from the
+    level's. Returns (sub-level, its state, the settled texels' counts for the photo drop, the
+    drop slots and base mask on the sub-level)."""
+    with torch.no_grad():
+        sp = sparse.sparse_level(lv, free_mask, render_weights(lv, cfg), ghost_margin(lv, cfg))
+        cur = LevelState(level=sp.sub, z=sparse.gather(st.z, sp.src), active=sparse.gather(st.active, sp.src),
+                         eliminated=sparse.gather(st.eliminated, sp.src))
+        # the photo drop counts the settled texels as they stand (they do not change)
+        extra = settled_counts(lv, base, losses.selection_weights(st.z, base, cfg.weights), cfg.tau, N, settled)
+        return sp, cur, extra, sparse.gather(drop_slots, sp.src), sparse.gather(base, sp.src)
+
+
+def _still_moving(
+    W_now: torch.Tensor, W_check: torch.Tensor, lvc: Level, cfg: OptimizeConfig, fixed_share: float, run: _Run,
+) -> bool:
+    """Whether the weights still move over the last convergence window (recorded in ``run``):
+    converged when almost every texel (99 %) moved less than ``conv_tol`` of its weight, or its
+    blended colour less than ``conv_colour`` sigma_c."""
+    run.changes.append(weight_change(W_now, W_check, lvc.mask, fixed_share=fixed_share))
+    if cfg.conv_colour > 0:
+        moved = colour_change(W_now, W_check, lvc.colours, lvc.mask, fixed_share=fixed_share)
+        run.colour_moves.append(moved / max(lvc.noise, 1e-12))
+    return run.changes[-1] >= cfg.conv_tol and not (run.colour_moves and run.colour_moves[-1] < cfg.conv_colour)
+
+
 def _level_record(
     lv: Level, li: int, st: LevelState, cfg: OptimizeConfig, run: _Run, anything: bool, settled_share: float,
     sp: sparse.SparseLevel | None, dominant_start: torch.Tensor,
@@ -250,16 +279,8 @@ def run_level(
     sp = None
     cur, lvc, extra = st, lv, None
     if free is not None and anything and not cfg.autograd and 1.0 - settled_share <= SPARSE_MAX_SHARE:
-        with torch.no_grad():
-            sp = sparse.sparse_level(lv, free_mask, render_weights(lv, cfg), ghost_margin(lv, cfg))
-            lvc = sp.sub
-            cur = LevelState(level=lvc, z=sparse.gather(st.z, sp.src), active=sparse.gather(st.active, sp.src),
-                             eliminated=sparse.gather(st.eliminated, sp.src))
-            # the photo drop counts the settled texels as they stand (they do not change)
-            extra = settled_counts(lv, base, losses.selection_weights(st.z, base, mode), cfg.tau, N, settled)
-            drop_slots = sparse.gather(drop_slots, sp.src)
-            base = sparse.gather(base, sp.src)
-            free = None
+        sp, cur, extra, drop_slots, base = _sparse_sublevel(lv, st, cfg, free_mask, settled, drop_slots, base, N)
+        lvc, free = sp.sub, None
     fn = compiled_objective(lvc, cfg, compute)
     if fn is None and cfg.autograd:
         fn = objective  # autograd needs the function; the texel loss has its own gradient
@@ -300,17 +321,9 @@ def run_level(
         run.iter_times.append(time.perf_counter() - t_it)
         advance(1)
         if it % cfg.conv_window == 0:
-            # Converged: over the last conv_window iterations almost every texel (99 %) moved
-            # less than conv_tol of its weight.
             W_now = losses.blend_weights(cur.z, cur.active, mode)
-            run.changes.append(weight_change(W_now, W_check, lvc.mask, fixed_share=fixed_share))
-            if cfg.conv_colour > 0:
-                moved = colour_change(W_now, W_check, lvc.colours, lvc.mask, fixed_share=fixed_share)
-                run.colour_moves.append(moved / max(lvc.noise, 1e-12))
+            still = _still_moving(W_now, W_check, lvc, cfg, fixed_share, run)
             W_check = W_now
-            still = run.changes[-1] >= cfg.conv_tol and not (
-                run.colour_moves and run.colour_moves[-1] < cfg.conv_colour
-            )
             if it >= cfg.min_iters_per_level and not still:
                 run.converged = True
                 break
