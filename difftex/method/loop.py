@@ -25,12 +25,12 @@ from difftex.method.elimination import (
     settled_texels,
 )
 from difftex.method.level_run import run_level
-from difftex.method.levels import build_level, tilt_axis, upsample_field
+from difftex.method.levels import Level, build_level, tilt_axis, upsample_field
 from difftex.method.objective import (
     LevelState,
 )
 from difftex.method.render import build_pixel_sets
-from difftex.sampling.crops import median_elevation
+from difftex.sampling.crops import PolygonInput, median_elevation
 from difftex.sampling.photos import MappedPhoto, PhotoSet
 from difftex.sampling.texels import level_frame, resample_nearest
 
@@ -67,22 +67,7 @@ def optimize_polygon(
     torch.manual_seed(cfg.seed)
     inp, device = photos.inp, photos.device
     t_start = time.perf_counter()
-    stats: dict = {
-        "polygon_id": inp.polygon_id,
-        "device": str(device),
-        "photos": [p.name for p in inp.photos],
-        "levels": [],
-        "dropped": [],
-        "config": cfg.to_dict(),
-        # which method ran: the keys where it is not the published one (config.PUBLISHED; none
-        # with preset paper), and the weights' parametrisation
-        "departures_from_paper": cfg.departures(),
-        "weights": cfg.weights,
-        # the photos' median elevation (degrees, photos in front, seen from the centre) and
-        # whether the tilt frontality weighs this polygon's blend: it does only above its limit
-        "photo_elevation_deg": median_elevation(inp, 0.0),
-        "frontality_tilt_on": tilt_axis(inp, cfg) is not None,
-    }
+    stats = _start_stats(inp, cfg, device)
     sides = level_sides(max(inp.frame.shape), cfg.long_side_start, cfg.coarse_to_fine, cfg.level_step)
     dropped: set[int] = set()
     prev: LevelState | None = None
@@ -136,6 +121,45 @@ def optimize_polygon(
         bar.stop()
     assert prev is not None
     lv = prev.level
+    W, U = _final_weights(prev, cfg, stats, len(inp.photos))
+    _final_diagnostics(stats, inp, lv, W, U)
+    stats["time_total_s"] = time.perf_counter() - t_start
+    if device.type == "cuda":
+        stats["cuda_peak_bytes"] = int(torch.cuda.max_memory_allocated(device))
+    return Result(
+        idx=lv.idx.cpu().numpy().astype(np.int32),
+        W=W.cpu().numpy().astype(np.float32),
+        U=U.permute(1, 2, 0).cpu().numpy(),
+        stats=stats,
+    )
+
+
+def _start_stats(inp: PolygonInput, cfg: OptimizeConfig, device: torch.device) -> dict:
+    """A polygon's stats.json before its levels run: what ran, on what, from which photos."""
+    return {
+        "polygon_id": inp.polygon_id,
+        "device": str(device),
+        "photos": [p.name for p in inp.photos],
+        "levels": [],
+        "dropped": [],
+        "config": cfg.to_dict(),
+        # which method ran: the keys where it is not the published one (config.PUBLISHED; none
+        # with preset paper), and the weights' parametrisation
+        "departures_from_paper": cfg.departures(),
+        "weights": cfg.weights,
+        # the photos' median elevation (degrees, photos in front, seen from the centre) and
+        # whether the tilt frontality weighs this polygon's blend: it does only above its limit
+        "photo_elevation_deg": median_elevation(inp, 0.0),
+        "frontality_tilt_on": tilt_axis(inp, cfg) is not None,
+    }
+
+
+def _final_weights(
+    prev: LevelState, cfg: OptimizeConfig, stats: dict, n_photos: int
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """The finest level's blend weights W and texture U (3, h, w), after the optional parallax
+    gate and view-coherent selection (with its detail band); their reports go into ``stats``."""
+    lv = prev.level
     with torch.no_grad():
         W = losses.blend_weights(prev.z, prev.active, cfg.weights)
         if cfg.parallax_sigma > 0:
@@ -148,7 +172,7 @@ def optimize_polygon(
             if cfg.select_scope == "disagree":
                 free = lv.mask & ~settled_texels(lv, prev.active, prev.active, cfg.settle_sigma)[0]
             W, stats["selection"] = selection.select_weights(
-                W, lv.Q, lv.idx, lv.mask, len(inp.photos), cfg.select_patch, cfg.select_smoothness,
+                W, lv.Q, lv.idx, lv.mask, n_photos, cfg.select_patch, cfg.select_smoothness,
                 cfg.select_feather, free=free,
             )
         U = losses.compose(W, lv.sharp)
@@ -157,6 +181,12 @@ def optimize_polygon(
             # would pull both low-passes towards zero and leave part of the selected photo's exposure
             seen = lv.mask & (blend.sum(0) > 0)
             U = selection.detail_band(losses.compose(blend, lv.sharp), U, seen, cfg.select_band)
+    return W, U
+
+
+def _final_diagnostics(stats: dict, inp: PolygonInput, lv: Level, W: torch.Tensor, U: torch.Tensor) -> None:
+    """The texture's diagnostics (effective photos, sharpness, misalignment; photo names, not
+    indices), coverage, texel count and the photos it uses, into ``stats``."""
     lmask = lv.mask
     stats["diagnostics"] = {
         **diagnostics.effective_photos(W, lmask),
@@ -174,15 +204,6 @@ def optimize_polygon(
     stats["coverage"] = float(has.sum() / max(mask.sum(), 1))
     stats["texels"] = int(mask.sum())
     stats["used_photos"] = sorted({inp.photos[int(n)].name for n in torch.unique(lv.idx[(W > 0)]).tolist() if n >= 0})
-    stats["time_total_s"] = time.perf_counter() - t_start
-    if device.type == "cuda":
-        stats["cuda_peak_bytes"] = int(torch.cuda.max_memory_allocated(device))
-    return Result(
-        idx=lv.idx.cpu().numpy().astype(np.int32),
-        W=W.cpu().numpy().astype(np.float32),
-        U=U.permute(1, 2, 0).cpu().numpy(),
-        stats=stats,
-    )
 
 
 def _align(
