@@ -39,6 +39,25 @@ def gradient_magnitude(col: torch.Tensor, vis: torch.Tensor) -> torch.Tensor:
     return (gx * gx + gy * gy).sqrt().mean(0)
 
 
+_Sums = tuple[torch.Tensor, torch.Tensor, torch.Tensor]  # colour sum, squared-norm sum, count
+
+
+def _zero_sums(shape: tuple[int, int], device) -> _Sums:
+    h, w = shape
+    return (torch.zeros(3, h, w, device=device, dtype=torch.float64),
+            torch.zeros(h, w, device=device, dtype=torch.float64),
+            torch.zeros(h, w, device=device))
+
+
+def _add_sums(sums: _Sums, c: torch.Tensor, sq: torch.Tensor, weight: torch.Tensor, reg: Region) -> None:
+    """Add colours ``c`` (3, rh, rw) float64 and their squared norms ``sq`` where ``weight``
+    (rh, rw, 0 or 1) is 1, over ``reg`` of the level."""
+    y0, y1, x0, x1 = reg
+    sums[0][:, y0:y1, x0:x1] += c * weight
+    sums[1][y0:y1, x0:x1] += sq * weight
+    sums[2][y0:y1, x0:x1] += weight
+
+
 class CandidateStats:
     """Sums over the candidates of one level, added photo by photo (``add``), then reduced
     (``finish``) to the fields the level's Q needs.
@@ -67,9 +86,7 @@ class CandidateStats:
         self.tilt_axis = tilt_axis
         # float64 sums: msd = s2 / n - |mu|^2 cancels where the candidates agree, and in float32 its
         # rounding (~1e-7) would swamp a small sigma_min^2 (the paper preset's 1e-6) in Q_c
-        self.s1 = torch.zeros(3, h, w, device=device, dtype=torch.float64)
-        self.s2 = torch.zeros(h, w, device=device, dtype=torch.float64)
-        self.cnt = torch.zeros(h, w, device=device)
+        self.sums = _zero_sums(shape, device)
         self.gsum = torch.zeros(h, w, device=device)
         self.fpbest = torch.zeros(h, w, device=device)
         self.tbest = torch.zeros(h, w, device=device) if tilt_axis is not None else None
@@ -79,13 +96,7 @@ class CandidateStats:
             cfg.frontality_tilt_witness_agree if self.tbest is not None and not cfg.frontality_tilt_witnesses else 0.0
         )
         self.level_cos = math.cos(math.radians(max(cfg.frontality_tilt_min_elevation, 0.0) or LEVEL_TILT_DEG))
-        # (colour sum, squared-norm sum, count) of the level photos, as s1, s2, cnt are of all
-        self.level_sums = (
-            (torch.zeros(3, h, w, device=device, dtype=torch.float64),
-             torch.zeros(h, w, device=device, dtype=torch.float64),
-             torch.zeros(h, w, device=device))
-            if self.agree_k > 0 else None
-        )
+        self.level_sums = _zero_sums(shape, device) if self.agree_k > 0 else None
 
     def add(self, mp: MappedPhoto, compared: torch.Tensor, reg: Region) -> None:
         """Add one mapped photo over its region ``reg`` of the level.
@@ -96,12 +107,10 @@ class CandidateStats:
             reg: (y0, y1, x0, x1) the region.
         """
         y0, y1, x0, x1 = reg
-        v = mp.visible.float()
         c = compared.double()
-        self.s1[:, y0:y1, x0:x1] += c * v
-        self.s2[y0:y1, x0:x1] += (c * c).sum(0) * v
-        self.cnt[y0:y1, x0:x1] += v
-        self.gsum[y0:y1, x0:x1] += gradient_magnitude(mp.colour, mp.visible) * v
+        sq = (c * c).sum(0)
+        _add_sums(self.sums, c, sq, mp.visible.float(), reg)
+        self.gsum[y0:y1, x0:x1] += gradient_magnitude(mp.colour, mp.visible) * mp.visible.float()
         self.fpbest[y0:y1, x0:x1] = torch.maximum(self.fpbest[y0:y1, x0:x1], torch.where(mp.visible, mp.footprint, 0.0))
         if self.tbest is None:
             return
@@ -109,17 +118,15 @@ class CandidateStats:
         tf = torch.where(mp.visible, tilt_frontality(mp.view, self.normal, self.tilt_axis), 0.0)
         self.tbest[y0:y1, x0:x1] = torch.maximum(self.tbest[y0:y1, x0:x1], tf)
         if self.level_sums is not None:
-            lv = (tf >= self.level_cos).double()
-            self.level_sums[0][:, y0:y1, x0:x1] += c * lv
-            self.level_sums[1][y0:y1, x0:x1] += (c * c).sum(0) * lv
-            self.level_sums[2][y0:y1, x0:x1] += lv.float()
+            _add_sums(self.level_sums, c, sq, (tf >= self.level_cos).float(), reg)
 
     def finish(self) -> None:
         """Reduce the sums to ``mu``, ``msd``, ``G``, ``noise`` and ``level_agree``."""
-        mu64, self.msd = streamed_spread(self.s1, self.s2, self.cnt)  # msd: mean squared distance to the mean
+        mu64, self.msd = streamed_spread(*self.sums)  # msd: mean squared distance to the mean
         self.mu = mu64.float()
-        self.G = self.gsum / self.cnt.clamp_min(1.0)
-        self.noise = level_noise(self.msd, self.cnt, self.cfg.sigma_min)
+        count = self.sums[2]
+        self.G = self.gsum / count.clamp_min(1.0)
+        self.noise = level_noise(self.msd, count, self.cfg.sigma_min)
         self.level_agree = (
             level_photos_agree(*self.level_sums, self.noise, self.agree_k) if self.level_sums is not None else None
         )

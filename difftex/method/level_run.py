@@ -134,11 +134,12 @@ def _settle(lv: Level, st: LevelState, base: torch.Tensor, cfg: OptimizeConfig):
 
 def _drop_and_eliminate(
     lvc: Level, cur: LevelState, base: torch.Tensor, W: torch.Tensor, it: int, cfg: OptimizeConfig,
-    dropped: set[int], extra, drop_slots: torch.Tensor, run: _Run, photos: list[str], li: int, stats: dict,
+    dropped: set[int], extra, drop_slots: torch.Tensor, run: _Run, li: int, stats: dict,
 ) -> torch.Tensor:
     """After iteration ``it``: drop the worst photo that tau_w says to (one per check: dropping
     changes everyone's weights), and every ``eliminate_every`` iterations eliminate pixels.
     Returns the drop slots."""
+    photos = stats["photos"]
     N = len(photos)
     if it >= cfg.min_iters_per_level // 2:
         cand = [n for n in photos_to_drop(lvc, base, W, cfg.tau, cfg.tau_w, N, extra) if n not in dropped]
@@ -314,8 +315,7 @@ def run_level(
             losses.project_weights(cur.z, mode)  # the paper's weights stay in [0, 1]
             W = losses.selection_weights(cur.z, base, mode)
             if cfg.data_elimination:
-                drop_slots = _drop_and_eliminate(lvc, cur, base, W, it, cfg, dropped, extra, drop_slots, run,
-                                                 stats["photos"], li, stats)
+                drop_slots = _drop_and_eliminate(lvc, cur, base, W, it, cfg, dropped, extra, drop_slots, run, li, stats)
             base = base_mask(lvc, cur.eliminated, drop_slots)
             cur.active = update_activation(cur.z, base, cfg.tau, mode, cur.active)
         run.iter_times.append(time.perf_counter() - t_it)

@@ -253,9 +253,7 @@ def _photo_q(
     Returns:
         (q, qb), each (rh, rw).
     """
-    y0, x0 = sl[0].start, sl[1].start
-    y1, x1 = sl[0].stop, sl[1].stop
-    qac = quality(mp.cos, c, stats.mu[:, y0:y1, x0:x1], stats.msd[sl], mp.visible, cfg.sigma_min,
+    qac = quality(mp.cos, c, stats.mu[:, sl[0], sl[1]], stats.msd[sl], mp.visible, cfg.sigma_min,
                   cfg.frontality_weight)
     # The tilt weighs the blend; as witnesses of what a texel shows (L_Render, elimination,
     # settling) the photos from above keep their votes unless frontality_tilt_witnesses: the
@@ -371,12 +369,11 @@ def _stream_candidates(
 
 def _fill_slots(
     lp: _LevelPhotos, seen: list[int], stats: CandidateStats, v_tilde: torch.Tensor, cfg: OptimizeConfig,
-    prev: tuple[Level, torch.Tensor] | None, prev_known: torch.Tensor | None, dropped: set[int],
+    prev: tuple[Level, torch.Tensor] | None, prev_known: torch.Tensor | None, dropped: set[int], fixed: bool,
 ) -> Slots:
     """The second pass: each candidate's Q, persp cost and starting weight into the top-K slots
-    (every candidate in its own slot when they all fit)."""
+    (``fixed``: every candidate fits, slot j is photo seen[j] at every texel)."""
     h, w = lp.frame.shape
-    fixed = len(seen) <= cfg.top_k  # every candidate fits: slot j is photo seen[j] at every texel
     # Q weighs the photos as witnesses (L_Render, ghost, settling); Qb, with the relative Q_r, the
     # blend (initial and settled weights). With one Q for both, the close photos that saw the tree
     # in front of archive's wall00 outvoted the farther ones that saw past it, and it came back.
@@ -402,7 +399,7 @@ def _fill_slots(
             # the photos the coarser levels left out). Only texels the coarser level did not
             # see at all start from Q.
             weight = torch.where(cov, w_up, torch.where(prev_known[sl], torch.zeros_like(qb), qb))
-        values = [mp.visible, c, q, pc, weight] + ([mp.colour] if lp.sigma > 0 else []) + ([qb] if split else [])
+        values = slots.pack(mp.visible, c, q, pc, weight, detail=mp.colour, Qb=qb)
         if fixed:
             slots.put(j, n, reg, values)
             continue
@@ -468,7 +465,8 @@ def build_level(
     axis_t = None if axis is None else torch.tensor(axis, dtype=torch.float32, device=device)
     stats = CandidateStats(frame.shape, device, normal, axis_t, cfg)
     seen, v_tilde = _stream_candidates(lp, order, stats, prev)
-    slots = _fill_slots(lp, seen, stats, v_tilde, cfg, prev, prev_known, dropped or set())
+    fixed = len(seen) <= cfg.top_k
+    slots = _fill_slots(lp, seen, stats, v_tilde, cfg, prev, prev_known, dropped or set(), fixed)
 
     vis = slots.visible
     noise = robust_noise(slots.colours, vis & mask, cfg.sigma_min)
@@ -490,7 +488,7 @@ def build_level(
         Qb=slots.Qb,
         v_tilde=v_tilde.cpu().numpy(),
         n_candidates=len(seen),
-        fixed_slots=len(seen) <= cfg.top_k,
+        fixed_slots=fixed,
         maps=lp.maps,
         noise=noise,
         detail=slots.detail,

@@ -52,6 +52,14 @@ class Slots:
         # photo -> (region, its values), written once the ranking is final (``write_deferred``)
         self.deferred: dict[int, tuple[Region, list[torch.Tensor]]] = {}
 
+    def pack(
+        self, visible: torch.Tensor, colours: torch.Tensor, Q: torch.Tensor, cost: torch.Tensor, w0: torch.Tensor,
+        detail: torch.Tensor, Qb: torch.Tensor,
+    ) -> list[torch.Tensor]:
+        """A photo's values in the order of ``data``, without those the slots do not keep."""
+        kept = [(detail, self.detail), (Qb, self.Qb)]
+        return [visible, colours, Q, cost, w0] + [v for v, t in kept if t is not None]
+
     def put(self, j: int, n: int, reg: Region, values: list[torch.Tensor]) -> None:
         """Photo ``n`` into slot ``j`` over ``reg`` (every candidate fits: slot j is photo j)."""
         y0, y1, x0, x1 = reg
