@@ -4,7 +4,7 @@
         --preset default --out evaluation/results/bounds_archive
 
 Scores, in Table 1's scheme (each texture resampled to the ground-truth map and compared on its
-texels: Error 95 % pooled over texels, SSIM texel-weighted over polygons), per polygon at the
+texels: Error 95 % pooled over texels, SSIM and LPIPS texel-weighted over polygons), per polygon at the
 frames of ``texture.density: auto`` x ``--density-scale``:
 
 - ``ground truth at the texture's texel size``: the truth resampled to the texture's frame and
@@ -17,7 +17,12 @@ frames of ``texture.density: auto`` x ``--density-scale``:
   truth (difftex.evaluation.oracle.blend_oracle): about what a blend with block-constant weights
   can reach. A blend beats selection by averaging noise; this measures how far that goes.
 - ``average``: every photo that sees a texel, equal weights, the same transfers.
+- ``MRF`` (``--mrf``): the LTBC-style baseline (difftex.evaluation.mrf), Table 1's best peer on
+  LPIPS, on the same photos and frames, so the bounds and the target "LPIPS at most 0.8x the best
+  peer's" are read in one run.
 - ``difftex``: texture_polygon with the preset's ``optimize:`` section (``--preset none``: skip).
+
+``--long-side L`` gives every map L texels on its long side, as Table 1's ``--long-side``.
 
 Every photo that sees a polygon is a candidate (no photo filter, as evaluation/variants.py).
 Writes <out>.json (per polygon too) and <out>.md.
@@ -35,6 +40,8 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from evaluation import common as C  # noqa: E402
+
+MRF_ROW = "MRF view selection + leveling (LTBC-style)"
 
 
 def candidates(photos, cfg):
@@ -63,13 +70,15 @@ def candidates(photos, cfg):
 
 
 def run(scene: Path, density_scale: float, max_long_side: int, preset: str, patches: list[int],
-        polygons: list[str] | None, tiles: tuple[int, ...] = ()) -> dict:
+        polygons: list[str] | None, tiles: tuple[int, ...] = (), long_side: int | None = None,
+        mrf: bool = False, lpips: bool = True) -> dict:
     import torch
 
     from difftex.compose.fill import finish_texture
     from difftex.compose.texturing import texture_polygon
     from difftex.evaluation import metrics
     from difftex.evaluation.evaluate import resample_texture
+    from difftex.evaluation.mrf import MRFConfig, mrf_texture
     from difftex.evaluation.oracle import blend_oracle, blend_summary, patch_oracle, tail_causes
     from difftex.geometry.frames import UVFrame
     from difftex.method.config import ComputeConfig, OptimizeConfig
@@ -79,16 +88,19 @@ def run(scene: Path, density_scale: float, max_long_side: int, preset: str, patc
 
     torch.set_num_threads(1)
     cfg = OptimizeConfig.from_dict(C.base_config(None, preset if preset != "none" else "default")["optimize"])
-    sc, vis = C.scene_polygons(scene, polygons, density_scale, max_long_side)
+    sc, vis = C.scene_polygons(scene, polygons, density_scale, max_long_side, long_side=long_side)
     by_name = {p.name: p for p in sc.photos}
     gt = scene / "ground_truth"
     names = ["ground truth at the texture's texel size", "average"] + [f"oracle, {p}x{p} patches" for p in patches]
     names += [f"blend oracle, {t}x{t} tiles" for t in tiles]
+    if mrf:
+        names.append(MRF_ROW)
     if preset != "none":
         names.append(f"difftex ({preset})")
     per: dict[str, list[dict]] = {n: [] for n in names}
     errs: dict[str, list[np.ndarray]] = {n: [] for n in names}
     tails: list[dict] = []
+    lp_label = ["not computed"]
     made_of: dict[str, list[tuple[dict, int]]] = {}  # row -> per polygon (blend_summary, texels)
     for v in vis:
         t0 = time.perf_counter()
@@ -126,6 +138,9 @@ def run(scene: Path, density_scale: float, max_long_side: int, preset: str, patc
                                                                   inp.texel_mask)[0]
             made(f"blend oracle, {t}x{t} tiles", share)
             del share
+        if mrf:  # the best peer on LPIPS in Table 1, on the same photos and frame
+            U, mw = mrf_texture(inp, MRFConfig(supersample=cfg.supersample))[:2]
+            maps[MRF_ROW] = finish_texture(U, mw, inp.texel_mask)[0]
         made("average", seen.float())
         if preset != "none":  # why difftex's worst texels are wrong, at its own frame
             tex_t = torch.from_numpy(np.ascontiguousarray(maps[f"difftex ({preset})"].transpose(2, 0, 1)))
@@ -136,9 +151,12 @@ def run(scene: Path, density_scale: float, max_long_side: int, preset: str, patc
             out = resample_texture(img, v.frame, gframe)
             e = metrics.texel_error(out, ref)[gmask]
             errs[name].append(e)
+            lp = None
+            if lpips and min(gmask.shape) >= metrics.LPIPS_MIN_SIDE:
+                lp, lp_label[0] = metrics.lpips(out, ref, gmask)
             per[name].append({
                 "polygon_id": v.polygon_id, "texels": int(gmask.sum()), "frame": list(v.frame.shape),
-                "error95": float(np.percentile(e, 95)), "ssim": metrics.ssim(out, ref, gmask),
+                "error95": float(np.percentile(e, 95)), "ssim": metrics.ssim(out, ref, gmask), "lpips": lp,
             })
         short = {names[0]: "truth", **{f"oracle, {p}x{p} patches": f"oracle {p}x{p}" for p in patches},
                  **{f"blend oracle, {t}x{t} tiles": f"blend {t}x{t}" for t in tiles}}
@@ -148,15 +166,18 @@ def run(scene: Path, density_scale: float, max_long_side: int, preset: str, patc
     rows = {}
     for n in names:
         w = np.array([r["texels"] for r in per[n]], float)
+        lw = [(r["lpips"], r["texels"]) for r in per[n] if r["lpips"] is not None]
         rows[n] = {
             "error95": float(np.percentile(np.concatenate(errs[n]), 95)),
             "ssim": float((np.array([r["ssim"] for r in per[n]]) * w).sum() / w.sum()),
+            "lpips": sum(x * t for x, t in lw) / sum(t for _, t in lw) if lw else None,
             "polygons": per[n],
         }
         if n in made_of:  # what the blend is made of, texel-weighted over polygons
             tot = sum(b for _, b in made_of[n])
             rows[n]["made_of"] = {k: sum(s[k] * b for s, b in made_of[n]) / max(1, tot) for k in made_of[n][0][0]}
-    return {"scene": str(scene), "polygons": [v.polygon_id for v in vis], "rows": rows, "difftex_tail": tails}
+    return {"scene": str(scene), "polygons": [v.polygon_id for v in vis], "rows": rows, "difftex_tail": tails,
+            "lpips_variant": lp_label[0]}
 
 
 def main(argv=None) -> int:
@@ -164,6 +185,10 @@ def main(argv=None) -> int:
     ap.add_argument("--scene", required=True, type=Path)
     ap.add_argument("--density-scale", type=float, default=1.0)
     ap.add_argument("--max-long-side", type=int, default=2048)
+    ap.add_argument("--long-side", type=int, help="every map this many texels long, as Table 1's --long-side "
+                    "(instead of density auto)")
+    ap.add_argument("--mrf", action="store_true", help="add the MRF baseline's row (Table 1's best peer on LPIPS)")
+    ap.add_argument("--no-lpips", action="store_true", help="skip the LPIPS column")
     ap.add_argument(
         "--preset", default="default", help="difftex's preset for its row (default: config.yaml; none: no row)"
     )
@@ -176,7 +201,7 @@ def main(argv=None) -> int:
     patches = [int(p) for p in args.patches.split(",")]
     tiles = tuple(int(t) for t in args.blend_tiles.split(",") if t.strip())
     res = run(args.scene, args.density_scale, args.max_long_side, args.preset, patches, C.polygon_ids(args.polygons),
-              tiles)
+              tiles, long_side=args.long_side, mrf=args.mrf, lpips=not args.no_lpips)
     mach = C.machine()
     lines = [
         C.header(
@@ -184,11 +209,13 @@ def main(argv=None) -> int:
             "python evaluation/bounds.py " + shlex.join(sys.argv[1:] if argv is None else argv),
             mach,
             [
-                f"Polygons {', '.join(res['polygons'])}; frames of `density: auto` x {args.density_scale} "
-                f"(max long side {args.max_long_side}); every photo that sees a polygon is a candidate, through "
-                "the brightness transfers difftex estimates.",
+                f"Polygons {', '.join(res['polygons'])}; "
+                + (f"every map {args.long_side} texels long (Table 1's --long-side)" if args.long_side else
+                   f"frames of `density: auto` x {args.density_scale} (max long side {args.max_long_side})")
+                + "; every photo that sees a polygon is a candidate, through the brightness transfers difftex "
+                "estimates (MRF: the photos as they are, as in Table 1).",
                 "Scored as Table 1: textures resampled to the ground-truth maps, Error 95 % pooled over their "
-                "texels, SSIM texel-weighted over polygons.",
+                f"texels, SSIM and LPIPS ({res['lpips_variant']}) texel-weighted over polygons.",
                 "The oracle rows choose photos with the ground truth in hand (difftex.evaluation.oracle): no "
                 "method that selects among these photos at that patch size scores better. At 5x5 it also picks "
                 "each patch's luckiest noise. The blend oracle fits each tile's convex weights to the truth: "
@@ -200,14 +227,15 @@ def main(argv=None) -> int:
                 "(larger: the photos hold more detail there).",
             ],
         ),
-        "| texture | Error 95 % | SSIM | photos per texel | frontality | texel (px) | SSIM per polygon |",
-        "|---|---|---|---|---|---|---|",
+        "| texture | Error 95 % | SSIM | LPIPS | photos per texel | frontality | texel (px) | SSIM per polygon |",
+        "|---|---|---|---|---|---|---|---|",
     ]
     for n, r in res["rows"].items():
         pp = ", ".join(f"{p['polygon_id']} {p['ssim']:.3f}" for p in r["polygons"])
         mo = r.get("made_of")
         made = f"{mo['photos_per_texel']:.1f} | {mo['cos']:.3f} | {mo['texel_px']:.2f}" if mo else " | | "
-        lines.append(f"| {n} | {r['error95']:.4f} | {r['ssim']:.4f} | {made} | {pp} |")
+        lp = "n/a" if r["lpips"] is None else f"{r['lpips']:.4f}"
+        lines.append(f"| {n} | {r['error95']:.4f} | {r['ssim']:.4f} | {lp} | {made} | {pp} |")
     if res["difftex_tail"]:
         lines += [
             "",

@@ -257,11 +257,12 @@ def add_table_args(ap, name: str) -> None:
 
 def scene_polygons(
     scene: Path, polygons: list[str] | None, density_scale: float, max_long_side: int,
-    texel_candidates: int | None = None,
+    texel_candidates: int | None = None, long_side: int | None = None,
 ):
-    """A scene's polygons at `density: auto` x ``density_scale`` (at most ``max_long_side``):
-    (the loaded scene, the visibility of each of ``polygons`` (None: all) that a photo sees), as
-    the variant and bound scripts texture them.
+    """A scene's polygons at `density: auto` x ``density_scale`` (at most ``max_long_side``), or
+    every map ``long_side`` texels long when it is given (Table 1's ``--long-side``): (the loaded
+    scene, the visibility of each of ``polygons`` (None: all) that a photo sees), as the variant
+    and bound scripts texture them.
     """
     from difftex.config import TextureConfig
     from difftex.geometry.visibility import scene_visibility
@@ -269,7 +270,8 @@ def scene_polygons(
 
     sc = load_scene(scene, check_images=False)
     cands = {p.id: [ph.name for ph in sc.photos] for p in sc.proxy.polygons if polygons is None or p.id in polygons}
-    tex = TextureConfig(density="auto", density_scale=density_scale, max_long_side=max_long_side)
+    tex = (TextureConfig(density=None, long_side=long_side) if long_side else
+           TextureConfig(density="auto", density_scale=density_scale, max_long_side=max_long_side))
     vis = scene_visibility(sc.proxy, sc.photos, sc.up, cands, tex, progress=False, texel_candidates=texel_candidates)
     return sc, [v for v in vis if v.photos]
 

@@ -86,7 +86,7 @@ def test_the_bounds_script_scores_every_row_of_every_polygon(small_synth_scene, 
 
     out = tmp_path / "bounds"
     assert bounds.main(["--scene", str(small_synth_scene), "--preset", "fast", "--patches", "1,3",
-                        "--blend-tiles", "7", "--out", str(out)]) == 0
+                        "--blend-tiles", "7", "--no-lpips", "--out", str(out)]) == 0
     res = json.loads(out.with_suffix(".json").read_text())
     names = ["ground truth at the texture's texel size", "average", "oracle, 1x1 patches", "oracle, 3x3 patches",
              "blend oracle, 7x7 tiles", "difftex (fast)"]
@@ -111,6 +111,28 @@ def test_the_bounds_script_scores_every_row_of_every_polygon(small_synth_scene, 
     for t in res["difftex_tail"]:
         assert t["tail_texels"] > 0 and all(0 <= t[k] <= 1 for k in ("median_photo_worse", "no_photo_right",
                                                                      "frontal_right"))
+
+
+def test_the_bounds_script_at_table1s_long_side_scores_lpips_and_the_mrf_peer(small_synth_scene, tmp_path):
+    import json
+
+    from evaluation import bounds
+
+    out = tmp_path / "bounds"
+    assert bounds.main(["--scene", str(small_synth_scene), "--preset", "none", "--patches", "3", "--blend-tiles", "",
+                        "--long-side", "64", "--mrf", "--out", str(out)]) == 0
+    res = json.loads(out.with_suffix(".json").read_text())
+    names = ["ground truth at the texture's texel size", "average", "oracle, 3x3 patches", bounds.MRF_ROW]
+    assert list(res["rows"]) == names
+    frames = [p["frame"] for p in res["rows"]["average"]["polygons"]]
+    assert frames and all(max(f) == 64 for f in frames)  # every map 64 texels long, as Table 1's --long-side
+    assert res["lpips_variant"] != "not computed"
+    for n in names:
+        assert 0 <= res["rows"][n]["lpips"] < 1
+    # the truth at the texture's texel size is perceptually closer to itself than the average of the photos
+    assert res["rows"][names[0]]["lpips"] < res["rows"]["average"]["lpips"]
+    text = out.with_suffix(".md").read_text()
+    assert "| LPIPS |" in text and "every map 64 texels long" in text and f"| {bounds.MRF_ROW} |" in text
 
 
 def test_tail_causes_sorts_the_worst_texels_by_what_the_photos_hold():
