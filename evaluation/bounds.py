@@ -41,7 +41,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from evaluation import common as C  # noqa: E402
 
-MRF_ROW = "MRF view selection + leveling (LTBC-style)"
+MRF_ROW = C.LABELS["mrf"]  # Table 1's label of the same baseline
 
 
 def candidates(photos, cfg):
@@ -80,6 +80,7 @@ def run(scene: Path, density_scale: float, max_long_side: int, preset: str, patc
     from difftex.evaluation.evaluate import resample_texture
     from difftex.evaluation.mrf import MRFConfig, mrf_texture
     from difftex.evaluation.oracle import blend_oracle, blend_summary, patch_oracle, tail_causes
+    from difftex.evaluation.results import EvaluateConfig, _lpips_plan
     from difftex.geometry.frames import UVFrame
     from difftex.method.config import ComputeConfig, OptimizeConfig
     from difftex.method.loop import photo_weight
@@ -100,7 +101,9 @@ def run(scene: Path, density_scale: float, max_long_side: int, preset: str, patc
     per: dict[str, list[dict]] = {n: [] for n in names}
     errs: dict[str, list[np.ndarray]] = {n: [] for n in names}
     tails: list[dict] = []
-    lp_label = ["not computed"]
+    # the network resolved once, as Table 1's evaluation does: one fallback note, not one per texture
+    lp_kind = _lpips_plan(EvaluateConfig())[0] if lpips else None
+    lp_label = "not computed"
     made_of: dict[str, list[tuple[dict, int]]] = {}  # row -> per polygon (blend_summary, texels)
     for v in vis:
         t0 = time.perf_counter()
@@ -152,8 +155,8 @@ def run(scene: Path, density_scale: float, max_long_side: int, preset: str, patc
             e = metrics.texel_error(out, ref)[gmask]
             errs[name].append(e)
             lp = None
-            if lpips and min(gmask.shape) >= metrics.LPIPS_MIN_SIDE:
-                lp, lp_label[0] = metrics.lpips(out, ref, gmask)
+            if lp_kind and min(gmask.shape) >= metrics.LPIPS_MIN_SIDE:
+                lp, lp_label = metrics.lpips(out, ref, gmask, variant=lp_kind)
             per[name].append({
                 "polygon_id": v.polygon_id, "texels": int(gmask.sum()), "frame": list(v.frame.shape),
                 "error95": float(np.percentile(e, 95)), "ssim": metrics.ssim(out, ref, gmask), "lpips": lp,
@@ -177,7 +180,7 @@ def run(scene: Path, density_scale: float, max_long_side: int, preset: str, patc
             tot = sum(b for _, b in made_of[n])
             rows[n]["made_of"] = {k: sum(s[k] * b for s, b in made_of[n]) / max(1, tot) for k in made_of[n][0][0]}
     return {"scene": str(scene), "polygons": [v.polygon_id for v in vis], "rows": rows, "difftex_tail": tails,
-            "lpips_variant": lp_label[0]}
+            "lpips_variant": lp_label}
 
 
 def main(argv=None) -> int:

@@ -47,6 +47,7 @@ def run(
     from difftex.evaluation import metrics
     from difftex.evaluation.baselines import baseline_texture
     from difftex.evaluation.evaluate import resample_texture
+    from difftex.evaluation.results import EvaluateConfig, _lpips_plan
     from difftex.geometry.frames import UVFrame
     from difftex.method.config import ComputeConfig, OptimizeConfig
     from difftex.sampling import SUPERSAMPLE
@@ -54,6 +55,8 @@ def run(
     from difftex.scene.files import read_image, read_json, write_image
 
     torch.set_num_threads(1)
+    # the network resolved once, as Table 1's evaluation does: one fallback note, not one per texture
+    lp_kind, lpips_label = _lpips_plan(EvaluateConfig())
     sc, vis = C.scene_polygons(scene, polygons, density_scale, max_long_side, texel_candidates)
     by_name = {p.name: p for p in sc.photos}
     gt = scene / "ground_truth"
@@ -86,7 +89,9 @@ def run(
             mk = inp.texel_mask
             errs.append(metrics.texel_error(U, ref)[mk])
             ssims.append(metrics.ssim(U, ref, mk))
-            lp, lpips_label = metrics.lpips(np.clip(U, 0, 1), ref, mk)
+            lp = None
+            if lp_kind:
+                lp, lpips_label = metrics.lpips(np.clip(U, 0, 1), ref, mk, variant=lp_kind)
             lps.append(float("nan") if lp is None else lp)
             weights.append(float(mk.sum()))
             sharp.append(metrics.mean_gradient(U, mk))
