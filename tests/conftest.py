@@ -2,9 +2,16 @@
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 import pytest
+
+# No test uses the network: classic LPIPS's weight files are never downloaded into the torch hub
+# cache (difftex.evaluation.perceptual; the Snakemake runs of the tests inherit it), so "auto"
+# reports ST-LPIPS wherever the hub cache lacks them. tests/test_lpips_download.py unsets it and
+# replaces the download.
+os.environ["DIFFTEX_OFFLINE"] = "1"
 
 
 @pytest.fixture(scope="session")

@@ -460,7 +460,7 @@ def test_classic_lpips_unavailable_without_weights(tmp_path, monkeypatch, caplog
     assert value is None
     assert label == (
         f"unavailable: classic LPIPS (piq) needs lpips_weights.pt and vgg16-397923af.pth in {folder} "
-        "(missing: lpips_weights.pt, vgg16-397923af.pth; never downloaded)"
+        "(missing: lpips_weights.pt, vgg16-397923af.pth; not downloaded: DIFFTEX_OFFLINE is set)"
     )
     assert label in caplog.text
     with pytest.raises(DifftexError, match="unavailable"):
@@ -477,7 +477,9 @@ def test_classic_lpips_unavailable_without_weights(tmp_path, monkeypatch, caplog
 
 def test_classic_lpips_names_the_one_missing_file(hub_weights, tmp_path):
     (tmp_path / W.LPIPS_FILE).write_bytes((hub_weights / W.LPIPS_FILE).read_bytes())
-    assert perceptual.classic_lpips_missing(tmp_path).endswith("(missing: vgg16-397923af.pth; never downloaded)")
+    assert perceptual.classic_lpips_missing(tmp_path).endswith(
+        "(missing: vgg16-397923af.pth; a configured folder is never downloaded into)"
+    )
     assert perceptual.classic_lpips_missing(hub_weights) is None
 
 

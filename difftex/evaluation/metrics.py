@@ -19,8 +19,9 @@ Which library computes what, and why (the comparisons are tests/test_metrics.py)
 - Error 90/95: the paper's own definition (percentiles of per-texel RGB distances); no library
   has it.
 - LPIPS: piq's (VGG16, the paper's citation), built from piq's and torchvision's weight files in
-  the torch hub cache or a configured folder, never downloaded; without them ST-LPIPS from
-  ``stlpips_pytorch``, whose wheel ships its weights (see :func:`lpips`).
+  the torch hub cache (downloaded there once, as piq does, where the network allows) or a
+  configured folder; without them ST-LPIPS from ``stlpips_pytorch``, whose wheel ships its
+  weights, said in one line (see :func:`lpips`).
 """
 
 from __future__ import annotations
@@ -222,15 +223,17 @@ def lpips(img_a: np.ndarray, img_b: np.ndarray, mask: np.ndarray | None = None, 
         mask: (H, W) bool pixels to average the distance map over (spatial mode), or None for
             the plain (per-layer spatial mean) distance.
         variant: "lpips" (classic LPIPS through piq: VGG16 with piq's linear weights, both read
-            from ``weights_dir`` or the torch hub cache, :func:`lpips_weight_files`), "stlpips"
-            (``stlpips_pytorch``, shift-tolerant AlexNet, weights shipped in the package), or
-            "auto" (classic if its weights are on disk, else ST-LPIPS, said in one warning line).
+            from ``weights_dir`` or the torch hub cache, :func:`lpips_weight_files`; missing from
+            the hub cache, they are downloaded there once per process, unless there is no
+            network or ``DIFFTEX_OFFLINE`` is set), "stlpips" (``stlpips_pytorch``, shift-tolerant
+            AlexNet, weights shipped in the package), or "auto" (classic if its weights are on
+            disk or could be downloaded, else ST-LPIPS, said in one warning line).
         required: raise instead of returning None when no weights are available.
         weights_dir: the folder holding piq's two weight files (default: the torch hub cache).
         device: torch device of the network (cached per device).
     Returns:
         (distance, label): the label names the package, version and weights, or is
-        "unavailable: <why>" with distance None. Nothing is ever downloaded.
+        "unavailable: <why>" with distance None. A configured ``weights_dir`` is only read.
     """
     import torch
 

@@ -1,17 +1,24 @@
-"""Which LPIPS network, built offline from which weight files: classic LPIPS through piq, or ST-LPIPS.
+"""Which LPIPS network, built from which weight files: classic LPIPS through piq, or ST-LPIPS.
 
 :func:`difftex.evaluation.metrics.lpips` computes the distance with the network this module
 resolves and builds. Classic LPIPS is ``piq.LPIPS`` (VGG16), made from piq's and torchvision's
-weight files in the torch hub cache or a configured folder (:func:`lpips_weight_files`); piq's own
-constructor would download them, so it is rebuilt here from piq's parts. ST-LPIPS is
-``stlpips_pytorch``'s shift-tolerant AlexNet, whose weights ship in its wheel. Nothing is ever
-downloaded; docs/metrics.md says which files go where.
+weight files in the torch hub cache or a configured folder (:func:`lpips_weight_files`). When
+they are not in the hub cache, they are downloaded there once, as ``piq.LPIPS()`` would
+(:func:`fetch_hub_weights`: a one-line notice and a progress bar); where that fails (no
+network: a short probe, not a long wait) ST-LPIPS is reported instead, said in one line.
+ST-LPIPS is ``stlpips_pytorch``'s shift-tolerant AlexNet, whose weights ship in its wheel. A
+configured folder is only read, never downloaded into; ``DIFFTEX_OFFLINE=1`` turns every
+download off. docs/metrics.md says which files go where.
 """
 
 from __future__ import annotations
 
 import functools
 import importlib.metadata
+import logging
+import os
+import sys
+import threading
 import warnings
 from pathlib import Path
 
@@ -23,6 +30,12 @@ LPIPS_MIN_SIDE = 32  # smallest side the networks accept (four / five poolings o
 # their channel counts, which piq's linear weights must match
 PIQ_LPIPS_LAYERS = ("relu1_2", "relu2_2", "relu3_3", "relu4_3", "relu5_3")
 PIQ_LPIPS_CHANNELS = (64, 128, 256, 512, 512)
+OFFLINE_ENV = "DIFFTEX_OFFLINE"  # set (to anything but "", "0"): never download weight files
+PROBE_TIMEOUT_S = 5.0  # how long the check that a weight file's server answers may take
+READ_TIMEOUT_S = 60.0  # a download that receives nothing for this long fails
+VGG16_MB = 528  # torchvision's VGG16 file (piq's own layer weights are 7 kB)
+
+log = logging.getLogger(__name__)
 
 
 def lpips_weight_files(weights_dir: str | Path | None = None) -> dict[str, Path]:
@@ -55,8 +68,106 @@ def _import_error(module: str) -> str | None:
     return None
 
 
-def classic_lpips_missing(weights_dir: str | Path | None = None) -> str | None:
-    """Why classic LPIPS (piq) cannot run offline here, or None when it can."""
+def weight_urls() -> dict[str, str]:
+    """Where ``piq.LPIPS()`` downloads the two files of :func:`lpips_weight_files` from."""
+    from piq import LPIPS
+    from torchvision.models import VGG16_Weights
+
+    return {"lpips": LPIPS._weights_url, "vgg16": VGG16_Weights.IMAGENET1K_V1.url}
+
+
+def downloads_allowed() -> bool:
+    """False when ``DIFFTEX_OFFLINE`` is set (the test suite sets it: no test uses the network)."""
+    return os.environ.get(OFFLINE_ENV, "").strip() in ("", "0")
+
+
+def probe(url: str, timeout: float = PROBE_TIMEOUT_S) -> str | None:
+    """None when ``url``'s server answers a HEAD request within ``timeout`` seconds, else why not.
+
+    The request runs in a daemon thread that is given up on after ``timeout``: urllib's own
+    timeout does not bound the name lookup, which can take minutes on a machine without network.
+    """
+    from urllib.parse import urlsplit
+    from urllib.request import Request, urlopen
+
+    host = urlsplit(url).hostname or url
+    outcome: list[str | None] = []
+
+    def ask() -> None:
+        try:
+            with urlopen(Request(url, method="HEAD", headers={"User-Agent": "torch.hub"}), timeout=timeout):
+                outcome.append(None)
+        except Exception as exc:  # noqa: BLE001 - any failure means: no download from here
+            reason = getattr(exc, "reason", None) or exc
+            outcome.append(f"{host}: {str(reason).splitlines()[0] if str(reason) else exc.__class__.__name__}")
+
+    thread = threading.Thread(target=ask, name="difftex-probe", daemon=True)
+    thread.start()
+    thread.join(timeout)
+    if not outcome:
+        return f"{host} did not answer within {timeout:g} s"
+    return outcome[0]
+
+
+def download(url: str, dst: Path, hash_prefix: str | None) -> None:
+    """``url`` into ``dst`` through torch.hub (a temporary file renamed at the end, the SHA-256
+    prefix checked), with tqdm's progress bar when stderr is a terminal; a stalled transfer
+    fails after READ_TIMEOUT_S."""
+    import socket
+
+    import torch
+
+    before = socket.getdefaulttimeout()
+    socket.setdefaulttimeout(READ_TIMEOUT_S)  # torch.hub's urlopen takes no timeout of its own
+    try:
+        torch.hub.download_url_to_file(url, str(dst), hash_prefix=hash_prefix, progress=sys.stderr.isatty())
+    finally:
+        socket.setdefaulttimeout(before)
+
+
+@functools.cache
+def fetch_hub_weights(folder: str) -> str | None:
+    """Download classic LPIPS's missing weight files into the hub cache ``folder``, once per
+    process: None when both are there afterwards, else why not (one clause, for one line).
+
+    Says what it downloads in one log line; a server that does not answer (no network) is found
+    by :func:`probe` within seconds, and the failure is remembered for the process.
+    """
+    files = lpips_weight_files(folder)
+    urls = weight_urls()
+    missing = [k for k, p in files.items() if not p.is_file()]
+    if not missing:
+        return None
+    for key in missing:  # both servers, before anything is written
+        why = probe(urls[key])
+        if why is not None:
+            return f"not downloaded, no network: {why}"
+    size = f", {VGG16_MB} MB" if "vgg16" in missing else ""
+    log.warning("LPIPS: downloading piq's classic LPIPS weights (%s%s) into %s, once",
+                " and ".join(files[k].name for k in missing), size, folder)
+    try:
+        import filelock
+
+        Path(folder).mkdir(parents=True, exist_ok=True)
+        # parallel evaluation jobs: one downloads, the others wait for its files
+        with filelock.FileLock(str(Path(folder) / ".difftex-lpips.lock")):
+            for key in missing:
+                if not files[key].is_file():
+                    name = files[key].name
+                    prefix = name.rsplit("-", 1)[1].split(".")[0] if key == "vgg16" else None  # torch.hub's check
+                    download(urls[key], files[key], prefix)
+    except Exception as exc:  # noqa: BLE001 - a failed download falls back like a missing file
+        first = str(exc).splitlines()[0] if str(exc) else ""
+        return f"download failed: {exc.__class__.__name__}: {first}"
+    return None
+
+
+def classic_lpips_missing(weights_dir: str | Path | None = None, fetch: bool = True) -> str | None:
+    """Why classic LPIPS (piq) cannot run here, or None when it can.
+
+    With ``fetch`` and no ``weights_dir``, missing files are first downloaded into the torch hub
+    cache (:func:`fetch_hub_weights`, once per process, unless ``DIFFTEX_OFFLINE`` is set).
+    """
     why = _import_error("piq")
     if why is not None:
         return why
@@ -64,16 +175,26 @@ def classic_lpips_missing(weights_dir: str | Path | None = None) -> str | None:
     missing = [p.name for p in files.values() if not p.is_file()]
     if not missing:
         return None
+    if weights_dir is not None:
+        note = "a configured folder is never downloaded into"
+    elif not downloads_allowed():
+        note = f"not downloaded: {OFFLINE_ENV} is set"
+    elif not fetch:
+        note = "not downloaded"
+    else:
+        note = fetch_hub_weights(str(files["lpips"].parent))
+        if note is None:
+            return classic_lpips_missing(weights_dir, fetch=False)
     return (f"classic LPIPS (piq) needs {' and '.join(p.name for p in files.values())} in "
-            f"{files['lpips'].parent} (missing: {', '.join(missing)}; never downloaded)")
+            f"{files['lpips'].parent} (missing: {', '.join(missing)}; {note})")
 
 
 def lpips_source(variant: str = "auto", weights_dir: str | Path | None = None) -> tuple[str | None, str]:
-    """The network ``variant`` resolves to offline and its label: ("lpips" | "stlpips", label).
+    """The network ``variant`` resolves to and its label: ("lpips" | "stlpips", label).
 
     ``"auto"`` is classic LPIPS (piq) when both of its weight files are on disk
-    (:func:`lpips_weight_files`), else ST-LPIPS. When nothing fits: (None, "unavailable: <why>").
-    Nothing is downloaded.
+    (:func:`lpips_weight_files`) or could be downloaded into the torch hub cache
+    (:func:`classic_lpips_missing`), else ST-LPIPS. When nothing fits: (None, "unavailable: <why>").
     """
     if variant not in LPIPS_VARIANTS:
         raise DifftexError(f"LPIPS variant {variant!r} unknown ({', '.join(LPIPS_VARIANTS)})")
@@ -95,7 +216,8 @@ def lpips_source(variant: str = "auto", weights_dir: str | Path | None = None) -
 
 
 def lpips_fallback_note(weights_dir: str | Path | None = None) -> str:
-    """The one line that says ``"auto"`` reports ST-LPIPS because classic LPIPS cannot run."""
+    """The one line that says ``"auto"`` reports ST-LPIPS because classic LPIPS cannot run (the
+    download, if any, was tried already: its outcome is remembered, not tried again)."""
     return (f"LPIPS (auto): {classic_lpips_missing(weights_dir)}; reporting ST-LPIPS instead, whose values are "
             "not comparable (evaluate.lpips_weights names a folder holding both files; evaluate.lpips: stlpips "
             "chooses ST-LPIPS without this note)")
@@ -159,10 +281,10 @@ def _piq_linear_weights(path: Path) -> list:
 
 
 def _piq_lpips(weights_dir: str | None):
-    """``piq.LPIPS()`` (reduction "none") built from the local files, never downloading.
+    """``piq.LPIPS()`` (reduction "none") built from the local files.
 
-    piq.LPIPS's own constructor fetches both files through ``torch.hub`` (a download when they are
-    not in the hub cache); this builds the same network, piq's ``ContentLoss`` with piq's LPIPS
+    piq.LPIPS's own constructor fetches both files through ``torch.hub`` and loads all of VGG16
+    (528 MB, classifier included); this builds the same network, piq's ``ContentLoss`` with piq's LPIPS
     arguments, from :func:`lpips_weight_files` (tests/test_metrics.py checks it against
     ``piq.LPIPS`` itself).
     """
