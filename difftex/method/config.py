@@ -200,6 +200,15 @@ class OptimizeConfig:
     # colours below it stay the blend's, which averages the photos' noise and exposure (0: the
     # selected colours whole)
     select_band: float = 0.0
+    # detail from one photo per facade element (difftex.method.detail): the blend below a Gaussian
+    # of detail_band texels, above it the sharpest photo that agrees with the blend, one photo per
+    # region of patches labelled by graph cuts whose seams run where the photos agree
+    detail: bool = False
+    detail_band: float = 1.5  # sigma of the band, texels
+    detail_patch: int = 8  # side of the labelling's patches, texels
+    detail_smoothness: float = 2.0  # seam cost per texel of seam where the photos agree (units of a texel's data cost)
+    detail_feather: float = 1.0  # Gaussian sigma of the seams' cross-fade, texels
+    detail_agree: float = 3.0  # a photo is a candidate where its low band is within this many sigma_c of the blend's
     # parallax-aware composition (difftex.method.parallax): where the kept photos disagree by more
     # than parallax_gate sigma_c, the slots seen from nearly the best slot's direction carry the
     # texel (within parallax_sigma, about radians, of it; 0: off)
@@ -340,6 +349,8 @@ class OptimizeConfig:
             raise ValueError(f"ghost must be >= 0, got {self.ghost}")
         if self.select_patch < 1 or self.select_smoothness < 0 or self.select_feather < 0:
             raise ValueError("select_patch must be >= 1, select_smoothness and select_feather >= 0")
+        if self.detail:
+            self.detail_settings()  # checks its values
         if self.select_band < 0:
             raise ValueError(f"select_band must be >= 0, got {self.select_band}")
         if self.select_scope not in ("disagree", "all"):
@@ -410,6 +421,13 @@ class OptimizeConfig:
         """The keys of :data:`PUBLISHED` where this configuration is not the published method."""
         return [k for k, v in PUBLISHED.items() if getattr(self, k) != v]
 
+    def detail_settings(self):
+        """The detail's settings (difftex.method.detail.DetailSettings)."""
+        from difftex.method.detail import DetailSettings
+
+        return DetailSettings(band=self.detail_band, patch=self.detail_patch, smoothness=self.detail_smoothness,
+                              feather=self.detail_feather, agree=self.detail_agree)
+
     def relief_settings(self):
         """The relief sweep's settings (:class:`ReliefSettings`)."""
         lo, hi = self.relief_range
@@ -470,6 +488,7 @@ PUBLISHED: dict = {
     "mixed_spread": 0.0,
     "parallax_sigma": 0.0,
     "select": False,
+    "detail": False,
     "relief": False,
     "frontality_tilt": 0.0,
     "supersample": 1,  # eq. 2: one lookup I_k(f_k(t_o)) per texel

@@ -70,6 +70,9 @@ class Level:
     detail_noise: float | None = None
     Qb: torch.Tensor | None = None  # (K, h, w) Q of the blend (initial and settled weights); None: Q
     compare_sigma: float = 0.0  # texels of the low-pass under which ``colours`` were compared
+    # (K, h, w) min-axis pixels per texel of each slot's photo (footprint x sqrt(cos)), kept for
+    # the detail (difftex.method.detail); None without it
+    resolve: torch.Tensor | None = None
 
     @property
     def blend_Q(self) -> torch.Tensor:
@@ -381,7 +384,7 @@ def _fill_slots(
     # the tilt weighs the blend alone unless frontality_tilt_witnesses: that too needs a Qb
     split = res_split or (stats.tbest is not None and not cfg.frontality_tilt_witnesses)
     slots = Slots(max(1, len(seen)) if fixed else cfg.top_k, (h, w), stats.normal.device,
-                  detail=lp.sigma > 0, blend_q=split)
+                  detail=lp.sigma > 0, blend_q=split, resolve=cfg.detail)
     for j, n in enumerate(seen):
         mp = lp.get(n)
         assert mp is not None
@@ -399,7 +402,12 @@ def _fill_slots(
             # the photos the coarser levels left out). Only texels the coarser level did not
             # see at all start from Q.
             weight = torch.where(cov, w_up, torch.where(prev_known[sl], torch.zeros_like(qb), qb))
-        values = slots.pack(mp.visible, c, q, pc, weight, detail=mp.colour, Qb=qb)
+        # how well the photo resolves the texel, for the detail: pixels per texel times cos^2 (the
+        # pixels along the most foreshortened axis, footprint sqrt(cos), times cos^1.5 more: a
+        # recess seen obliquely is displaced by depth x tan, so of two photos that resolve a window
+        # alike the frontal one shows its mullions where they are)
+        resolve = mp.footprint * mp.cos.clamp_min(0.0) ** 2 if cfg.detail else None
+        values = slots.pack(mp.visible, c, q, pc, weight, detail=mp.colour, Qb=qb, resolve=resolve)
         if fixed:
             slots.put(j, n, reg, values)
             continue
@@ -494,4 +502,5 @@ def build_level(
         detail=slots.detail,
         detail_noise=detail_noise,
         compare_sigma=sig,
+        resolve=slots.resolve,
     )

@@ -19,7 +19,7 @@ from rich.console import Console
 from rich.progress import MofNCompleteColumn, Progress
 
 from difftex.geometry.frames import level_sides
-from difftex.method import alignment, diagnostics, losses, parallax, selection
+from difftex.method import alignment, detail, diagnostics, losses, parallax, selection
 from difftex.method.config import ComputeConfig, OptimizeConfig
 from difftex.method.elimination import (
     settled_texels,
@@ -181,6 +181,12 @@ def _final_weights(
             # would pull both low-passes towards zero and leave part of the selected photo's exposure
             seen = lv.mask & (blend.sum(0) > 0)
             U = selection.detail_band(losses.compose(blend, lv.sharp), U, seen, cfg.select_band)
+        if cfg.detail:
+            assert lv.resolve is not None  # the level keeps it with cfg.detail
+            seen = lv.mask & (blend.sum(0) > 0)
+            U, _, stats["detail"] = detail.detail_texture(
+                U, lv.sharp, lv.idx, lv.visible, lv.resolve, seen, lv.sharp_noise, cfg.detail_settings()
+            )
     return W, U
 
 

@@ -32,10 +32,13 @@ class Slots:
 
     Fields: ``idx`` (K, h, w) long, the photo of each slot (-1: none), ``visible`` (K, h, w) bool,
     ``colours`` (K, 3, h, w), ``Q``, ``cost``, ``w0`` (K, h, w), ``detail`` (K, 3, h, w) or None,
-    ``Qb`` (K, h, w) or None. A photo's values are given in the order of ``data``.
+    ``Qb`` (K, h, w) or None, ``resolve`` (K, h, w) or None (min-axis pixels per texel, for the
+    detail, difftex.method.detail). A photo's values are given in the order of ``data``.
     """
 
-    def __init__(self, K: int, shape: tuple[int, int], device, detail: bool, blend_q: bool) -> None:
+    def __init__(
+        self, K: int, shape: tuple[int, int], device, detail: bool, blend_q: bool, resolve: bool = False
+    ) -> None:
         h, w = shape
         self.K = K
         self.score = torch.full((K, h, w), EMPTY_SCORE, device=device)
@@ -47,18 +50,25 @@ class Slots:
         self.cost = torch.zeros((K, h, w), device=device)
         self.w0 = torch.zeros((K, h, w), device=device)
         self.Qb = torch.zeros((K, h, w), device=device) if blend_q else None
+        self.resolve = torch.zeros((K, h, w), device=device) if resolve else None
         self.data = [self.visible, self.colours, self.Q, self.cost, self.w0]
-        self.data += [t for t in (self.detail, self.Qb) if t is not None]
+        self.data += [t for t in (self.detail, self.Qb, self.resolve) if t is not None]
         # photo -> (region, its values), written once the ranking is final (``write_deferred``)
         self.deferred: dict[int, tuple[Region, list[torch.Tensor]]] = {}
 
     def pack(
         self, visible: torch.Tensor, colours: torch.Tensor, Q: torch.Tensor, cost: torch.Tensor, w0: torch.Tensor,
-        detail: torch.Tensor, Qb: torch.Tensor,
+        detail: torch.Tensor, Qb: torch.Tensor, resolve: torch.Tensor | None = None,
     ) -> list[torch.Tensor]:
         """A photo's values in the order of ``data``, without those the slots do not keep."""
-        kept = [(detail, self.detail), (Qb, self.Qb)]
-        return [visible, colours, Q, cost, w0] + [v for v, t in kept if t is not None]
+        kept = [(detail, self.detail), (Qb, self.Qb), (resolve, self.resolve)]
+        out = [visible, colours, Q, cost, w0]
+        for v, t in kept:
+            if t is not None:
+                if v is None:
+                    raise ValueError("the slots keep a value the photo was not given")
+                out.append(v)
+        return out
 
     def put(self, j: int, n: int, reg: Region, values: list[torch.Tensor]) -> None:
         """Photo ``n`` into slot ``j`` over ``reg`` (every candidate fits: slot j is photo j)."""
