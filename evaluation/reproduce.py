@@ -4,6 +4,7 @@
     python evaluation/reproduce.py --smoke            # a tiny version of every table: minutes
     python evaluation/reproduce.py --only table1,speed
     python evaluation/reproduce.py --smoke --dry-run  # the commands, without running them
+    python evaluation/reproduce.py --smoke --rewrite  # only rebuild the combined markdown
 
 The tables (``--only`` takes their names): ``table1`` (the survey synthetic buildings against
 ground truth), ``table2`` (the shared real scenes, held-out photos), ``ablation``, ``tradeoff``
@@ -208,6 +209,8 @@ def parse_args(argv):
     ap.add_argument("--threads", type=int, default=2, help="torch threads per table; Snakemake cores")
     ap.add_argument("--texrecon", default=None, help="texrecon program (default: DIFFTEX_TEXRECON or PATH)")
     ap.add_argument("--dry-run", action="store_true", help="print the commands, run nothing")
+    ap.add_argument("--rewrite", action="store_true",
+                    help="run nothing: only rebuild the combined markdown from the tables in --out")
     args = ap.parse_args(argv)
     only = [n for n in args.only.split(",") if n]
     bad = [n for n in only if n not in TABLES]
@@ -243,6 +246,10 @@ def main(argv=None) -> int:
     jobs = [j for j in plan if j.table in args.only]
     env = child_env(args.texrecon)
     synth = scene_commands(jobs, tiny)
+    if args.rewrite:
+        write_summary(args.summary, args.out, smoke=args.smoke, records=[])
+        print(f"reproduce: rewrote {args.summary} from {args.out}")
+        return 0
     if args.dry_run:
         for c in synth + [j.argv(args.out, args.work) for j in jobs]:
             print(shlex.join(["python", *c[1:]]))

@@ -36,9 +36,13 @@ def _relink(text: str, src_dir: Path, dst_dir: Path) -> str:
     return LINK_RE.sub(fix, text)
 
 
-def _demote(text: str, levels: int = 2) -> str:
-    """Headings two levels down: a table file's title becomes a subsection of the page."""
-    return "\n".join(("#" * levels + ln) if ln.startswith("#") else ln for ln in text.splitlines())
+def _section(text: str, levels: int = 2) -> str:
+    """A table file as a subsection of the page: headings ``levels`` down, and without its date
+    line (the stamp says whether a table is current; its file keeps the date, so the page adds
+    no dated line to docs/)."""
+    lines = [("#" * levels + ln) if ln.startswith("#") else ln
+             for ln in text.splitlines() if not ln.startswith("Date: ")]
+    return "\n".join(lines)
 
 
 def _stamp_of(md: Path) -> dict:
@@ -51,13 +55,13 @@ def _stamp_of(md: Path) -> dict:
 
 
 def _index(out: Path, page_dir: Path) -> list[str]:
-    lines = ["| Table | File | Made | Wall (s) | Defaults |", "|---|---|---|---|---|"]
+    lines = ["| Table | File | Wall (s) | Defaults |", "|---|---|---|---|"]
     for table, title in TITLES.items():
         for md in sorted((out / table).glob("*.md")):
             s = _stamp_of(md)
             rel = os.path.relpath(md, page_dir).replace(os.sep, "/")
-            lines.append(f"| {title.split(':')[0]} | [{md.stem}]({rel}) | {s.get('date_utc', 'n/a')} | "
-                         f"{s.get('wall_s', 'n/a')} | {s.get('defaults_hash', 'unstamped')} |")
+            lines.append(f"| {title.split(':')[0]} | [{md.stem}]({rel}) | {s.get('wall_s', 'n/a')} | "
+                         f"{s.get('defaults_hash', 'unstamped')} |")
     return lines
 
 
@@ -68,7 +72,7 @@ def write_summary(path: Path, out: Path, smoke: bool, records: list[dict]) -> st
 
     path, out = Path(path), Path(out)
     page_dir = path.parent
-    kind = "smoke run (a tiny version of every table, to check the pipeline, not to quote)" if smoke else "full run"
+    kind = "a tiny version of every table, to check the pipeline, not to quote" if smoke else "the full run"
     lines = [
         "# Results" + (" (smoke)" if smoke else ""),
         "",
@@ -76,7 +80,8 @@ def write_summary(path: Path, out: Path, smoke: bool, records: list[dict]) -> st
         f"from `{out}/<table>/`. Each table ends with a stamp: the difftex version and a hash of the defaults that "
         "made it (`config/config.yaml`, the presets, the code's config defaults; evaluation/stamp.py). "
         "`tests/test_results_stamp.py` fails when a default changes and a table is not re-made; "
-        "`python evaluation/stamp.py --check` lists the stale ones with the command that re-makes each.",
+        "`python evaluation/stamp.py --check` lists the stale ones with the command that re-makes each. "
+        "Wall: the seconds the table's command took; its date and machine are in its own file.",
         "",
         *_index(out, page_dir),
         "",
@@ -92,7 +97,7 @@ def write_summary(path: Path, out: Path, smoke: bool, records: list[dict]) -> st
             continue
         lines += [f"## {title}", ""]
         for md in files:
-            lines += [_demote(_relink(md.read_text(), md.parent, page_dir)).rstrip(), ""]
+            lines += [_section(_relink(md.read_text(), md.parent, page_dir)).rstrip(), ""]
     text = "\n".join(lines).rstrip() + "\n"
     write_text(path, text)
     return text
