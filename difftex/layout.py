@@ -15,6 +15,10 @@ same layout, so ``difftex evaluate`` and ``difftex report`` read them all alike:
       init/                            initialization (run.split)
         <pid>/crops.npz                the candidate photos decoded and cropped to the polygon
         jobs/<job>.json                a job's list of its polygons, written last
+      histmatch/                       histogram matching (run.split)
+        <pid>/transfers.npz            the brightness transfers (and the relief the photos are
+                                       mapped through), an input of the optimization
+        jobs/<job>.json                a job's list of its polygons
       optimized/
         <pid>/weights.npz              slots, weights (float16) and brightness transfers
         <pid>/optimized.npz            composition's inputs (run.split)
@@ -58,8 +62,9 @@ WEIGHTS = "weights.npz"
 OPTIMIZED = "optimized.npz"
 STATS = "stats.json"
 COMPOSITE = "composite.npz"
-# ... of init/
+# ... of init/ and histmatch/
 CROPS = "crops.npz"
+TRANSFERS = "transfers.npz"
 # ... and of textures/ (the finish stage, the baselines, the peers)
 TEXTURE = "texture.png"
 TEXTURE_EXR = "texture.exr"
@@ -85,12 +90,12 @@ VIEWS = "views"
 # (written last, so it is the job's one output)
 JOB_FILES = {
     "initialize": ("init", ".json"),
+    "histmatch": ("histmatch", ".json"),
     "texture": ("optimized", ".json"),
     "optimize": ("optimized", ".optimize.json"),
     "compose": ("optimized", ".compose.json"),
     "finish": ("textures", ".json"),
 }
-
 
 def visibility_file(folder: str | Path, pid: str) -> Path:
     """A polygon's visibility file in a visibility folder (R/visibility or one given to a command).
@@ -184,6 +189,14 @@ class Results:
         return self.init_dir / pid / CROPS
 
     @property
+    def histmatch_dir(self) -> Path:
+        return self.root / "histmatch"
+
+    def transfers(self, pid: str) -> Path:
+        """R/histmatch/<pid>/transfers.npz: the histogram-matching stage's file (run.split)."""
+        return self.histmatch_dir / pid / TRANSFERS
+
+    @property
     def optimized_dir(self) -> Path:
         return self.root / "optimized"
 
@@ -218,7 +231,7 @@ class Results:
         """The list of its polygons that a job of a per-polygon rule writes last.
 
         Args:
-            rule: initialize, texture, optimize, compose or finish.
+            rule: initialize, histmatch, texture, optimize, compose or finish.
             job: the job's name, or a wildcard (``"{job}"``) for the rule's pattern.
 
         Returns:

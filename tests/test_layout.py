@@ -32,6 +32,8 @@ EXPECTED = [
     ("visibility_tile('{tile}')", "visibility/tiles/{tile}.json"),
     ("crops('p0')", "init/p0/crops.npz"),
     ("job_file('initialize', '{job}')", "init/jobs/{job}.json"),
+    ("transfers('p0')", "histmatch/p0/transfers.npz"),
+    ("job_file('histmatch', '{job}')", "histmatch/jobs/{job}.json"),
     ("polygon_optimized('p0')", "optimized/p0"),
     ("weights('p0')", "optimized/p0/weights.npz"),
     ("optimized('p0')", "optimized/p0/optimized.npz"),
@@ -100,7 +102,7 @@ def test_every_path_is_under_the_root(tmp_path):
 def test_every_path_is_in_the_table():
     # a new path gets a row in EXPECTED (and a line in the module's docstring)
     named = {re.match(r"\w+", expr).group(0) for expr, _ in EXPECTED}
-    assert set(_every_path(Results("r"))) - {"init_dir", "optimized_dir", "textures_dir", "model_dir",
+    assert set(_every_path(Results("r"))) - {"init_dir", "histmatch_dir", "optimized_dir", "textures_dir", "model_dir",
                                              "evaluation_dir", "logs_dir", "benchmarks_dir"} <= named
 
 

@@ -1,9 +1,12 @@
-"""The per-polygon stages as separate jobs (run.split): initialize -> optimize -> compose.
+"""The per-polygon stages as separate jobs (run.split): initialize -> histmatch -> optimize ->
+compose.
 
 Checked: the files they hand on round-trip; a photo is decoded once per polygon (in the
-initialization; the optimization decodes none); the split workflow writes the same textures as
-the one-job ``texture`` stage; a change of an optimization key reruns the optimization and what
-follows but not the initialization, a change of what fixes the crops reruns the initialization.
+initialization; the histogram matching and the optimization decode none); the split workflow
+writes the same textures as the one-job ``texture`` stage; a change of an optimization key reruns
+the optimization and what follows but not the histogram matching or the initialization, a change
+of a histogram-matching key reruns the histogram matching and what follows, a change of what
+fixes the crops reruns the initialization.
 """
 
 from __future__ import annotations
@@ -17,11 +20,14 @@ import pytest
 from test_workflow import job_counts, snakemake
 
 from difftex.compose.stage_files import (
+    Brightness,
     OptimizedPolygon,
     compose_polygon,
+    read_histmatch,
     read_init,
     read_optimized,
     write_composed,
+    write_histmatch,
     write_init,
     write_optimized,
 )
@@ -70,6 +76,45 @@ def test_crops_file_round_trips_and_refuses_another_polygons(tmp_path):
     path.write_bytes(b"not a zip")
     with pytest.raises(DifftexError, match="crops.npz"):
         read_init(path, "wall", ["a.jpg"])
+
+
+@pytest.mark.parametrize("matched, relief", [(True, True), (True, False), (False, False)])
+def test_histmatch_file_round_trips_and_refuses_another_polygons(tmp_path, matched, relief):
+    from difftex.sampling.colour import identity_transfer
+    from difftex.sampling.relief import Relief
+
+    rng = np.random.default_rng(2)
+    frame = UVFrame(origin=np.array([0.1, 0.2, 0.3]), e_u=np.array([1.0, 0, 0]), e_v=np.array([0, -1.0, 0]),
+                    normal=np.array([0, 0, 1.0]), texel_size=0.1 / 3, width=5, height=4)
+    transfers = [identity_transfer() * 0.9, None, rng.random((3, 2, identity_transfer().shape[-1])).astype(np.float32)]
+    b = Brightness(
+        transfers if matched else None, "b.jpg" if matched else None,
+        Relief(frame, rng.random((4, 5)).astype(np.float32), rng.random((3, 4, 5)) > 0.5) if relief else None,
+        {"photos": ["a.jpg"], "range": [np.float32(-0.5), 0.5], "time_s": 1.5} if relief else None, 0.25,
+    )
+    path = tmp_path / "transfers.npz"
+    write_histmatch(path, "wall", ["a.jpg", "b.jpg", "c.jpg"], b)
+    back = read_histmatch(path, "wall", ["a.jpg", "b.jpg", "c.jpg"])
+    assert back.reference == b.reference and back.time_s == 0.25 and back.mapped is None
+    if matched:  # the same bits (the optimization's colours go through them)
+        assert back.transfers is not None and back.transfers[1] is None
+        for t, u in zip(transfers, back.transfers):
+            assert (t is None) == (u is None) and (t is None or (u.dtype == t.dtype and np.array_equal(t, u)))
+    else:
+        assert back.transfers is None
+    if relief:
+        assert back.relief is not None and b.relief is not None
+        assert back.relief.frame.to_dict() == frame.to_dict()
+        assert np.array_equal(back.relief.heights, b.relief.heights)
+        assert np.array_equal(back.relief.hidden, b.relief.hidden)
+        assert back.relief_stats == {"photos": ["a.jpg"], "range": [-0.5, 0.5], "time_s": 1.5}
+    else:
+        assert back.relief is None and back.relief_stats is None
+    with pytest.raises(DifftexError, match="rerun the histogram matching"):
+        read_histmatch(path, "roof", ["a.jpg", "b.jpg", "c.jpg"])
+    path.write_bytes(b"not a zip")
+    with pytest.raises(DifftexError, match="transfers.npz"):
+        read_histmatch(path, "wall", ["a.jpg"])
 
 
 def _optimized(rng, heights: bool) -> OptimizedPolygon:
@@ -165,8 +210,9 @@ def test_split_stages_write_the_one_jobs_textures(runs):
         assert Results(R_one).texture(pid).read_bytes() == Results(R_split).texture(pid).read_bytes()
     # the split run's stages each left their jobs and logs; the one-job run has no crops
     assert glob.glob(str(Results(R_split).crops("*"))) and not Results(R_one).init_dir.exists()
-    for stage in ("initialize", "optimize", "compose"):
+    for stage in ("initialize", "histmatch", "optimize", "compose"):
         assert glob.glob(str(Results(R_split).log(stage, "*"))), stage
+    assert glob.glob(str(Results(R_split).transfers("*"))) and not Results(R_one).histmatch_dir.exists()
 
 
 @pytest.mark.slow
@@ -175,10 +221,11 @@ def test_an_optimization_change_reruns_optimize_not_initialize(runs):
     n_jobs = len(glob.glob(str(Results(R).job_file("initialize", "*"))))
     assert n_jobs >= 1
     rules = snakemake(work, "--list-rules", *args[2:]).stdout.split()
-    assert {"filter", "visibility", "initialize", "optimize", "compose", "finish", "assemble", "evaluate"} <= set(rules)
+    assert {"filter", "visibility", "initialize", "histmatch", "optimize", "compose", "finish", "assemble",
+            "evaluate"} <= set(rules)
     counts = job_counts(snakemake(work, "-n", *args, "optimize={lr: 0.01}").stdout)
     assert counts.get("optimize") == counts.get("compose") == counts.get("finish") == n_jobs, counts
-    assert "initialize" not in counts and "texture" not in counts and "visibility" not in counts
+    assert not {"initialize", "histmatch", "texture", "visibility"} & set(counts), counts
     # ... while what fixes the photos' crops reruns the initialization too
     counts = job_counts(snakemake(work, "-n", *args, "optimize={supersample: 1}").stdout)
     assert counts.get("initialize") == counts.get("optimize") == n_jobs, counts
@@ -187,12 +234,32 @@ def test_an_optimization_change_reruns_optimize_not_initialize(runs):
     assert "Nothing to be done" in again.stdout, again.stdout[-2000:]
 
 
+# the rules of the split stages and what follows them; the scene stages before them
+SPLIT_AFTER_HISTMATCH = ("histmatch", "optimize", "compose", "finish", "assemble")
+SCENE_STAGES = ("filter_part", "filter", "visibility_tile", "visibility", "initialize")
+
+
 @pytest.mark.slow
-def test_a_photo_is_decoded_once_per_polygon_and_the_optimization_decodes_none(runs, monkeypatch):
+@pytest.mark.parametrize("change", ["{histmatch_model: quantile}", "{histmatch_reference: best}",
+                                    "{histogram_matching: false}"])
+def test_a_histogram_matching_change_reruns_histmatch_and_what_follows_only(runs, change):
+    R, args, work = runs["true"]
+    n_jobs = len(glob.glob(str(Results(R).job_file("histmatch", "*"))))
+    assert n_jobs >= 1
+    small = args[:-2] + (args[-2][:-1] + ", " + change[1:], args[-1])  # the test's optimize section plus the change
+    dry = snakemake(work, "-n", *small)
+    counts = job_counts(dry.stdout)
+    assert all(counts.get(rule) == n_jobs for rule in SPLIT_AFTER_HISTMATCH[:-1]), (counts, dry.stdout[-2000:])
+    assert counts.get("assemble") == 1, counts
+    assert not set(SCENE_STAGES) & set(counts), counts
+
+
+@pytest.mark.slow
+def test_a_photo_is_decoded_once_per_polygon_and_the_optimization_decodes_none(runs, monkeypatch, tmp_path):
     import difftex.sampling.photos as photos_mod
     import difftex.scene.files as files_mod
     from difftex.compose.stage_files import initialize_polygon
-    from difftex.compose.texturing import optimize_photos, texture_polygon
+    from difftex.compose.texturing import match_brightness, optimize_photos, texture_polygon
     from difftex.config import section
     from difftex.geometry.visibility import load_visibility
     from difftex.method.config import ComputeConfig, OptimizeConfig
@@ -226,6 +293,14 @@ def test_a_photo_is_decoded_once_per_polygon_and_the_optimization_decodes_none(r
     assert opt.stats["photo_reads"] == len(crops)
     assert np.array_equal(compose_polygon(opt)[0], reference.texture)
     assert np.array_equal(opt.W, reference.W) and np.array_equal(opt.idx, reference.idx)
+    # split as the workflow splits it: the transfers in their own stage, handed on in their file
+    names = [p.name for p in inp.photos]
+    write_histmatch(tmp_path / "transfers.npz", inp.polygon_id, names,
+                    match_brightness(PhotoSet.from_crops(inp, crops, "cpu", cfg.supersample), cfg))
+    brightness = read_histmatch(tmp_path / "transfers.npz", inp.polygon_id, names)
+    split = optimize_photos(PhotoSet.from_crops(inp, crops, "cpu", cfg.supersample), cfg, ComputeConfig(device="cpu"),
+                            read_stats=stats, brightness=brightness)
+    assert np.array_equal(compose_polygon(split)[0], reference.texture) and np.array_equal(split.W, reference.W)
     # the file written by the workflow's initialize holds the same crops
     on_disk, _ = read_init(Results(R).crops(inp.polygon_id), inp.polygon_id, [p.name for p in inp.photos])
     assert set(on_disk) == set(crops) and all(np.array_equal(on_disk[n].pixels, crops[n].pixels) for n in crops)
@@ -252,3 +327,4 @@ def test_the_initialize_command_imports_no_torch(runs, tmp_path):
     assert r.returncode == 0, r.stdout + r.stderr
     crops, stats = read_init(tmp_path / "crops.npz", vis.stem, [str(x) for x in np.load(vis)["photos"]])
     assert crops and stats["photo_reads"] == len(crops)
+

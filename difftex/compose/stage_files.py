@@ -1,8 +1,13 @@
-"""The files the per-polygon stages hand on: initialization -> optimization -> composition.
+"""The files the per-polygon stages hand on: initialization -> histogram matching ->
+optimization -> composition.
 
 ``R/init/<pid>/crops.npz`` (initialization): each candidate photo as decoded and cropped to the
-polygon (``PhotoCrop``), uncompressed, and the decode's figures. The optimization builds its
-pyramids from these crops, so no photo is decoded twice for a polygon.
+polygon (``PhotoCrop``), uncompressed, and the decode's figures. The histogram matching and the
+optimization build their pyramids from these crops, so no photo is decoded twice for a polygon.
+
+``R/histmatch/<pid>/transfers.npz`` (histogram matching): the photos' brightness transfers
+(``Brightness``) and the relief height field they were estimated through, which the
+optimization maps the photos through as well.
 
 ``R/optimized/<pid>/weights.npz`` and ``optimized.npz`` (optimization): the slots, weights and
 brightness transfers, and the composition's inputs (U before the fill, sum_k W_k, the dominant
@@ -36,8 +41,28 @@ from difftex.scene.files import decode_photo, read_json, read_npz, write_json, w
 if TYPE_CHECKING:
     from difftex.method.config import OptimizeConfig
     from difftex.sampling.crops import PhotoCrop, PolygonInput
+    from difftex.sampling.relief import Relief
 
 INIT_VERSION = 1
+HISTMATCH_VERSION = 1
+
+
+@dataclass
+class Brightness:
+    """What histogram matching hands the optimization (``texturing.match_brightness``).
+
+    The transfers are estimated on the photos mapped at the coarse level through the polygon's
+    relief (when ``optimize.relief`` sweeps one), so the relief is found here and handed on: the
+    optimization maps through the same one. ``mapped`` (the coarse level's photos before any
+    transfer, and their frame) is kept in memory only, for the one-process stage to reuse.
+    """
+
+    transfers: list | None  # per photo (3, 2, N_KNOTS) float32, None where it sees nothing; None: no matching
+    reference: str | None  # the reference photo's name (``histmatch_reference: best``), else None
+    relief: Relief | None = None
+    relief_stats: dict | None = None  # the sweep's statistics (stats.json's ``relief``)
+    time_s: float = 0.0  # the transfers' time, the sweep's excluded
+    mapped: tuple | None = None
 
 
 @dataclass
@@ -116,10 +141,7 @@ def write_init(path: str | Path, polygon_id: str, names: list[str], crops: dict[
 def read_init(path: str | Path, polygon_id: str, names: list[str]) -> tuple[dict[int, PhotoCrop], dict]:
     """(crops, stats) of ``write_init``'s file; a file of another polygon or photo list is refused."""
     d = read_npz(path)
-    if int(d.get("version", -1)) != INIT_VERSION:
-        raise DifftexError(f"{path}: not an initialization file of this difftex (version {d.get('version')})")
-    if str(d["polygon_id"]) != polygon_id or list(d["photos"]) != list(names):
-        raise DifftexError(f"{path}: made for polygon {d['polygon_id']} and other photos; rerun the initialization")
+    _meta(path, d, INIT_VERSION, "initialization", polygon_id, names)
     from difftex.sampling.crops import PhotoCrop
 
     crops = {}
@@ -129,6 +151,61 @@ def read_init(path: str | Path, polygon_id: str, names: list[str]) -> tuple[dict
             x0, y0, base = (int(v) for v in d[f"box_{n}"])
             crops[n] = PhotoCrop(d[key], x0, y0, base)
     return crops, json.loads(str(d["stats"]))
+
+
+def _meta(path: str | Path, d: dict, version: int, what: str, polygon_id: str, names: list[str]) -> None:
+    """Refuse a stage file of another version, polygon or photo list, in one line naming it."""
+    if int(d.get("version", -1)) != version:
+        article = "an" if what[0] in "aeiou" else "a"
+        raise DifftexError(f"{path}: not {article} {what} file of this difftex (version {d.get('version')})")
+    if str(d["polygon_id"]) != polygon_id or list(d["photos"]) != list(names):
+        raise DifftexError(f"{path}: made for polygon {d['polygon_id']} and other photos; rerun the {what}")
+
+
+def write_histmatch(path: str | Path, polygon_id: str, names: list[str], b: Brightness) -> None:
+    """The histogram-matching stage's file: transfers, reference, the relief and its statistics."""
+    from difftex.sampling.colour import N_KNOTS, identity_transfer
+
+    meta = {"reference": b.reference, "relief_stats": b.relief_stats, "time_s": b.time_s,
+            "matched": b.transfers is not None}
+    arrays: dict[str, np.ndarray] = {
+        "version": np.array(HISTMATCH_VERSION),
+        "polygon_id": np.array(polygon_id),
+        "photos": np.array(names, dtype=str),
+        "meta": np.array(json.dumps(meta, default=_json_value)),
+    }
+    if b.transfers is not None:
+        arrays["transfers"] = (np.stack([t if t is not None else identity_transfer() for t in b.transfers])
+                               if b.transfers else np.zeros((0, 3, 2, N_KNOTS), np.float32))
+        arrays["has_transfer"] = np.array([t is not None for t in b.transfers], bool)
+    if b.relief is not None:
+        arrays["relief_frame"] = np.array(json.dumps(b.relief.frame.to_dict()))
+        arrays["relief_heights"] = b.relief.heights
+        if b.relief.hidden is not None:
+            arrays["relief_hidden"] = b.relief.hidden
+    write_npz(path, **arrays)
+
+
+def read_histmatch(path: str | Path, polygon_id: str, names: list[str]) -> Brightness:
+    """``write_histmatch``'s file; one of another polygon or photo list is refused."""
+    d = read_npz(path)
+    _meta(path, d, HISTMATCH_VERSION, "histogram matching", polygon_id, names)
+    meta = json.loads(str(d["meta"]))
+    transfers = None
+    if meta["matched"]:
+        transfers = [t if ok else None for t, ok in zip(d["transfers"], d["has_transfer"])]
+    relief = None
+    if "relief_heights" in d:
+        from difftex.sampling.relief import Relief
+
+        relief = Relief(UVFrame.from_dict(json.loads(str(d["relief_frame"]))), d["relief_heights"],
+                        d.get("relief_hidden"))
+    return Brightness(transfers, meta["reference"], relief, meta["relief_stats"], float(meta["time_s"]))
+
+
+def _json_value(obj):
+    """numpy scalars and arrays as JSON values (the relief's statistics may hold them)."""
+    return obj.item() if isinstance(obj, np.generic) else np.asarray(obj).tolist()
 
 
 def write_weights(

@@ -4,19 +4,21 @@ For one polygon:
 
 1. initialization (``initialize_polygon`` in difftex.compose.stage_files, no torch): decode its
    candidate photos once and crop them to the polygon (difftex.sampling.crops.photo_crops);
-2. optimization (``optimize_photos``): decide whether the polygon is a mixed-resolution one
+2. histogram matching (``match_brightness``): sweep the relief when asked, map the photos at the
+   first level through it and estimate their brightness transfers there (Sec. 4.3). The losses
+   compare matched colours, so the transfers are an input of the optimization, not a step
+   after it;
+3. optimization (``optimize_photos``): decide whether the polygon is a mixed-resolution one
    (its candidates' resolution spread, ``optimize.mixed_spread``: then the ``mixed_*`` values
-   apply), build the crops' pyramids, sweep the relief when asked,
-   map the photos at the first level and estimate their brightness transfers there (histogram
-   matching, Sec. 4.3; the losses compare matched colours, so the transfers are an input of the
-   optimization, not a step after it), run the coarse-to-fine optimization of the blend weights
-   (difftex.method.loop) and sum U from the last level's slots (no second pass over the photos);
-3. composition (``compose_polygon``): fill the unseen texels, the report.
+   apply), build the crops' pyramids, run the coarse-to-fine optimization of the blend weights
+   (difftex.method.loop) on the matched photos and sum U from the last level's slots (no second
+   pass over the photos);
+4. composition (``compose_polygon``): fill the unseen texels, the report.
 
-``texture_polygon`` runs the three in one process (the workflow's ``texture`` rule with
-``run.split: false``, the baselines and benchmarks); the workflow's ``initialize``, ``optimize``
-and ``compose`` rules run them as three jobs that exchange the files of
-difftex.compose.stage_files.
+``texture_polygon`` runs the four in one process (the workflow's ``texture`` rule with
+``run.split: false``, the baselines and benchmarks); the workflow's ``initialize``,
+``histmatch``, ``optimize`` and ``compose`` rules run them as four jobs that exchange the files
+of difftex.compose.stage_files. Both run the same functions, so both give the same textures.
 """
 
 from __future__ import annotations
@@ -30,7 +32,7 @@ import numpy as np
 
 from difftex.compose.fill import dominant_from_slots
 from difftex.compose.histmatch import mapped_transfers
-from difftex.compose.stage_files import OptimizedPolygon, compose_polygon, crop_relief_range
+from difftex.compose.stage_files import Brightness, OptimizedPolygon, compose_polygon, crop_relief_range
 from difftex.geometry.frames import UVFrame, level_sides
 from difftex.layout import COMPOSITE
 from difftex.method.config import ComputeConfig, OptimizeConfig
@@ -86,6 +88,20 @@ class TexturedPolygon:
         return self.optimized.heights
 
 
+def coarse_frame(frame: UVFrame, cfg: OptimizeConfig) -> UVFrame:
+    """The level the transfers are estimated at: the first level's long side, or the polygon's."""
+    return level_frame(frame, min(cfg.long_side_start, max(frame.shape)))
+
+
+def coarse_maps(photos: PhotoSet, cfg: OptimizeConfig) -> tuple[UVFrame, dict]:
+    """The photos mapped at the coarse level (``coarse_frame``) before any transfer: (its frame,
+    {photo index: MappedPhoto or None})."""
+    inp = photos.inp
+    match_frame = coarse_frame(inp.frame, cfg)
+    mask = resample_nearest(inp.texel_mask, inp.frame, match_frame)
+    return match_frame, {n: photos.map(n, match_frame, mask) for n in sorted(photos.samplers)}
+
+
 def polygon_transfers(photos: PhotoSet, cfg: OptimizeConfig) -> tuple[UVFrame, dict, list | None, str | None]:
     """The polygon's brightness transfers, estimated on its photos mapped at the coarse level.
 
@@ -94,9 +110,7 @@ def polygon_transfers(photos: PhotoSet, cfg: OptimizeConfig) -> tuple[UVFrame, d
         per photo transfers or None without histogram matching, the reference photo's name or None).
     """
     inp = photos.inp
-    match_frame = level_frame(inp.frame, min(cfg.long_side_start, max(inp.frame.shape)))
-    mask = resample_nearest(inp.texel_mask, inp.frame, match_frame)
-    raw = {n: photos.map(n, match_frame, mask) for n in sorted(photos.samplers)}
+    match_frame, raw = coarse_maps(photos, cfg)
     transfers, ref = None, None
     if cfg.histogram_matching:
         transfers, ref = mapped_transfers(
@@ -106,17 +120,33 @@ def polygon_transfers(photos: PhotoSet, cfg: OptimizeConfig) -> tuple[UVFrame, d
     return match_frame, raw, transfers, ref
 
 
+def match_brightness(photos: PhotoSet, cfg: OptimizeConfig) -> Brightness:
+    """The histogram-matching stage on decoded photos: the relief sweep when ``optimize.relief``
+    asks for one (``photos.relief`` is set to it: the photos are mapped through it from here on),
+    then the brightness transfers at the coarse level (``polygon_transfers``)."""
+    t0 = time.perf_counter()
+    relief_stats = None
+    if cfg.relief:
+        photos.relief, relief_stats = estimate_relief(photos, cfg.relief_settings())
+        relief_stats["time_s"] = time.perf_counter() - t0
+    t1 = time.perf_counter()
+    match_frame, raw, transfers, ref = polygon_transfers(photos, cfg)
+    return Brightness(transfers, ref, photos.relief if cfg.relief else None, relief_stats,
+                      time.perf_counter() - t1, mapped=(match_frame, raw))
+
+
 def optimize_photos(
     photos: PhotoSet,
     cfg: OptimizeConfig,
     compute: ComputeConfig = ComputeConfig(),
     progress: bool = False,
     read_stats: dict | None = None,
+    brightness: Brightness | None = None,
 ) -> OptimizedPolygon:
     """The optimization stage on decoded photos: the mixed-resolution switch (``cfg.for_spread``
     on the candidates' resolution spread; stats ``resolution_spread``, ``mixed_resolution``),
-    relief sweep (``optimize.relief``), brightness transfers, then the coarse-to-fine
-    optimization of W and U = sum_k W_k sharp_k.
+    then the coarse-to-fine optimization of W and U = sum_k W_k sharp_k on the photos matched by
+    ``brightness`` (the histogram-matching stage's; None: ``match_brightness`` runs here).
 
     ``read_stats``: ``photo_reads``, ``time_read_photos_s`` of the stage that decoded the photos
     (``PhotoSet.load`` in this process, or the initialization stage's file).
@@ -124,43 +154,45 @@ def optimize_photos(
     t0 = time.perf_counter()
     inp = photos.inp
     spread, mixed = None, False
-    if cfg.mixed_spread > 0:  # decided once per polygon, on all its candidates
+    if cfg.mixed_spread > 0:  # decided once per polygon, on all its candidates (before the relief)
         spread = resolution_spread(candidate_footprints(photos, inp.frame, sorted(photos.samplers)))
         switched = cfg.for_spread(spread)
         mixed, cfg = switched is not cfg, switched
-    relief_stats = None
-    if cfg.relief:
-        photos.relief, relief_stats = estimate_relief(photos, cfg.relief_settings())
-        relief_stats["time_s"] = time.perf_counter() - t0
+    if brightness is None:
+        brightness = match_brightness(photos, cfg)
+    else:  # matched in another process: map through the relief the transfers were estimated on
+        photos.relief = brightness.relief
+    transfers = brightness.transfers
     sides = level_sides(max(inp.frame.shape), cfg.long_side_start, cfg.coarse_to_fine, cfg.level_step)
-    match_frame, raw, transfers, ref = polygon_transfers(photos, cfg)
     first = None
-    if match_frame.shape == level_frame(inp.frame, sides[0]).shape:
+    if coarse_frame(inp.frame, cfg).shape == level_frame(inp.frame, sides[0]).shape:
+        # the first level is the transfers' level: its photos are mapped once (in this process
+        # by match_brightness, else here), and the optimization's first level reuses them
+        _, raw = brightness.mapped if brightness.mapped is not None else coarse_maps(photos, cfg)
         first = {
             n: (with_transfer(mp, transfers[n] if transfers else None) if mp is not None else None)
             for n, mp in raw.items()
         }
-    t_match = time.perf_counter() - t0 - (relief_stats["time_s"] if relief_stats else 0.0)
     res = optimize_polygon(photos, cfg, compute, transfers, first=first, progress=progress)
     read = {"photo_reads": photos.reads, "time_read_photos_s": 0.0, **(read_stats or {})}
     stats = dict(res.stats)
     stats.update(
         {
             "histmatch": transfers is not None,
-            "histmatch_reference": ref,
+            "histmatch_reference": brightness.reference,
             "histmatch_mode": cfg.histmatch_reference if cfg.histogram_matching else None,
             "photos_seeing": [inp.photos[n].name for n in sorted(photos.samplers)],
             "photo_reads": read["photo_reads"],
             "decode_scale": {inp.photos[n].name: s for n, s in photos.decode_scale.items()},
             "photo_bytes": photos.nbytes(),
             "time_read_photos_s": read["time_read_photos_s"],
-            "time_histmatch_s": t_match,
+            "time_histmatch_s": brightness.time_s,
             "corrections": {
                 inp.photos[n].name: {"params": c.params.tolist(), "centre": list(c.centre), "scale": c.scale}
                 for n, c in photos.corrections.items()
             },
             "time_stage_s": time.perf_counter() - t0 + read["time_read_photos_s"],
-            "relief": relief_stats,
+            "relief": brightness.relief_stats,
             "resolution_spread": spread,
             "mixed_resolution": mixed,
         }

@@ -28,6 +28,11 @@ STAGE_SECTIONS = {
     # the optimization read the whole section
     "initialize": ("optimize.exact_decode", "optimize.supersample", "optimize.relief", "optimize.relief_range",
                    "optimize.relief_min_cos", "optimize.relief_min_elevation"),
+    # histogram matching (run.split): the transfers' own keys, the level they are estimated at, and
+    # what the photos are mapped with there (the crops' keys and the relief they are mapped through);
+    # a key ending in * stands for every key of the section that starts with what precedes it
+    "histmatch": ("optimize.histogram_matching", "optimize.histmatch_*", "optimize.long_side_start",
+                  "optimize.exact_decode", "optimize.supersample", "optimize.relief*"),
     "texture": ("optimize",),
     # device and compilation: read by the texture jobs, but not an input of them (no result changes)
     "compute": ("compute",),
@@ -163,11 +168,15 @@ def validate(cfg: dict, schema_path: str | Path) -> None:
 
 
 def stage_config_text(cfg: dict, stage: str) -> str:
+    """The YAML text of a stage's config file: the sections and keys STAGE_SECTIONS gives it."""
     import yaml
 
     sections: dict = {}
     for s in STAGE_SECTIONS[stage]:
-        if "." in s:  # one key of a section
+        if s.endswith("*"):  # the keys of a section with this prefix
+            sec, prefix = s[:-1].split(".", 1)
+            sections.setdefault(sec, {}).update({k: v for k, v in cfg[sec].items() if k.startswith(prefix)})
+        elif "." in s:  # one key of a section
             sec, key = s.split(".", 1)
             sections.setdefault(sec, {})[key] = cfg[sec][key]
         else:

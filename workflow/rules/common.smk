@@ -71,9 +71,10 @@ except Exception:  # noqa: BLE001 -- not set (a dry run, a cluster job): the fal
 # a cluster's main process reads the Snakefile before its executor is attached: the command line says
 _local = workflow.local_exec and not workflow.remote_exec and jobs.cli_executor(sys.argv[1:]) is None
 RUN["pack_jobs"] = jobs.pack_jobs(RUN["pack_jobs"], _local, _cores)
-# initialize -> optimize -> compose jobs, or one texture job per polygon group (jobs.split_stages)
+# initialize -> histmatch -> optimize -> compose jobs, or one texture job per polygon group
+# (jobs.split_stages)
 SPLIT = jobs.split_stages(RUN["split"], RUN["gpu"], _local)
-PER_POLYGON_CFG = [STAGE_CFG[s] for s in (("initialize", "texture") if SPLIT else ("texture",)) + ("output",)]
+PER_POLYGON_CFG = [STAGE_CFG[s] for s in (("initialize", "histmatch", "texture") if SPLIT else ("texture",)) + ("output",)]
 PER_POLYGON_CFG.append(str(RES.compute_config))
 # One real run per working directory; a run killed earlier leaves stale locks that this one
 # clears (difftex/workflow/runguard.py). Called as an input function, when the kind of run is known.
@@ -144,6 +145,10 @@ def get_composed_job(wc):
 
 def get_job_init(wc):
     return [str(RES.crops(pid)) for pid in get_job_pids(wc)]
+
+
+def get_job_transfers(wc):
+    return [str(RES.transfers(pid)) for pid in get_job_pids(wc)]
 
 
 def get_textures(wc):

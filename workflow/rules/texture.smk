@@ -3,10 +3,12 @@
 # (difftex/workflow/jobs.py), named by its polygon or `group-<digest>`, in every stage below.
 #
 # run.split (jobs.split_stages) chooses between
-#   initialize -> optimize -> compose: the photos decoded and cropped once (R/init/<pid>/crops.npz),
-#       the optimization from those crops (the only stage that requests run.gpu), the
-#       composition (numpy, local); a change of optimize.lr reruns optimize and what follows;
-#   texture: the three in one process (a local CPU run's default: one process start, no crops file).
+#   initialize -> histmatch -> optimize -> compose: the photos decoded and cropped once
+#       (R/init/<pid>/crops.npz), the brightness transfers estimated on those crops
+#       (R/histmatch/<pid>/transfers.npz: an input of W, so before the optimization), the
+#       optimization from the crops and transfers, the composition (numpy, local); a change of a
+#       histmatch_* key reruns histmatch and what follows, one of optimize.lr optimize and what follows;
+#   texture: the four in one process (a local CPU run's default: one process start, no crops file).
 # Both write the same R/optimized/<pid>/composite.npz (equal arrays; only the report's timings differ),
 # so the PNGs that `finish` writes from it are the same bytes.
 # The `compute` section (device, torch.compile) changes no result, so changing it reruns nothing.
@@ -43,11 +45,46 @@ rule initialize:
         "--decode-cache-mb {params.decode_cache_mb} --done {output:q} > {log:q} 2>&1"
 
 
+rule histmatch:
+    input:
+        scene=SCENE_MODEL,
+        vis=get_job_visibility,
+        init=str(RES.job_file("initialize", "{job}")),
+        config=STAGE_CFG["histmatch"],
+        # on the optimization's device, so the transfers are the ones the one-process stage finds
+        compute=ancient(str(RES.compute_config)),
+    output:
+        # the job's list; each polygon's transfers.npz is in R/histmatch/<polygon>/ (atomically)
+        str(RES.job_file("histmatch", "{job}")),
+    params:
+        stage_config=STAGE_TEXT["histmatch"],
+        scene=lambda wc, input: Path(input.scene[0]).parent,
+        crops=get_job_init,
+        outs=get_job_transfers,
+    conda:
+        "../envs/difftex.yaml"
+    log:
+        str(RES.log("histmatch", "{job}")),
+    benchmark:
+        str(RES.benchmark("histmatch", "{job}"))
+    threads: RUN["polygon_threads"]
+    priority: get_job_priority
+    resources:
+        mem_mb=get_job_mem_mb,
+        runtime=get_job_runtime,
+        gpu=RUN["gpu"],
+    shell:
+        "OMP_NUM_THREADS={threads} difftex histmatch --threads {threads} --scene {params.scene:q} "
+        "--visibility {input.vis:q} --init {params.crops:q} --out {params.outs:q} "
+        "--config {input.config:q} --compute-config {input.compute:q} --done {output:q} > {log:q} 2>&1"
+
+
 rule optimize:
     input:
         scene=SCENE_MODEL,
         vis=get_job_visibility,
         init=str(RES.job_file("initialize", "{job}")),
+        histmatch=str(RES.job_file("histmatch", "{job}")),
         config=STAGE_CFG["texture"],
         # device and compilation: read, but ancient() and a fixed name keep a change of them
         # from rerunning anything (they change no result beyond float tolerance)
@@ -60,6 +97,7 @@ rule optimize:
         stage_config=STAGE_TEXT["texture"],
         scene=lambda wc, input: Path(input.scene[0]).parent,
         crops=get_job_init,
+        transfers=get_job_transfers,
         out_dirs=get_job_out_dirs,
     conda:
         "../envs/difftex.yaml"
@@ -75,8 +113,9 @@ rule optimize:
         gpu=RUN["gpu"],
     shell:
         "OMP_NUM_THREADS={threads} difftex optimize --threads {threads} --no-progress --scene {params.scene:q} "
-        "--visibility {input.vis:q} --init {params.crops:q} --out-dir {params.out_dirs:q} "
-        "--config {input.config:q} --compute-config {input.compute:q} --done {output:q} > {log:q} 2>&1"
+        "--visibility {input.vis:q} --init {params.crops:q} --transfers {params.transfers:q} "
+        "--out-dir {params.out_dirs:q} --config {input.config:q} --compute-config {input.compute:q} "
+        "--done {output:q} > {log:q} 2>&1"
 
 
 rule compose:
