@@ -31,11 +31,14 @@ localrules:
 
 rule all:
     input:
-        # the run guard first: it takes the run lock in real runs (and adds no input)
-        lambda wc: RUN_GUARD(workflow),
+        # the run guard first: it takes the run lock in real runs, then runs again the finished
+        # jobs that lost a polygon's file (and adds no input)
+        get_run_start,
         # the per-polygon stages' config files, wanted from the start: asked for only after the
         # visibility checkpoint, they would be a round of jobs between it and the texture jobs
         PER_POLYGON_CFG,
+        # every per-polygon job's list (after the checkpoint): a finished job that lost a file runs again
+        get_polygon_job_files,
         str(RES.model_summary),
         str(RES.report_md),
         str(RES.report_html),

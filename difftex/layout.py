@@ -97,6 +97,34 @@ JOB_FILES = {
     "finish": ("textures", ".json"),
 }
 
+# The files each per-polygon rule's job leaves in a polygon's folder (besides its job file), by the
+# folder's name relative to R. A finished job missing one of them is run again (difftex.workflow.
+# products); height.exr and normal.png are left out: finish writes them only with a relief.
+POLYGON_PRODUCTS = {
+    "initialize": ("init", (CROPS,)),
+    "histmatch": ("histmatch", (TRANSFERS,)),
+    "optimize": ("optimized", (WEIGHTS, OPTIMIZED, STATS)),
+    "compose": ("optimized", (COMPOSITE,)),
+    "texture": ("optimized", (WEIGHTS, STATS, COMPOSITE)),
+    "finish": ("textures", (TEXTURE, SOURCE_PNG, SOURCE_NPZ, COVERAGE, REPORT)),
+}
+
+
+def polygon_products(res: Results, rule: str, pid: str, exr: bool = False) -> list[Path]:
+    """The files a job of a per-polygon rule writes for polygon ``pid`` (POLYGON_PRODUCTS).
+
+    Args:
+        res: the results folder.
+        rule: initialize, histmatch, optimize, compose, texture or finish.
+        pid: the polygon's id.
+        exr: finish also writes texture.exr (``output.exr``).
+    """
+    folder, names = POLYGON_PRODUCTS[rule]
+    if rule == "finish" and exr:
+        names = (*names, TEXTURE_EXR)
+    return [res.root / folder / pid / name for name in names]
+
+
 def visibility_file(folder: str | Path, pid: str) -> Path:
     """A polygon's visibility file in a visibility folder (R/visibility or one given to a command).
 

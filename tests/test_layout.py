@@ -122,6 +122,20 @@ def test_the_job_files_of_different_rules_differ():
     assert len(set(files)) == len(files)
 
 
+def test_every_per_polygon_rule_lists_its_polygons_files():
+    # the rules whose jobs write a polygon's files are those with a job file, and their files
+    # are in the polygon's folder of the rule's results folder (difftex.workflow.products)
+    assert set(layout.POLYGON_PRODUCTS) == set(layout.JOB_FILES)
+    res = Results("r")
+    for rule, (folder, _) in layout.POLYGON_PRODUCTS.items():
+        files = layout.polygon_products(res, rule, "p0")
+        assert files and all(f.parent == res.root / folder / "p0" for f in files), rule
+        assert res.job_file(rule, "j").parent.parent == res.root / folder
+    assert res.texture("p0") in layout.polygon_products(res, "finish", "p0")
+    assert res.transfers("p0") in layout.polygon_products(res, "histmatch", "p0")
+    assert res.root / "textures/p0/texture.exr" in layout.polygon_products(res, "finish", "p0", exr=True)
+
+
 def test_layout_imports_only_the_standard_library():
     tree = ast.parse(Path(layout.__file__).read_text())
     names = {a.name for n in ast.walk(tree) if isinstance(n, ast.Import) for a in n.names}

@@ -6,7 +6,7 @@ initialization; the histogram matching and the optimization decode none); the sp
 writes the same textures as the one-job ``texture`` stage; a change of an optimization key reruns
 the optimization and what follows but not the histogram matching or the initialization, a change
 of a histogram-matching key reruns the histogram matching and what follows, a change of what
-fixes the crops reruns the initialization.
+fixes the crops reruns the initialization; a deleted file of a polygon is made again.
 """
 
 from __future__ import annotations
@@ -328,3 +328,20 @@ def test_the_initialize_command_imports_no_torch(runs, tmp_path):
     crops, stats = read_init(tmp_path / "crops.npz", vis.stem, [str(x) for x in np.load(vis)["photos"]])
     assert crops and stats["photo_reads"] == len(crops)
 
+
+@pytest.mark.slow
+def test_a_deleted_file_of_a_split_stage_is_made_again(runs):
+    # last in this module: it deletes and remakes files of the split run (the same bytes)
+    R, args, work = runs["true"]
+    res = Results(R)
+    pid = sorted(p.parent.name for p in res.histmatch_dir.glob("*/transfers.npz"))[0]
+    texture, transfers = res.texture(pid).read_bytes(), np.load(res.transfers(pid))["transfers"]
+    res.transfers(pid).unlink()
+    res.texture(pid).unlink()
+    r = snakemake(work, *args)
+    assert r.returncode == 0, r.stdout[-3000:] + r.stderr[-3000:]
+    counts = job_counts(r.stdout + r.stderr)
+    assert counts.get("histmatch") == counts.get("optimize") == 1 and "initialize" not in counts, counts
+    assert np.array_equal(np.load(res.transfers(pid))["transfers"], transfers)
+    assert res.texture(pid).read_bytes() == texture
+    assert "Nothing to be done" in snakemake(work, "-n", *args).stdout

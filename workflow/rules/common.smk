@@ -14,7 +14,7 @@ shell.prefix(f"set -euo pipefail; export PATH={shlex.quote(str(Path(sys.executab
 import difftex.workflow.glue as wf
 import difftex.scene.partition as partition
 import difftex.workflow.jobs as jobs
-from difftex.workflow import runguard, runlog
+from difftex.workflow import products, runguard, runlog
 from difftex.errors import DifftexError
 from difftex.layout import Results
 
@@ -79,6 +79,9 @@ PER_POLYGON_CFG.append(str(RES.compute_config))
 # One real run per working directory; a run killed earlier leaves stale locks that this one
 # clears (difftex/workflow/runguard.py). Called as an input function, when the kind of run is known.
 RUN_GUARD = runguard.RunGuard(R)
+# A finished per-polygon job that lost one of its polygons' files (a deleted texture.png) runs
+# again: the files are not outputs Snakemake knows (difftex/workflow/products.py).
+REBUILD = products.Rebuild(R, config, SPLIT)
 
 
 wildcard_constraints:
@@ -92,6 +95,21 @@ wildcard_constraints:
 
 # Named input functions of the per-polygon rules (their rows come from the visibility checkpoint).
 # Small polygons share a texture job (difftex/workflow/jobs.py), and its finish job.
+
+
+def get_run_start(wc):
+    # the run lock first (real runs), then the finished jobs that lost a file; adds no input
+    RUN_GUARD(workflow)
+    return REBUILD(workflow)
+
+
+def get_polygon_job_files(wc):
+    # every per-polygon job's list, asked for by `all`: Snakemake makes a missing intermediate
+    # file again only for a job that must run, so without this a job whose list is missing (or
+    # deleted by REBUILD: one of its polygons' files is) would not run while what follows is
+    # up to date
+    rules = products.SPLIT_RULES if SPLIT else products.ONE_JOB_RULES
+    return [str(RES.job_file(rule, job)) for rule in rules for job in wf.texture_jobs(get_summary(), config)]
 
 
 def get_summary():
