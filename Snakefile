@@ -37,7 +37,9 @@ rule all:
         # the per-polygon stages' config files, wanted from the start: asked for only after the
         # visibility checkpoint, they would be a round of jobs between it and the texture jobs
         PER_POLYGON_CFG,
-        # every per-polygon job's list (after the checkpoint): a finished job that lost a file runs again
+        # every visibility tile's and per-polygon job's list (the latter after the checkpoint): a
+        # finished job that lost a file runs again
+        TILE_ROWS,
         get_polygon_job_files,
         str(RES.model_summary),
         str(RES.report_md),

@@ -9,13 +9,21 @@ deletes files and runs the same command again.
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import pytest
 from test_workflow import REPO, job_counts, snakemake
 
 from difftex.layout import Results, polygon_products
 from difftex.workflow import glue as wf
-from difftex.workflow.products import ONE_JOB_RULES, SPLIT_RULES, Rebuild, missing_products, report_lines
+from difftex.workflow.products import (
+    ONE_JOB_RULES,
+    SPLIT_RULES,
+    Rebuild,
+    missing_products,
+    missing_visibility,
+    report_lines,
+)
 
 
 def _finish_jobs(res: Results, rules, jobs: dict[str, list[str]]) -> None:
@@ -57,6 +65,18 @@ def test_the_split_stages_files_are_found_per_stage(tmp_path):
     res.optimized("wall").unlink()
     assert list(missing_products(res, jobs, SPLIT_RULES)) == [
         res.job_file("initialize", "wall"), res.job_file("histmatch", "wall"), res.job_file("optimize", "wall")]
+
+
+def test_visibility_tiles_that_lost_a_polygons_file_are_found(tmp_path):
+    res = Results(tmp_path)
+    res.visibility_tile("1-of-2").parent.mkdir(parents=True)
+    res.visibility_tile("1-of-2").write_text(json.dumps({"rows": [{"id": "wall"}, {"id": "roof"}]}))
+    res.visibility_tile("2-of-2").write_text("not json")  # the merge reports it, not this
+    res.visibility("wall").write_text("x")
+    assert missing_visibility(res, ["1-of-2", "2-of-2", "3-of-3"]) == {
+        res.visibility_tile("1-of-2"): [res.visibility("roof")]}
+    res.visibility("roof").write_text("x")
+    assert missing_visibility(res, ["1-of-2"]) == {}
 
 
 def test_report_names_a_file_per_job_and_counts_the_rest(tmp_path):
@@ -108,15 +128,36 @@ def _without_times(report):
     return report
 
 
-@pytest.mark.slow
-def test_a_deleted_texture_is_made_again_by_the_same_command(small_synth_scene, tmp_path):
-    work = tmp_path / "run"
+@pytest.fixture(scope="module")
+def finished_run(small_synth_scene, tmp_path_factory):
+    """The small scene textured once, and the command that did it (the tests below delete files
+    and run it again, which leaves the run finished again)."""
+    work = tmp_path_factory.mktemp("products") / "run"
     args = ("--cores", "2", "--config", f"scene={small_synth_scene}", *QUICK)
     r = snakemake(work, *args)
     assert r.returncode == 0, r.stdout[-3000:] + r.stderr[-3000:]
-    res = Results(work / "results" / "small")
+    return Results(work / "results" / "small"), work, args
+
+
+def _textures(res: Results) -> dict[Path, bytes]:
     pids = sorted(f.parent.name for f in res.textures_dir.glob("*/texture.png"))
-    before = {f: f.read_bytes() for pid in pids for f in res.polygon_textures(pid).iterdir()}
+    return {f: f.read_bytes() for pid in pids for f in res.polygon_textures(pid).iterdir()}
+
+
+def _same_textures(before: dict[Path, bytes]) -> None:
+    """The same bytes, but the reports' timings of polygons whose texture job ran again."""
+    for f, data in before.items():
+        if f.name == "report.json":
+            assert _without_times(json.loads(f.read_text())) == _without_times(json.loads(data)), f
+        else:
+            assert f.read_bytes() == data, f
+
+
+@pytest.mark.slow
+def test_a_deleted_texture_is_made_again_by_the_same_command(finished_run):
+    res, work, args = finished_run
+    before = _textures(res)
+    pids = sorted({f.parent.name for f in before})
     gone, recomposed = pids[0], pids[-1]
     res.texture(gone).unlink()  # the issue's case
     res.composite(recomposed).unlink()  # a file of the texture stage, and one of finish's with it
@@ -134,9 +175,23 @@ def test_a_deleted_texture_is_made_again_by_the_same_command(small_synth_scene, 
     assert counts.get("texture") == 1 and 1 <= counts.get("finish", 0) <= 2 and counts.get("assemble") == 1, counts
     assert not {"filter", "visibility", "visibility_tile", "initialize"} & set(counts), counts
     assert res.composite(recomposed).is_file()
-    for f, data in before.items():
-        if f.name == "report.json":  # the texture job ran again: its timings are new
-            assert _without_times(json.loads(f.read_text())) == _without_times(json.loads(data)), f
-        else:
-            assert f.read_bytes() == data, f
+    _same_textures(before)
+    assert "Nothing to be done" in snakemake(work, "-n", *args).stdout
+
+
+@pytest.mark.slow
+def test_a_deleted_visibility_file_is_made_again(finished_run):
+    import numpy as np
+
+    res, work, args = finished_run
+    before = _textures(res)
+    pid = sorted(f.parent.name for f in res.textures_dir.glob("*/texture.png"))[0]
+    arrays = dict(np.load(res.visibility(pid)))
+    res.visibility(pid).unlink()
+    again = snakemake(work, *args)
+    assert again.returncode == 0, again.stdout[-3000:] + again.stderr[-3000:]
+    assert "visibility_tile" in job_counts(again.stdout + again.stderr)
+    back = np.load(res.visibility(pid))
+    assert set(back.files) == set(arrays) and all(np.array_equal(back[k], arrays[k]) for k in arrays)
+    _same_textures(before)
     assert "Nothing to be done" in snakemake(work, "-n", *args).stdout

@@ -81,7 +81,10 @@ PER_POLYGON_CFG.append(str(RES.compute_config))
 RUN_GUARD = runguard.RunGuard(R)
 # A finished per-polygon job that lost one of its polygons' files (a deleted texture.png) runs
 # again: the files are not outputs Snakemake knows (difftex/workflow/products.py).
-REBUILD = products.Rebuild(R, config, SPLIT)
+REBUILD = products.Rebuild(R, config, SPLIT, VISIBILITY_TILES)
+# the visibility tiles' rows: asked for by `all` too, so that a tile whose list REBUILD deleted
+# (one of its polygons' visibility files is missing) runs again
+TILE_ROWS = [str(RES.visibility_tile(tile)) for tile in VISIBILITY_TILES]
 
 
 wildcard_constraints:

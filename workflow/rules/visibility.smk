@@ -33,7 +33,7 @@ rule visibility_tile:
 
 checkpoint visibility:
     input:
-        tiles=expand(str(RES.visibility_tile("{tile}")), tile=VISIBILITY_TILES),
+        tiles=TILE_ROWS,
     output:
         summary=str(RES.visibility_summary),
     params:
