@@ -31,6 +31,7 @@ from difftex.method.quality import (
     tilt_frontality,
     wall_tilt_axis,
 )
+from difftex.method.regions import Entry, photo_entries
 from difftex.method.slots import EMPTY_SCORE, Slots
 from difftex.method.witnesses import candidate_footprints, witness_sigma
 from difftex.sampling.crops import PolygonInput, seen_from_above
@@ -164,66 +165,6 @@ def upsample_known(prev_level: Level, frame: UVFrame) -> torch.Tensor:
     return up[0, 0] > 0.5
 
 
-def photo_regions(
-    photos: PhotoSet,
-    frame: UVFrame,
-    mask: np.ndarray,
-    prev: tuple[Level, torch.Tensor] | None,
-    prev_known: torch.Tensor | None,
-    tau: float,
-    pad: int = 2,
-) -> dict[int, Region]:
-    """The rectangle of ``frame`` each photo must be mapped over: all of it at the first level;
-    after it, around the texels where the photo held weight (> tau) at the coarser level, plus
-    any texels the coarser level knew nothing about. Photos without either are not mapped.
-
-    This keeps a level's cost in texels x K rather than texels x candidates: a photo the
-    coarser level outranked everywhere starts at zero weight anyway (build_level).
-    """
-    h, w = frame.shape
-    if prev is None:
-        return {n: (0, h, 0, w) for n in sorted(photos.samplers)}
-    plv, pW = prev
-    assert prev_known is not None  # given with prev
-    r = frame.texel_size / plv.frame.texel_size  # a fine texel in coarse texels
-    unknown = torch.from_numpy(mask).to(prev_known.device) & ~prev_known
-    ubox = _bbox(unknown) if bool(unknown.any()) else None
-    held = (pW > tau) & plv.visible
-    out = {}
-    for n in sorted(photos.samplers):
-        sup = ((plv.idx == n) & held).any(0)
-        boxes = []
-        if bool(sup.any()):
-            cy0, cy1, cx0, cx1 = _bbox(sup)
-            boxes.append(
-                (
-                    int(np.floor(cy0 / r)) - pad,
-                    int(np.ceil(cy1 / r)) + pad,
-                    int(np.floor(cx0 / r)) - pad,
-                    int(np.ceil(cx1 / r)) + pad,
-                )
-            )
-        if ubox is not None and resample_nearest(photos.inp.texel_visible[n], photos.inp.frame, frame, ubox).any():
-            boxes.append(ubox)
-        if not boxes:
-            continue
-        b = np.array(boxes)
-        out[n] = (
-            max(0, int(b[:, 0].min())),
-            min(h, int(b[:, 1].max())),
-            max(0, int(b[:, 2].min())),
-            min(w, int(b[:, 3].max())),
-        )
-    return out
-
-
-def _bbox(m: torch.Tensor) -> Region:
-    """(y0, y1, x0, x1) of a non-empty (h, w) bool mask."""
-    ys = torch.nonzero(m.any(1)).flatten()
-    xs = torch.nonzero(m.any(0)).flatten()
-    return int(ys[0]), int(ys[-1]) + 1, int(xs[0]), int(xs[-1]) + 1
-
-
 def tilt_axis(inp: PolygonInput, cfg: OptimizeConfig) -> np.ndarray | None:
     """The axis the tilt frontality measures views' tilt about (the wall's in-plane up), or None
     where it is off: ``frontality_tilt`` 0, a roof (quality.wall_tilt_axis), or photos whose
@@ -285,14 +226,14 @@ def _photo_q(
 class _LevelPhotos:
     """A level's candidates as mapped into its texels (``get``) and as compared (``compared``:
     low-passed by ``sigma`` texels when it is above 0), held while ``keep_all`` (they fit in
-    MAP_CACHE_BYTES), else mapped again when asked (``maps`` counts the mappings).
+    MAP_CACHE_BYTES), else mapped again when asked (``maps`` counts the mappings). A candidate is
+    an entry, a photo and the rectangle of the level it is mapped over (difftex.method.regions).
 
     Args:
         photos: the polygon's decoded photos.
         frame: the level's frame.
         mask_np: (h, w) bool, the polygon's texels at this level.
         transfers: per photo brightness transfer (or None).
-        regions: per photo, its region (y0, y1, x0, x1) of the level.
         mapped: photos already mapped over the whole level by the caller, or None.
         keep_all: hold every mapped photo.
         sigma: the compared colours' low-pass in texels (0: full detail).
@@ -300,38 +241,38 @@ class _LevelPhotos:
 
     def __init__(
         self, photos: PhotoSet, frame: UVFrame, mask_np: np.ndarray, transfers: list | None,
-        regions: dict[int, Region], mapped: dict[int, MappedPhoto | None] | None, keep_all: bool, sigma: float,
+        mapped: dict[int, MappedPhoto | None] | None, keep_all: bool, sigma: float,
     ) -> None:
         self.photos, self.frame, self.mask_np, self.transfers = photos, frame, mask_np, transfers
-        self.regions, self.whole, self.keep_all, self.sigma = regions, mapped is not None, keep_all, sigma
-        self.cache: dict[int, MappedPhoto | None] = dict(mapped) if mapped is not None else {}
-        self.low: dict[int, torch.Tensor] = {}  # low-passed colours of the photos held in ``cache``
+        self.keep_all, self.sigma = keep_all, sigma
+        h, w = frame.shape
+        self.cache: dict[Entry, MappedPhoto | None] = (
+            {(n, (0, h, 0, w)): mp for n, mp in mapped.items()} if mapped is not None else {}
+        )
+        self.low: dict[Entry, torch.Tensor] = {}  # low-passed colours of the entries held in ``cache``
         self.maps = 0
 
-    def get(self, n: int) -> MappedPhoto | None:
-        if n in self.cache:
-            return self.cache[n]
+    def get(self, e: Entry) -> MappedPhoto | None:
+        if e in self.cache:
+            return self.cache[e]
         self.maps += 1
+        n, reg = e
         transfer = self.transfers[n] if self.transfers is not None else None
-        return self.photos.map(n, self.frame, self.mask_np, transfer, self.regions[n])
+        return self.photos.map(n, self.frame, self.mask_np, transfer, reg)
 
-    def hold(self, n: int, mp: MappedPhoto | None) -> None:
-        """Keep photo ``n``'s mapping for the second pass (None: it sees nothing here)."""
+    def hold(self, e: Entry, mp: MappedPhoto | None) -> None:
+        """Keep entry ``e``'s mapping for the second pass (None: it sees nothing there)."""
         if mp is None or self.keep_all:
-            self.cache[n] = mp
+            self.cache[e] = mp
 
-    def region(self, n: int) -> Region:
-        h, w = self.frame.shape
-        return (0, h, 0, w) if self.whole else self.regions[n]
-
-    def compared(self, n: int, mp: MappedPhoto) -> torch.Tensor:
+    def compared(self, e: Entry, mp: MappedPhoto) -> torch.Tensor:
         if self.sigma <= 0:
             return mp.colour
-        if n in self.low:
-            return self.low[n]
+        if e in self.low:
+            return self.low[e]
         c = masked_blur(mp.colour, mp.visible, self.sigma)
         if self.keep_all:
-            self.low[n] = c
+            self.low[e] = c
         return c
 
 
@@ -349,19 +290,19 @@ def _compare_sigma(photos: PhotoSet, frame: UVFrame, order: list[int], cfg: Opti
 
 
 def _stream_candidates(
-    lp: _LevelPhotos, order: list[int], stats: CandidateStats, prev: tuple[Level, torch.Tensor] | None,
-) -> tuple[list[int], torch.Tensor]:
-    """The first pass: every candidate into ``stats`` (finished here). Returns the photos that
+    lp: _LevelPhotos, entries: list[Entry], stats: CandidateStats, prev: tuple[Level, torch.Tensor] | None,
+) -> tuple[list[Entry], torch.Tensor]:
+    """The first pass: every candidate into ``stats`` (finished here). Returns the entries that
     see the level and the guidance direction v~ (the first level's, over all its candidates)."""
     vsum = []
     seen = []
-    for n in order:
-        mp = lp.get(n)
-        lp.hold(n, mp)
+    for e in entries:
+        mp = lp.get(e)
+        lp.hold(e, mp)
         if mp is None:
             continue
-        seen.append(n)
-        stats.add(mp, lp.compared(n, mp), lp.region(n))
+        seen.append(e)
+        stats.add(mp, lp.compared(e, mp), e[1])
         vd = (mp.view * mp.visible.float()).sum((1, 2))
         vsum.append(vd / vd.norm().clamp_min(1e-12))
     stats.finish()
@@ -371,11 +312,11 @@ def _stream_candidates(
 
 
 def _fill_slots(
-    lp: _LevelPhotos, seen: list[int], stats: CandidateStats, v_tilde: torch.Tensor, cfg: OptimizeConfig,
+    lp: _LevelPhotos, seen: list[Entry], stats: CandidateStats, v_tilde: torch.Tensor, cfg: OptimizeConfig,
     prev: tuple[Level, torch.Tensor] | None, prev_known: torch.Tensor | None, dropped: set[int], fixed: bool,
 ) -> Slots:
     """The second pass: each candidate's Q, persp cost and starting weight into the top-K slots
-    (``fixed``: every candidate fits, slot j is photo seen[j] at every texel)."""
+    (``fixed``: every candidate fits, slot j is entry seen[j] over its region)."""
     h, w = lp.frame.shape
     # Q weighs the photos as witnesses (L_Render, ghost, settling); Qb, with the relative Q_r, the
     # blend (initial and settled weights). With one Q for both, the close photos that saw the tree
@@ -385,12 +326,12 @@ def _fill_slots(
     split = res_split or (stats.tbest is not None and not cfg.frontality_tilt_witnesses)
     slots = Slots(max(1, len(seen)) if fixed else cfg.top_k, (h, w), stats.normal.device,
                   detail=lp.sigma > 0, blend_q=split, resolve=cfg.detail)
-    for j, n in enumerate(seen):
-        mp = lp.get(n)
+    for j, e in enumerate(seen):
+        mp = lp.get(e)
         assert mp is not None
-        reg = lp.region(n)
+        n, reg = e
         sl = (slice(reg[0], reg[1]), slice(reg[2], reg[3]))
-        c = lp.compared(n, mp)
+        c = lp.compared(e, mp)
         q, qb = _photo_q(mp, c, sl, stats, cfg, res_split)
         pc = losses.persp_cost(mp.view[None], v_tilde)[0]
         weight = qb  # as the paper (Sec. 4.2), the weights start at Q (here the blend's, with Q_r)
@@ -460,19 +401,19 @@ def build_level(
     mask_np = resample_nearest(inp.texel_mask, inp.frame, frame)
     mask = torch.from_numpy(mask_np).to(device)
     prev_known = upsample_known(prev[0], frame) if prev is not None else None
-    regions = photo_regions(photos, frame, mask_np, prev, prev_known, cfg.tau)
-    order = list(regions)
+    entries = photo_entries(photos, frame, mask_np, prev, prev_known, cfg.tau)
+    order = sorted({n for n, _ in entries})
     per_texel = 4 * 12  # colour, view, cos, footprint, visible; Q, persp cost, weight until the slots are written
-    area = sum((y1 - y0) * (x1 - x0) for y0, y1, x0, x1 in regions.values())
-    keep_all = mapped is not None or len(order) <= cfg.top_k or area * per_texel <= MAP_CACHE_BYTES
+    area = sum((y1 - y0) * (x1 - x0) for _, (y0, y1, x0, x1) in entries)
+    keep_all = mapped is not None or len(entries) <= cfg.top_k or area * per_texel <= MAP_CACHE_BYTES
     sig = _compare_sigma(photos, frame, order, cfg)
-    lp = _LevelPhotos(photos, frame, mask_np, transfers, regions, mapped, keep_all, sig)
+    lp = _LevelPhotos(photos, frame, mask_np, transfers, mapped, keep_all, sig)
 
     normal = torch.tensor(frame.normal, dtype=torch.float32, device=device)
     axis = tilt_axis(inp, cfg)
     axis_t = None if axis is None else torch.tensor(axis, dtype=torch.float32, device=device)
     stats = CandidateStats(frame.shape, device, normal, axis_t, cfg)
-    seen, v_tilde = _stream_candidates(lp, order, stats, prev)
+    seen, v_tilde = _stream_candidates(lp, entries, stats, prev)
     fixed = len(seen) <= cfg.top_k
     slots = _fill_slots(lp, seen, stats, v_tilde, cfg, prev, prev_known, dropped or set(), fixed)
 
@@ -495,7 +436,7 @@ def build_level(
         z0=losses.init_weights(slots.w0 * vis, cfg.weights),
         Qb=slots.Qb,
         v_tilde=v_tilde.cpu().numpy(),
-        n_candidates=len(seen),
+        n_candidates=len({n for n, _ in seen}),
         fixed_slots=fixed,
         maps=lp.maps,
         noise=noise,

@@ -53,8 +53,8 @@ class Slots:
         self.resolve = torch.zeros((K, h, w), device=device) if resolve else None
         self.data = [self.visible, self.colours, self.Q, self.cost, self.w0]
         self.data += [t for t in (self.detail, self.Qb, self.resolve) if t is not None]
-        # photo -> (region, its values), written once the ranking is final (``write_deferred``)
-        self.deferred: dict[int, tuple[Region, list[torch.Tensor]]] = {}
+        # (photo, region) -> its values, written once the ranking is final (``write_deferred``)
+        self.deferred: dict[tuple[int, Region], list[torch.Tensor]] = {}
 
     def pack(
         self, visible: torch.Tensor, colours: torch.Tensor, Q: torch.Tensor, cost: torch.Tensor, w0: torch.Tensor,
@@ -100,14 +100,14 @@ class Slots:
         self.score[:, y0:y1, x0:x1] = top.values
         self.idx[:, y0:y1, x0:x1] = pick(self.idx[:, y0:y1, x0:x1], torch.full_like(score, n, dtype=torch.long))
         if defer:
-            self.deferred[n] = (reg, values)
+            self.deferred[(n, reg)] = values
             return
         for t, new in zip(self.data, values):
             t[..., y0:y1, x0:x1] = pick(t[..., y0:y1, x0:x1], new)
 
     def write_deferred(self) -> None:
         """Write the deferred photos' values where the final ranking put them."""
-        for n, (reg, values) in self.deferred.items():
+        for (n, reg), values in self.deferred.items():
             y0, y1, x0, x1 = reg
             # (slot, y, x) of every texel where photo n holds a slot (at most one slot per texel): its
             # values are scattered there, not blended in by a where over every slot of its region
