@@ -208,7 +208,8 @@ class OptimizeConfig:
     detail_patch: int = 8  # side of the labelling's patches, texels
     detail_smoothness: float = 2.0  # seam cost per texel of seam where the photos agree (units of a texel's data cost)
     detail_feather: float = 1.0  # Gaussian sigma of the seams' cross-fade, texels
-    detail_agree: float = 3.0  # a photo is a candidate within this many times the second-closest photo's distance to the blend (low band)
+    # a photo is a candidate within this many times the second-closest photo's distance to the blend (low band)
+    detail_agree: float = 3.0
     # parallax-aware composition (difftex.method.parallax): where the kept photos disagree by more
     # than parallax_gate sigma_c, the slots seen from nearly the best slot's direction carry the
     # texel (within parallax_sigma, about radians, of it; 0: off)

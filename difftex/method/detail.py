@@ -55,7 +55,7 @@ class DetailSettings:
     patch: int = 8  # graph node side, texels
     smoothness: float = 2.0  # seam cost per texel of seam where the photos agree (units of the data cost)
     feather: float = 1.0  # cross-fade of the seams, texels
-    agree: float = 3.0  # a candidate's low band is within this many times the second-closest photo's distance to the blend's
+    agree: float = 3.0  # a candidate is within this many times the second-closest photo's distance to the blend
     max_labels: int = 24  # at most this many photos compete (the most preferred first)
     cycles: int = 3  # alpha-expansion sweeps
 
