@@ -202,9 +202,11 @@ class OptimizeConfig:
     select_band: float = 0.0
     # detail from one photo per facade element (difftex.method.detail): the blend below a Gaussian
     # of detail_band texels, above it the sharpest photo that agrees with the blend, one photo per
-    # region of patches labelled by graph cuts whose seams run where the photos agree
-    detail: bool = False
-    detail_band: float = 1.5  # sigma of the band, texels
+    # region of patches labelled by graph cuts whose seams run where the photos agree. "mixed": on
+    # the polygons whose photos' resolutions spread by mixed_spread or more (drone surveys with
+    # street photos), where the blend is softer than its finest photos; "all": every polygon
+    detail: Literal["off", "mixed", "all"] = "mixed"
+    detail_band: float = 8.0  # sigma of the band, texels
     detail_patch: int = 8  # side of the labelling's patches, texels
     detail_smoothness: float = 2.0  # seam cost per texel of seam where the photos agree (units of a texel's data cost)
     detail_feather: float = 1.0  # Gaussian sigma of the seams' cross-fade, texels
@@ -350,7 +352,8 @@ class OptimizeConfig:
             raise ValueError(f"ghost must be >= 0, got {self.ghost}")
         if self.select_patch < 1 or self.select_smoothness < 0 or self.select_feather < 0:
             raise ValueError("select_patch must be >= 1, select_smoothness and select_feather >= 0")
-        if self.detail:
+        _check_choice("detail", self.detail, ("off", "mixed", "all"))
+        if self.detail != "off":
             self.detail_settings()  # checks its values
         if self.select_band < 0:
             raise ValueError(f"select_band must be >= 0, got {self.select_band}")
@@ -416,6 +419,7 @@ class OptimizeConfig:
             resolution_weight=self.mixed_resolution_weight,
             resolution_knee=self.mixed_resolution_knee,
             witness_resolution_weight=self.mixed_witness_resolution_weight,
+            detail="all" if self.detail == "mixed" else self.detail,
         )
 
     def departures(self) -> list[str]:
@@ -489,7 +493,7 @@ PUBLISHED: dict = {
     "mixed_spread": 0.0,
     "parallax_sigma": 0.0,
     "select": False,
-    "detail": False,
+    "detail": "off",
     "relief": False,
     "frontality_tilt": 0.0,
     "supersample": 1,  # eq. 2: one lookup I_k(f_k(t_o)) per texel

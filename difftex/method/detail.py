@@ -51,7 +51,7 @@ AGREE_WEIGHT = 0.25  # weight of a candidate's distance to the blend in its data
 class DetailSettings:
     """How the detail photos are chosen and composed (``OptimizeConfig.detail_*``)."""
 
-    band: float = 1.5  # sigma of the band, texels: the blend below, one photo's detail above
+    band: float = 8.0  # sigma of the band, texels: the blend below, one photo's detail above
     patch: int = 8  # graph node side, texels
     smoothness: float = 2.0  # seam cost per texel of seam where the photos agree (units of the data cost)
     feather: float = 1.0  # cross-fade of the seams, texels
@@ -331,6 +331,7 @@ def detail_texture(
         dists.append(torch.where(where, (low - low_blend).norm(dim=0) / noise, torch.full_like(r, 1e6)))
     if not photos:
         return blended, torch.zeros(seen.shape, dtype=torch.long, device=seen.device), {"photos": 0}
+    spread = candidate_spread(sharp, present, noise)
     cost = texel_costs(torch.stack(res), torch.stack(dists), torch.stack(wheres), st.agree)
     cost = torch.where(seen[None], cost, torch.zeros_like(cost))
     # the photos that are cheapest somewhere compete, the most often cheapest first
@@ -338,7 +339,7 @@ def detail_texture(
     order = [i for i in torch.argsort(wins, descending=True).tolist() if int(wins[i]) > 0][: st.max_labels]
     keep = [0] + [i + 1 for i in order]
     unary = patch_sum(cost[keep], st.patch)
-    right, down = seam_costs(candidate_spread(sharp, present, noise), seen, st.patch, st.smoothness)
+    right, down = seam_costs(spread, seen, st.patch, st.smoothness)
     lab = solve_labels(unary, right, down, st.cycles)
     h, w = seen.shape
     lab_t = torch.from_numpy(lab).to(seen.device).repeat_interleave(st.patch, 0).repeat_interleave(st.patch, 1)[:h, :w]

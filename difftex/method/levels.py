@@ -325,7 +325,7 @@ def _fill_slots(
     # the tilt weighs the blend alone unless frontality_tilt_witnesses: that too needs a Qb
     split = res_split or (stats.tbest is not None and not cfg.frontality_tilt_witnesses)
     slots = Slots(max(1, len(seen)) if fixed else cfg.top_k, (h, w), stats.normal.device,
-                  detail=lp.sigma > 0, blend_q=split, resolve=cfg.detail)
+                  detail=lp.sigma > 0, blend_q=split, resolve=cfg.detail == "all")
     for j, e in enumerate(seen):
         mp = lp.get(e)
         assert mp is not None
@@ -347,7 +347,7 @@ def _fill_slots(
         # pixels along the most foreshortened axis, footprint sqrt(cos), times cos^1.5 more: a
         # recess seen obliquely is displaced by depth x tan, so of two photos that resolve a window
         # alike the frontal one shows its mullions where they are)
-        resolve = mp.footprint * mp.cos.clamp_min(0.0) ** 2 if cfg.detail else None
+        resolve = mp.footprint * mp.cos.clamp_min(0.0) ** 2 if cfg.detail == "all" else None
         values = slots.pack(mp.visible, c, q, pc, weight, detail=mp.colour, Qb=qb, resolve=resolve)
         if fixed:
             slots.put(j, n, reg, values)

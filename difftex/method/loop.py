@@ -181,7 +181,7 @@ def _final_weights(
             # would pull both low-passes towards zero and leave part of the selected photo's exposure
             seen = lv.mask & (blend.sum(0) > 0)
             U = selection.detail_band(losses.compose(blend, lv.sharp), U, seen, cfg.select_band)
-        if cfg.detail:
+        if cfg.detail == "all":  # "mixed" is "all" on a mixed-resolution polygon (OptimizeConfig.for_spread)
             assert lv.resolve is not None  # the level keeps it with cfg.detail
             seen = lv.mask & (blend.sum(0) > 0)
             U, _, stats["detail"] = detail.detail_texture(
