@@ -103,9 +103,12 @@ def test_for_spread_swaps_in_the_mixed_values_from_the_threshold_on():
         cfg.mixed_consistency_px, cfg.mixed_resolution_weight, cfg.mixed_resolution_knee,
         cfg.mixed_witness_resolution_weight,
     )
-    four = {"consistency_px", "resolution_weight", "resolution_knee", "witness_resolution_weight"}
-    rest = {k: v for k, v in dataclasses.asdict(m).items() if k not in four}
-    assert rest == {k: v for k, v in dataclasses.asdict(cfg).items() if k not in four}  # nothing else moves
+    # the detail per facade element: "mixed" is on for a mixed-resolution polygon ...
+    assert cfg.detail == "mixed" and m.detail == "all"
+    assert OptimizeConfig(mixed_spread=3.0, detail="off").for_spread(3.0).detail == "off"  # ... never if off
+    five = {"consistency_px", "resolution_weight", "resolution_knee", "witness_resolution_weight", "detail"}
+    rest = {k: v for k, v in dataclasses.asdict(m).items() if k not in five}
+    assert rest == {k: v for k, v in dataclasses.asdict(cfg).items() if k not in five}  # nothing else moves
     assert OptimizeConfig(mixed_spread=0.0).for_spread(1e9).resolution_weight == 1.0  # never
     assert OptimizeConfig(mixed_spread=1.0).for_spread(1.0).resolution_weight == 8.0  # always
     for bad in (dict(mixed_spread=0.5), dict(mixed_spread=-1.0), dict(mixed_resolution_knee=0.9),

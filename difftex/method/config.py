@@ -353,8 +353,12 @@ class OptimizeConfig:
         if self.select_patch < 1 or self.select_smoothness < 0 or self.select_feather < 0:
             raise ValueError("select_patch must be >= 1, select_smoothness and select_feather >= 0")
         _check_choice("detail", self.detail, ("off", "mixed", "all"))
-        if self.detail != "off":
-            self.detail_settings()  # checks its values
+        # checked here, not by building DetailSettings: its module imports torch, which the
+        # initialization stage does not load
+        if self.detail_band <= 0 or self.detail_agree <= 0 or self.detail_patch < 1:
+            raise ValueError("detail_band and detail_agree must be > 0, detail_patch >= 1")
+        if self.detail_smoothness < 0 or self.detail_feather < 0:
+            raise ValueError("detail_smoothness and detail_feather must be >= 0")
         if self.select_band < 0:
             raise ValueError(f"select_band must be >= 0, got {self.select_band}")
         if self.select_scope not in ("disagree", "all"):
