@@ -11,6 +11,7 @@ import torch
 
 from difftex.method import detail as D
 from difftex.method.config import OptimizeConfig
+from difftex.method.selection import patch_costs
 
 
 def _brute(unary, right, down):
@@ -61,7 +62,7 @@ def _two_photo_wall(w: int = 64, patch: int = 4):
     ub[:, :16] = 1.0
     spread = torch.zeros((h, w))
     spread[:, 16:40] = 4.0
-    unary = np.stack([D.patch_sum(torch.from_numpy(u)[None], patch)[..., 0] for u in (ua, ub)], -1)
+    unary = patch_costs(np.stack([ua, ub]), patch)
     right, down = D.seam_costs(spread, torch.ones((h, w), dtype=torch.bool), patch, smoothness=1.0)
     return D.solve_labels(unary, right, down), patch
 

@@ -41,6 +41,7 @@ import numpy as np
 import torch
 
 from difftex.method.filters import masked_blur
+from difftex.method.selection import patch_costs
 
 UNSEEN_COST = 4.0  # a photo that does not see a texel, or disagrees with the blend there
 BLEND_COST = 1.0  # the blend's own detail: the fallback where no photo agrees
@@ -121,15 +122,6 @@ def texel_costs(
     return torch.cat([blend, cost])
 
 
-def patch_sum(field: torch.Tensor, patch: int) -> np.ndarray:
-    """(C, h, w) summed over patch x patch blocks: (ph, pw, C) float64 (the last blocks partial)."""
-    C, h, w = field.shape
-    ph, pw = -(-h // patch), -(-w // patch)
-    pad = torch.zeros((C, ph * patch, pw * patch), dtype=torch.float64)
-    pad[:, :h, :w] = field.double().cpu()
-    return pad.reshape(C, ph, patch, pw, patch).sum((2, 4)).permute(1, 2, 0).numpy()
-
-
 def seam_costs(
     spread: torch.Tensor, mask: torch.Tensor, patch: int, smoothness: float
 ) -> tuple[np.ndarray, np.ndarray]:
@@ -151,7 +143,7 @@ def seam_costs(
         (right (ph, pw), down (ph, pw)): the cost of a seam to the right / lower neighbour
         (the last column / row unused).
     """
-    sums = patch_sum(torch.stack([spread.clamp(0, 4) * mask, mask.float()]), patch)
+    sums = patch_costs(torch.stack([spread.clamp(0, 4) * mask, mask.float()]).cpu().numpy(), patch)
     sp = sums[..., 0] / np.maximum(sums[..., 1], 1.0)
     right = np.zeros_like(sp)
     down = np.zeros_like(sp)
@@ -338,7 +330,7 @@ def detail_texture(
     wins = torch.bincount(cost.argmin(0)[seen].flatten(), minlength=cost.shape[0])[1:]
     order = [i for i in torch.argsort(wins, descending=True).tolist() if int(wins[i]) > 0][: st.max_labels]
     keep = [0] + [i + 1 for i in order]
-    unary = patch_sum(cost[keep], st.patch)
+    unary = patch_costs(cost[keep].cpu().numpy(), st.patch)
     right, down = seam_costs(spread, seen, st.patch, st.smoothness)
     lab = solve_labels(unary, right, down, st.cycles)
     h, w = seen.shape
