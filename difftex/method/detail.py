@@ -19,9 +19,10 @@ of patches by graph cuts (alpha-expansion, PyMaxflow's max-flow):
     E(l) = sum_p D_p(l_p) + sum_{p~q} s_pq [l_p != l_q]
 
 - the data cost D_p(l) of photo l is how far it falls short of the sharpest photo of the texel
-  (1 - r_l / max r; r = min-axis pixels per texel, resolution and frontality in one figure),
+  (1 - r_l / max r; r = pixels per texel x cos^2, resolution and frontality in one figure),
   plus its disagreement with the blend below the band (an occluder, a misregistration): a photo
-  more than ``agree`` sigma_c off the blend there is no candidate. The blend's own detail is a
+  more than ``agree`` times the second-closest photo's distance off the blend there is no
+  candidate. The blend's own detail is a
   label too, of cost 1: it stays where no photo agrees.
 - the seam cost s_pq grows with how much the candidates disagree on the patches' texels (their
   colours' spread, in sigma_c): seams are cheap where the photos agree (plain wall, where a change
@@ -68,20 +69,20 @@ class DetailSettings:
 
 
 def photo_field(
-    values: torch.Tensor, idx: torch.Tensor, present: torch.Tensor, n: int
+    values: torch.Tensor, idx: torch.Tensor, present: torch.Tensor | None, n: int
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Photo n's dense field out of the slot layout.
 
     Args:
         values: (K, [C,] h, w) per-slot values.
         idx: (K, h, w) photo index of each slot (-1 empty).
-        present: (K, h, w) bool slots that hold a value (the photo sees the texel).
+        present: (K, h, w) bool slots that hold a value (the photo sees the texel); None: every slot.
         n: the photo.
 
     Returns:
         (field ([C,] h, w), where (h, w) bool): zero where photo n has no slot.
     """
-    sel = (idx == n) & present
+    sel = idx == n if present is None else (idx == n) & present
     m = sel if values.dim() == 3 else sel[:, None]
     return (values * m).sum(0), sel.any(0)
 
@@ -98,7 +99,7 @@ def texel_costs(
     occluder stand out by far.
 
     Args:
-        resolve: (L, h, w) min-axis pixels per texel of each photo (0 where it has none).
+        resolve: (L, h, w) how well each photo resolves the texel (0 where it has none).
         low_dist: (L, h, w) distance of each photo's low band to the blend's, in sigma_c.
         where: (L, h, w) bool where each photo has colours.
         agree: a photo is a candidate within this many times the scale (at least 1 sigma_c).
@@ -296,7 +297,7 @@ def detail_texture(
         blended: (3, h, w) the optimized blend U = sum_k w_k I_k.
         sharp: (K, 3, h, w) the slots' full-detail colours; idx: (K, h, w) their photos (-1 empty);
             present: (K, h, w) bool slots whose photo sees the texel.
-        resolve: (K, h, w) min-axis pixels per texel of each slot's photo.
+        resolve: (K, h, w) how well each slot's photo resolves the texel (pixels per texel x cos^2).
         seen: (h, w) bool polygon texels some photo sees.
         noise: sigma_c of the full-detail colours.
         st: the settings.

@@ -21,6 +21,7 @@ from difftex.geometry.frames import UVFrame
 from difftex.method import losses
 from difftex.method.candidate_stats import CandidateStats
 from difftex.method.config import OptimizeConfig
+from difftex.method.detail import photo_field
 from difftex.method.filters import masked_blur
 from difftex.method.quality import (
     quality,
@@ -71,8 +72,8 @@ class Level:
     detail_noise: float | None = None
     Qb: torch.Tensor | None = None  # (K, h, w) Q of the blend (initial and settled weights); None: Q
     compare_sigma: float = 0.0  # texels of the low-pass under which ``colours`` were compared
-    # (K, h, w) min-axis pixels per texel of each slot's photo (footprint x sqrt(cos)), kept for
-    # the detail (difftex.method.detail); None without it
+    # (K, h, w) how well each slot's photo resolves the texel (footprint x cos^2), kept for the
+    # detail (difftex.method.detail); None without it
     resolve: torch.Tensor | None = None
 
     @property
@@ -100,12 +101,6 @@ class Level:
         return int(sum(t.element_size() * t.numel() for t in ts))
 
 
-def _scatter_photo_field(idx: torch.Tensor, values: torch.Tensor, n: int) -> tuple[torch.Tensor, torch.Tensor]:
-    """Photo n's dense (h, w) field from the slot layout, and where photo n has a slot."""
-    sel = idx == n
-    return (values * sel).sum(0), sel.any(0)
-
-
 def upsample_photo_weight(
     prev_level: Level, prev_W: torch.Tensor, n: int, frame: UVFrame, region: Region | None = None
 ) -> tuple[torch.Tensor, torch.Tensor]:
@@ -119,7 +114,7 @@ def upsample_photo_weight(
         (W (h, w), covered (h, w) bool); only coarse texels where photo n was a candidate
         contribute (mask-normalised bilinear); elsewhere the caller decides.
     """
-    vals, has = _scatter_photo_field(prev_level.idx, prev_W, n)
+    vals, has = photo_field(prev_W, prev_level.idx, None, n)
     src = prev_level.frame
     tx, ty = frame.centres()
     if region is not None:

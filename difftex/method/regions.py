@@ -122,15 +122,17 @@ def photo_entries(
     assert prev_known is not None  # given with prev
     r = frame.texel_size / plv.frame.texel_size
     unknown = torch.from_numpy(mask).to(prev_known.device) & ~prev_known
-    any_unknown = bool(unknown.any())
+    ubox = bbox(unknown) if bool(unknown.any()) else None
     held = (pW > tau) & plv.visible
     out: list[Entry] = []
     for n in sorted(photos.samplers):
         sup = ((plv.idx == n) & held).any(0)
         need = upsample_support(sup, (h, w), r, pad) if bool(sup.any()) else torch.zeros_like(unknown)
-        if any_unknown:
-            sees = torch.from_numpy(resample_nearest(photos.inp.texel_visible[n], photos.inp.frame, frame))
-            need = need | (unknown & sees.to(unknown.device))
+        if ubox is not None:  # what the photo sees of the unknown texels, resampled over their box only
+            y0, y1, x0, x1 = ubox
+            sees = torch.from_numpy(resample_nearest(photos.inp.texel_visible[n], photos.inp.frame, frame, ubox))
+            need = need.clone()
+            need[y0:y1, x0:x1] |= unknown[y0:y1, x0:x1] & sees.to(unknown.device)
         if bool(need.any()):
             out.extend((n, reg) for reg in tile_runs(need, tile))
     return out

@@ -32,7 +32,7 @@ class Slots:
 
     Fields: ``idx`` (K, h, w) long, the photo of each slot (-1: none), ``visible`` (K, h, w) bool,
     ``colours`` (K, 3, h, w), ``Q``, ``cost``, ``w0`` (K, h, w), ``detail`` (K, 3, h, w) or None,
-    ``Qb`` (K, h, w) or None, ``resolve`` (K, h, w) or None (min-axis pixels per texel, for the
+    ``Qb`` (K, h, w) or None, ``resolve`` (K, h, w) or None (pixels per texel x cos^2, for the
     detail, difftex.method.detail). A photo's values are given in the order of ``data``.
     """
 
