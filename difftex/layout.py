@@ -207,6 +207,17 @@ class Results:
         """One spatial tile's rows, ``tile`` as ``<j>-of-<n>``."""
         return self.visibility_dir / "tiles" / f"{tile}.json"
 
+    # --- relief from dense geometry
+
+    @property
+    def heights_dir(self) -> Path:
+        """R/heights: one <pid>.npz height field per polygon (difftex.compose.heights)."""
+        return self.root / "heights"
+
+    def heights_tile(self, tile: str) -> Path:
+        """The heights stage's list of one visibility tile's polygons."""
+        return self.heights_dir / "tiles" / f"{tile}.json"
+
     # --- the per-polygon stages
 
     @property

@@ -17,6 +17,8 @@ def add_common(parser, config=True, many=False) -> None:
     parser.add_argument(
         "--compute-config", default=None, help="YAML whose 'compute:' section is read instead of --config's"
     )
+    parser.add_argument("--heights-dir", default=None,
+                        help="the heights stage's folder: a polygon with a <polygon>.npz there is mapped through it")
     parser.add_argument("--threads", type=int, default=0, help="torch CPU threads (0: torch's default)")
     parser.add_argument("--device", default=None, choices=["auto", "cpu", "cuda"], help="overrides compute.device")
     parser.add_argument("--compile", default=None, choices=["auto", "on", "off"], help="overrides compute.compile")
@@ -69,5 +71,19 @@ def load_many(args, visibility: list[str], torch_threads: bool = True):
     compute = dataclasses.replace(compute, **{k: v for k, v in over.items() if v is not None})
     scene = load_scene(args.scene, check_images=False)
     photos = {p.name: p for p in scene.photos}
-    inputs = (polygon_input_from_visibility(load_visibility(v), photos, up=scene.up) for v in visibility)
+    inputs = (with_heights(polygon_input_from_visibility(load_visibility(v), photos, up=scene.up),
+                           getattr(args, "heights_dir", None)) for v in visibility)
     return cfg, compute, inputs
+
+
+def with_heights(inp, heights_dir):
+    """``inp`` with the height field the heights stage wrote for it, where there is one."""
+    from pathlib import Path
+
+    from difftex.compose.heights import read_heights
+
+    if heights_dir is None or not (Path(heights_dir) / f"{inp.polygon_id}.npz").is_file():
+        return inp
+    frame, heights, _ = read_heights(Path(heights_dir) / f"{inp.polygon_id}.npz", inp.polygon_id)
+    inp.dense = (frame, heights)
+    return inp

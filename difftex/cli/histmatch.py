@@ -38,7 +38,8 @@ def run(args) -> int:
         t0 = time.perf_counter()
         names = [p.name for p in inp.photos]
         # nothing to sweep or match: no photo to read (the optimization maps them as it would)
-        b = _match(inp, init, cfg, compute) if cfg.relief or cfg.histogram_matching else Brightness(None, None)
+        b = (_match(inp, init, cfg, compute) if cfg.relief or cfg.histogram_matching or inp.dense is not None
+             else Brightness(None, None))
         write_histmatch(out, inp.polygon_id, names, b)
         matched = sum(t is not None for t in b.transfers) if b.transfers is not None else 0
         print(f"histmatch {inp.polygon_id} ({n}/{len(args.out)}): {matched} of {len(names)} photos matched"

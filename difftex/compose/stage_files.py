@@ -114,10 +114,14 @@ def initialize_polygon(
 
 
 def crop_relief_range(cfg: OptimizeConfig, inp: PolygonInput) -> tuple[float, float]:
-    """The heights along the normal that the photos' crops must hold: the relief sweep's range
-    where the sweep runs on the polygon (difftex.sampling.crops.seen_from_above), else none."""
+    """The heights along the normal that the photos' crops must hold: the measured field's
+    (``inp.dense``), else the relief sweep's range where the sweep runs on the polygon
+    (difftex.sampling.crops.seen_from_above), else none."""
     from difftex.sampling.crops import seen_from_above
 
+    if inp.dense is not None:  # the measured field's heights (the plane among them)
+        heights = inp.dense[1]
+        return (min(0.0, float(heights.min())), max(0.0, float(heights.max())))
     if not cfg.relief or not seen_from_above(inp, cfg.relief_min_cos, cfg.relief_min_elevation):
         return (0.0, 0.0)
     return cfg.relief_range

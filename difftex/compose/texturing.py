@@ -37,9 +37,10 @@ from difftex.geometry.frames import UVFrame, level_sides
 from difftex.layout import COMPOSITE
 from difftex.method.config import ComputeConfig, OptimizeConfig
 from difftex.method.loop import optimize_polygon
-from difftex.method.relief import estimate_relief
+from difftex.method.relief import estimate_relief, occluding_relief
 from difftex.method.witnesses import candidate_footprints, resolution_spread
 from difftex.sampling.photos import PhotoSet, PolygonInput, pick_device, with_transfer
+from difftex.sampling.relief import Relief
 from difftex.sampling.texels import level_frame, resample_nearest
 from difftex.scene.files import decode_photo
 
@@ -126,13 +127,29 @@ def match_brightness(photos: PhotoSet, cfg: OptimizeConfig) -> Brightness:
     then the brightness transfers at the coarse level (``polygon_transfers``)."""
     t0 = time.perf_counter()
     relief_stats = None
-    if cfg.relief:
+    if photos.inp.dense is not None:  # measured: the sweep has nothing to add
+        photos.relief, relief_stats = dense_relief(photos)
+    elif cfg.relief:
         photos.relief, relief_stats = estimate_relief(photos, cfg.relief_settings())
+    if relief_stats is not None:
         relief_stats["time_s"] = time.perf_counter() - t0
     t1 = time.perf_counter()
     match_frame, raw, transfers, ref = polygon_transfers(photos, cfg)
-    return Brightness(transfers, ref, photos.relief if cfg.relief else None, relief_stats,
+    return Brightness(transfers, ref, photos.relief if relief_stats is not None else None, relief_stats,
                       time.perf_counter() - t1, mapped=(match_frame, raw))
+
+
+def dense_relief(photos: PhotoSet) -> tuple[Relief, dict]:
+    """The Relief of the height field the heights stage measured (``photos.inp.dense``), with
+    each photo's self-occlusion through it, and its statistics for stats.json."""
+    inp = photos.inp
+    frame, heights = inp.dense
+    mask = resample_nearest(inp.texel_mask, inp.frame, frame)
+    h = np.where(mask, heights, 0.0).astype(np.float32)
+    levels = {f"{v:.4g}": float((h[mask] == v).mean()) for v in np.unique(h[mask])} if mask.any() else {}
+    stats = {"source": "dense", "long_side": max(frame.shape), "levels": levels,
+             "relief_share": float((h[mask] != 0).mean()) if mask.any() else 0.0}
+    return occluding_relief(photos, frame, h, mask), stats
 
 
 def optimize_photos(

@@ -50,6 +50,9 @@ class PolygonInput:
     a_bbox: np.ndarray | None = None  # (N, 4) x0, y0, x1, y1 of a_k^i (render mode)
     a_masks: list[np.ndarray] | None = None  # N crops of a_k^i
     up: np.ndarray | None = None  # (3,) the scene's unit up (None: estimated from the candidates)
+    # the height field measured from the scene's dense geometry (difftex.compose.heights), at its
+    # own frame over the polygon's rectangle; None: the plane, or the sweep of optimize.relief
+    dense: tuple[UVFrame, np.ndarray] | None = None
 
     def up_vector(self) -> np.ndarray:
         """The scene's unit up: ``up`` where given, else estimated from the candidate photos

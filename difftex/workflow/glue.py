@@ -34,6 +34,9 @@ STAGE_SECTIONS = {
     "histmatch": ("optimize.histogram_matching", "optimize.histmatch_*", "optimize.long_side_start",
                   "optimize.exact_decode", "optimize.supersample", "optimize.relief*"),
     "texture": ("optimize",),
+    # the height fields from dense geometry (the GPU stereo keys are the dense_stereo rule's)
+    "heights": ("dense.source", "dense.range", "dense.max_share", "dense.long_side", "dense.layers",
+                "dense.smoothness"),
     # device and compilation: read by the texture jobs, but not an input of them (no result changes)
     "compute": ("compute",),
     "output": ("output",),
@@ -218,6 +221,25 @@ def scene_name(scene: str | Path) -> str:
     if not safe or safe.strip(".") == "":
         raise DifftexError(f"{scene}: cannot name the results folder after this scene path")
     return safe
+
+
+def dense_source(scene: str | Path, source: str):
+    """The scene's dense geometry for the heights rule (difftex.geometry.dense.find_source),
+    or None; a bad path stops the workflow with one line."""
+    from difftex.geometry.dense import find_source
+
+    return find_source(scene, source) if Path(scene).is_dir() else None
+
+
+def dense_inputs(source) -> list[str]:
+    """The files the heights rule reads of a dense source: the file, or a workspace's depth maps
+    and model (a changed one reruns the heights and what follows)."""
+    if source is None:
+        return []
+    if source.path.is_file():
+        return [str(source.path)]
+    files = sorted((source.path / "stereo" / "depth_maps").glob("*.bin"))
+    return [str(p) for p in files + sorted((source.path / "sparse").glob("*.*"))]
 
 
 def scene_inputs(scene: str | Path) -> list[str]:

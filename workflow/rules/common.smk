@@ -58,6 +58,10 @@ try:
     # the filter, spatial tiles of polygons for visibility; one of each below those sizes.
     FILTER_PARTS = jobs.filter_parts(SCENE_INPUTS, SCENE, config["run"]["filter_photos_per_job"])
     VISIBILITY_TILES = jobs.visibility_tiles(SCENE, config["run"]["visibility_polygons_per_job"])
+    # The scene's dense geometry (a cloud, a mesh, COLMAP depth maps; docs/dense.md), or None:
+    # with it, a heights job per visibility tile measures each polygon's relief, which the
+    # per-polygon stages map the photos through.
+    DENSE = wf.dense_source(SCENE, config["dense"]["source"])
 except DifftexError as exc:
     # One line and no Snakemake frame around it (SystemExit passes Snakemake's handlers).
     runguard.stop(str(exc))
@@ -85,6 +89,10 @@ REBUILD = products.Rebuild(R, config, SPLIT, VISIBILITY_TILES)
 # the visibility tiles' rows: asked for by `all` too, so that a tile whose list REBUILD deleted
 # (one of its polygons' visibility files is missing) runs again
 TILE_ROWS = [str(RES.visibility_tile(tile)) for tile in VISIBILITY_TILES]
+# the heights jobs' lists (an input of every per-polygon job), and the option that hands their
+# folder to the per-polygon commands (with its trailing space; empty without dense geometry)
+HEIGHT_TILES = [str(RES.heights_tile(tile)) for tile in VISIBILITY_TILES] if DENSE else []
+HEIGHTS_ARG = f"--heights-dir '{RES.heights_dir}' " if DENSE else ""
 
 
 wildcard_constraints:

@@ -20,10 +20,13 @@ rule initialize:
         vis=get_job_visibility,
         photos=get_job_photos,
         config=STAGE_CFG["initialize"],
+        # the polygons' height fields from dense geometry (none without it)
+        heights=HEIGHT_TILES,
     output:
         # the job's list of its polygons, written last (each R/init/<pid>/crops.npz atomically)
         str(RES.job_file("initialize", "{job}")),
     params:
+        heights=HEIGHTS_ARG,
         stage_config=STAGE_TEXT["initialize"],
         scene=lambda wc, input: Path(input.scene[0]).parent,
         outs=get_job_init,
@@ -41,7 +44,7 @@ rule initialize:
         runtime=get_job_runtime,
     shell:
         "OMP_NUM_THREADS={threads} difftex initialize --threads {threads} --scene {params.scene:q} "
-        "--visibility {input.vis:q} --out {params.outs:q} --config {input.config:q} "
+        "--visibility {input.vis:q} --out {params.outs:q} --config {input.config:q} {params.heights}"
         "--decode-cache-mb {params.decode_cache_mb} --done {output:q} > {log:q} 2>&1"
 
 
@@ -53,10 +56,13 @@ rule histmatch:
         config=STAGE_CFG["histmatch"],
         # on the optimization's device, so the transfers are the ones the one-process stage finds
         compute=ancient(str(RES.compute_config)),
+        # the polygons' height fields from dense geometry (none without it)
+        heights=HEIGHT_TILES,
     output:
         # the job's list; each polygon's transfers.npz is in R/histmatch/<polygon>/ (atomically)
         str(RES.job_file("histmatch", "{job}")),
     params:
+        heights=HEIGHTS_ARG,
         stage_config=STAGE_TEXT["histmatch"],
         scene=lambda wc, input: Path(input.scene[0]).parent,
         crops=get_job_init,
@@ -76,7 +82,7 @@ rule histmatch:
     shell:
         "OMP_NUM_THREADS={threads} difftex histmatch --threads {threads} --scene {params.scene:q} "
         "--visibility {input.vis:q} --init {params.crops:q} --out {params.outs:q} "
-        "--config {input.config:q} --compute-config {input.compute:q} --done {output:q} > {log:q} 2>&1"
+        "--config {input.config:q} {params.heights}--compute-config {input.compute:q} --done {output:q} > {log:q} 2>&1"
 
 
 rule optimize:
@@ -89,11 +95,14 @@ rule optimize:
         # device and compilation: read, but ancient() and a fixed name keep a change of them
         # from rerunning anything (they change no result beyond float tolerance)
         compute=ancient(str(RES.compute_config)),
+        # the polygons' height fields from dense geometry (none without it)
+        heights=HEIGHT_TILES,
     output:
         # the job's list; each polygon's weights.npz, optimized.npz and stats.json are in
         # R/optimized/<polygon>/ (written atomically)
         str(RES.job_file("optimize", "{job}")),
     params:
+        heights=HEIGHTS_ARG,
         stage_config=STAGE_TEXT["texture"],
         scene=lambda wc, input: Path(input.scene[0]).parent,
         crops=get_job_init,
@@ -114,7 +123,7 @@ rule optimize:
     shell:
         "OMP_NUM_THREADS={threads} difftex optimize --threads {threads} --no-progress --scene {params.scene:q} "
         "--visibility {input.vis:q} --init {params.crops:q} --transfers {params.transfers:q} "
-        "--out-dir {params.out_dirs:q} --config {input.config:q} --compute-config {input.compute:q} "
+        "--out-dir {params.out_dirs:q} --config {input.config:q} {params.heights}--compute-config {input.compute:q} "
         "--done {output:q} > {log:q} 2>&1"
 
 
@@ -142,11 +151,14 @@ rule texture:
         photos=get_job_photos,
         config=STAGE_CFG["texture"],
         compute=ancient(str(RES.compute_config)),
+        # the polygons' height fields from dense geometry (none without it)
+        heights=HEIGHT_TILES,
     output:
         # the job's list of its polygons, written last; each polygon's weights.npz, stats.json and
         # composite.npz are in R/optimized/<polygon>/ (written atomically, one polygon at a time)
         str(RES.job_file("texture", "{job}")),
     params:
+        heights=HEIGHTS_ARG,
         stage_config=STAGE_TEXT["texture"],
         scene=lambda wc, input: Path(input.scene[0]).parent,
         out_dirs=get_job_out_dirs,
@@ -166,7 +178,7 @@ rule texture:
         gpu=RUN["gpu"],
     shell:
         "OMP_NUM_THREADS={threads} difftex texture --threads {threads} --no-progress --scene {params.scene:q} "
-        "--visibility {input.vis:q} --out-dir {params.out_dirs:q} --config {input.config:q} "
+        "--visibility {input.vis:q} --out-dir {params.out_dirs:q} --config {input.config:q} {params.heights}"
         "--compute-config {input.compute:q} --decode-cache-mb {params.decode_cache_mb} --done {output:q} > {log:q} 2>&1"
 
 
