@@ -29,7 +29,9 @@ METHODS = ("difftex", "average", "frontal", "mrf", "texrecon", "meshlab-face", "
 LABELS = {"difftex": "DiffTex (ours)", "difftex-paper": "DiffTex as published (preset `paper`, same texel sizes)",
           "average": "Averaging (view blending)", "frontal": "Most frontal photo",
           "mrf": "MRF view selection + leveling (LTBC-style)", "texrecon": "texrecon (mvs-texturing)",
-          "meshlab-face": "MeshLab per-face raster parameterization", "meshlab-blend": "MeshLab per-texel raster blend"}
+          "meshlab-face": "MeshLab per-face raster parameterization", "meshlab-blend": "MeshLab per-texel raster blend",
+          "difftex-dense": "DiffTex with the scene's dense cloud (dense/)",
+          "difftex-true-relief": "DiffTex through the true relief (the bound; synthetic scenes)"}
 
 
 def run_script(main) -> None:
@@ -177,10 +179,26 @@ def _write_yaml(path: Path, data: dict) -> None:
     write_text(path, yaml.safe_dump(data, sort_keys=False))
 
 
-def run_method(method: str, scene: Path, r: Path, common: dict, cfg: dict | None = None) -> dict:
+def run_heights(scene: Path, r: Path, common: dict, source: str = "auto") -> tuple[Path | None, float]:
+    """The heights stage on every polygon from the scene's dense geometry (``source``: as
+    ``dense.source``): (its folder, or None when the scene has none; seconds)."""
+    from difftex.geometry.dense import find_source
+
+    if find_source(scene, source) is None:
+        return None, 0.0
+    out = Path(r) / "heights"
+    t = difftex("heights", "--scene", scene, "--rows", Path(common["visibility"]) / "summary.json",
+                "--visibility-dir", common["visibility"], "--config", common["config"], "--source",
+                source, "--out-dir", out, "--done", out / "done.json")
+    return out, t
+
+
+def run_method(method: str, scene: Path, r: Path, common: dict, cfg: dict | None = None,
+               heights: Path | None = None) -> dict:
     """Texture every seen polygon with ``method`` into results folder ``r``; returns timings.
 
-    ``cfg``: a stage config for this run only (ablations); default: the common one.
+    ``cfg``: a stage config for this run only (ablations); default: the common one. ``heights``:
+    difftex maps the photos through these height fields (difftex heights).
     """
     r = Path(r)
     if r.exists():
@@ -212,6 +230,7 @@ def run_method(method: str, scene: Path, r: Path, common: dict, cfg: dict | None
                 "--png-dir",
                 tex,
                 "--no-progress",
+                *(("--heights-dir", heights) if heights is not None else ()),
             )
         elif method in ("average", "frontal"):
             difftex(

@@ -127,6 +127,43 @@ def true_relief(scene: Path):
         texturing.estimate_relief = saved
 
 
+def write_true_heights(scene: Path, visibility: Path, out: Path, long_side: int = 512) -> Path:
+    """The true field of every wall with a visibility file in ``visibility``, as the heights
+    stage's files in ``out`` (difftex.compose.heights): `difftex texture --heights-dir` maps
+    through it exactly as through a measured one (evaluation/table1.py's bound row)."""
+    from difftex.compose.heights import write_heights
+    from difftex.geometry.visibility import load_visibility
+    from difftex.sampling.texels import level_frame, resample_nearest
+
+    faces, layouts, depth = synth_model(scene)
+    for f in sorted(Path(visibility).glob("*.npz")):
+        v = load_visibility(f)
+        if v.polygon_id not in faces:
+            continue
+        fr = level_frame(v.frame, min(long_side, max(v.frame.shape)))
+        mask = resample_nearest(v.texel_mask, v.frame, fr)
+        h = true_field(faces[v.polygon_id], layouts[v.polygon_id], depth, fr, mask)
+        write_heights(Path(out) / f"{v.polygon_id}.npz", v.polygon_id, fr, h, {"source": "true field"})
+    return Path(out)
+
+
+def dense_fields(scene: Path, source: str, vis: list, long_side: int = 512) -> dict:
+    """{polygon: (frame, heights)} measured from the scene's dense geometry (difftex heights' own code)."""
+    import dataclasses
+
+    from difftex.compose.heights import polygon_box, polygon_field, read_geometry
+    from difftex.geometry.dense import find_source
+    from difftex.geometry.heightfield import HeightFieldConfig
+
+    cfg = dataclasses.replace(HeightFieldConfig(), long_side=long_side)
+    src = find_source(scene, source)
+    if src is None:
+        raise SystemExit(f"relief_bound: {scene}: no dense geometry ({source})")
+    allv = np.concatenate([np.stack(polygon_box(v.frame, 0.0, 0.0)) for v in vis])
+    geometry = read_geometry(src, (allv.min(0), allv.max(0)), 1.0)
+    return {v.polygon_id: polygon_field(geometry, v.frame, v.texel_mask, cfg)[:2] for v in vis}
+
+
 def field_accuracy(est: np.ndarray, true: np.ndarray, mask: np.ndarray, depth: float, tol: float) -> dict:
     """How a height field matches the true one over ``mask``.
 
@@ -145,8 +182,9 @@ def field_accuracy(est: np.ndarray, true: np.ndarray, mask: np.ndarray, depth: f
 
 
 def sweep_accuracy(scene: Path, polygons: list[str] | None, density_scale: float, max_long_side: int,
-                   overrides: dict, tol: float) -> list[dict]:
-    """Per polygon, the sweep's own field (its step limit lifted) against the true one."""
+                   overrides: dict, tol: float, dense: str | None = None) -> list[dict]:
+    """Per polygon, the sweep's own field (its step limit lifted), or with ``dense`` the field
+    measured from the scene's dense geometry (as ``dense.source``), against the true one."""
     import dataclasses
 
     import torch
@@ -162,16 +200,20 @@ def sweep_accuracy(scene: Path, polygons: list[str] | None, density_scale: float
     sc, vis = C.scene_polygons(scene, polygons, density_scale, max_long_side)
     by_name = {p.name: p for p in sc.photos}
     cfg = dataclasses.replace(OptimizeConfig(), relief=True, **overrides)
+    vis = [v for v in vis if faces[v.polygon_id].kind == "wall"]
+    measured = dense_fields(scene, dense, vis, cfg.relief_long_side) if dense else {}
     rows = []
     for v in vis:
-        if faces[v.polygon_id].kind != "wall":
-            continue
         inp = polygon_input_from_visibility(v, by_name, up=sc.up)
-        field, st = estimate_relief(PhotoSet.load(inp, "cpu"), cfg.relief_settings(), max_steps=10**9)
-        fr = field.frame
+        if dense:
+            fr, heights = measured[v.polygon_id]
+            st = {"photos": []}
+        else:
+            field, st = estimate_relief(PhotoSet.load(inp, "cpu"), cfg.relief_settings(), max_steps=10**9)
+            fr, heights = field.frame, field.heights
         mask = resample_nearest(inp.texel_mask, inp.frame, fr)
         true = true_field(faces[v.polygon_id], layouts[v.polygon_id], depth, fr, mask)
-        acc = field_accuracy(field.heights, true, mask, depth, tol) if st.get("reason") is None else {}
+        acc = field_accuracy(heights, true, mask, depth, tol) if st.get("reason") is None else {}
         rows.append({"polygon": v.polygon_id, "photos": len(st["photos"]), "steps": st.get("steps"),
                      "reason": st.get("reason"), **acc})
         print(f"relief_bound: {v.polygon_id}: {rows[-1]}", flush=True)
@@ -183,11 +225,13 @@ def accuracy_main(args) -> int:
 
     over = json.loads(args.optimize) if args.optimize else {}
     rows = sweep_accuracy(args.scene, C.polygon_ids(args.polygons) if args.polygons else None,
-                          args.density_scale, args.max_long_side, over, args.tolerance)
+                          args.density_scale, args.max_long_side, over, args.tolerance, args.dense)
     cmd = "python evaluation/relief_bound.py " + shlex.join(args.argv)
     lines = [
-        C.header(f"The relief sweep against the true field: {args.scene.name}", cmd, C.machine(), [
-            f"optimize overrides {json.dumps(over)}; the sweep's own field with its step limit lifted, at its frame; "
+        C.header(f"The relief {'from dense geometry' if args.dense else 'sweep'} against the true field: "
+                 f"{args.scene.name}", cmd, C.machine(), [
+            (f"the field measured from the scene's dense geometry (dense.source {args.dense})" if args.dense else
+             f"optimize overrides {json.dumps(over)}; the sweep's own field with its step limit lifted") + ", at its frame; "
             f"within: share of texels within {args.tolerance} of the truth; recess found: share of the recessed "
             "texels (below -depth/2) estimated there; false relief: share of the plane's texels estimated off it."]),
         "| polygon | photos compared | steps | within | recess found | false relief | note |",
@@ -215,6 +259,7 @@ def main(argv=None) -> int:
         ap.add_argument("--max-long-side", type=int, default=512)
         ap.add_argument("--optimize", help="JSON optimize overrides (the relief_* settings)")
         ap.add_argument("--tolerance", type=float, default=0.05, help="scene units")
+        ap.add_argument("--dense", help="score the field from the scene's dense geometry (a dense.source: auto, a path)")
         ap.add_argument("--out", required=True)
         parsed = ap.parse_args(args)
         parsed.argv = args

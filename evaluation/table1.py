@@ -32,6 +32,24 @@ def ensure_synth(scene: Path, preset: str = "tiny") -> float | None:
     return C.difftex("synth", "--preset", preset, "--out", scene, "--quiet")
 
 
+def relief_row(method: str, scene: Path, work: Path, common: dict) -> dict:
+    """difftex mapped through a height field: measured from the scene's dense geometry
+    (difftex-dense; its heights stage's time counted) or the synthetic building's true one
+    (difftex-true-relief). {"missing": why} where the scene has no such field."""
+    if method == "difftex-dense":
+        heights, t_heights = C.run_heights(scene, work / "dense-heights", common)
+        if heights is None:
+            return {"missing": f"{scene} has no dense/ geometry (difftex synth-dense --scene {scene})"}
+    else:
+        from evaluation.relief_bound import write_true_heights
+
+        heights, t_heights = write_true_heights(scene, common["visibility"], work / "true-heights"), 0.0
+    r = C.run_method("difftex", scene, work / method, common, heights=heights)
+    r["heights_s"] = t_heights
+    r["total_s"] += t_heights
+    return r
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--scene", default="evaluation/out/scenes/tiny", help="synthetic scene (generated if missing)")
@@ -45,8 +63,11 @@ def main(argv=None) -> int:
         "--preset", default="fast", help="difftex preset (config/presets/<name>.yaml; default: the workflow defaults)"
     )
     ap.add_argument(
-        "--methods", default="difftex,difftex-paper,average,frontal,mrf,texrecon,meshlab-face,meshlab-blend",
-        help="difftex-paper: preset paper's optimize section (the published method) at the same texel sizes",
+        "--methods", default="difftex,difftex-dense,difftex-true-relief,difftex-paper,average,frontal,mrf,texrecon,"
+        "meshlab-face,meshlab-blend",
+        help="difftex-paper: preset paper's optimize section (the published method) at the same texel sizes; "
+        "difftex-dense: the heights stage on the scene's dense/ geometry first (not run without it); "
+        "difftex-true-relief: mapped through the synthetic building's true relief (the bound)",
     )
     ap.add_argument("--optimize", default=None, help="JSON of optimize: overrides (ablations)")
     C.add_table_args(ap, "table1")
@@ -65,6 +86,12 @@ def main(argv=None) -> int:
     for m in args.methods.split(","):
         if P.is_peer(m):
             r = P.run_peer(m, scene, work / m, common)
+            if r.get("missing"):
+                skipped.append(f"{C.LABELS[m]}: not run ({r['missing']})")
+                rows.append({"method": m, "run": r, "missing": r["missing"]})
+                continue
+        elif m in ("difftex-dense", "difftex-true-relief"):
+            r = relief_row(m, scene, work, common)
             if r.get("missing"):
                 skipped.append(f"{C.LABELS[m]}: not run ({r['missing']})")
                 rows.append({"method": m, "run": r, "missing": r["missing"]})

@@ -9,7 +9,8 @@ HELP = ("Measure each polygon's relief (recesses, balconies) from a dense cloud,
 
 def add_arguments(p) -> None:
     p.add_argument("--scene", required=True, help="scene folder (its proxy; its dense/ folder with --source auto)")
-    p.add_argument("--rows", required=True, help="a visibility tile's rows (R/visibility/tiles/<tile>.json)")
+    p.add_argument("--rows", required=True,
+                   help="a visibility tile's rows (R/visibility/tiles/<tile>.json), or the visibility summary.json")
     p.add_argument("--visibility-dir", required=True, help="the visibility stage's folder (the polygons' frames)")
     p.add_argument("--config", help="YAML config; its 'dense' section is read")
     p.add_argument("--source", help="dense geometry: a file or folder (overrides dense.source)")
@@ -35,9 +36,10 @@ def run(args) -> int:
     if args.source:
         cfg = replace(cfg, source=args.source)
     rows = read_json(args.rows)
-    if not isinstance(rows, dict) or "rows" not in rows:
-        raise DifftexError(f"{args.rows}: not a tile of the difftex visibility stage")
-    pids = [r["id"] for r in rows["rows"]]
+    key = next((k for k in ("rows", "polygons") if isinstance(rows, dict) and k in rows), None)
+    if key is None:
+        raise DifftexError(f"{args.rows}: neither a tile nor the summary of the difftex visibility stage")
+    pids = [r["id"] for r in rows[key] if r.get("photos")]
     source = find_source(args.scene, cfg.source)
     done: list[dict] = []
     if source is None:
