@@ -19,7 +19,6 @@ def add_arguments(p) -> None:
 
 
 def run(args) -> int:
-    import logging
     import time
     from dataclasses import replace
     from pathlib import Path
@@ -45,7 +44,6 @@ def run(args) -> int:
     if source is None:
         print(f"heights: no dense geometry ({cfg.source}): every polygon keeps its plane", flush=True)
     else:
-        logging.getLogger("difftex").setLevel(logging.INFO)
         out = Path(args.out_dir)
         done = tile_heights(Path(args.scene), source, [visibility_file(args.visibility_dir, p) for p in pids], cfg,
                             [out / f"{p}.npz" for p in pids])
