@@ -16,6 +16,7 @@ min_version("9.0")
 include: "workflow/rules/common.smk"
 include: "workflow/rules/scene.smk"
 include: "workflow/rules/filter.smk"
+include: "workflow/rules/dense.smk"
 include: "workflow/rules/visibility.smk"
 include: "workflow/rules/heights.smk"
 include: "workflow/rules/texture.smk"
@@ -45,6 +46,8 @@ rule all:
         str(RES.model_summary),
         str(RES.report_md),
         str(RES.report_html),
+        # COLMAP PatchMatch stereo's workspace, with dense.stereo: true only (workflow/rules/dense.smk)
+        DENSE_STEREO,
     default_target: True
 
 

@@ -7,6 +7,8 @@ same layout, so ``difftex evaluate`` and ``difftex report`` read them all alike:
     R/
       photos.json, photos.csv          filter: the kept photos per polygon, and why each was dropped
       filter/photos-<part>.json        filter: one chunk of photos (merged into photos.json)
+      dense/                           dense stereo (GPU, dense.stereo): a COLMAP dense workspace,
+                                       stereo/depth_maps/*.geometric.bin, and dense.json
       visibility/
         <pid>.npz                      a polygon's UV frame, texel mask and candidate photos
         summary.json                   every polygon's row: the checkpoint the polygon jobs come from
@@ -85,6 +87,8 @@ TILES_DIR = "tiles"  # beside tileset.json: one GLB per building
 # What the evaluation writes beside its metrics
 ERROR_MAPS = "error_maps"
 VIEWS = "views"
+# The dense stage's record in its COLMAP workspace (difftex.scene.mvs), written last
+DENSE_RECORD = "dense.json"
 
 # The folder, relative to R, and the suffix of each per-polygon rule's list of its polygons
 # (written last, so it is the job's one output)
@@ -184,6 +188,18 @@ class Results:
     def filter_part(self, part: str) -> Path:
         """One chunk's table, ``part`` as ``<j>-of-<n>``."""
         return self.root / "filter" / f"photos-{part}.json"
+
+    # --- dense stereo (GPU)
+
+    @property
+    def dense_dir(self) -> Path:
+        """R/dense: the COLMAP dense workspace of ``difftex dense`` (images/, sparse/, stereo/depth_maps/)."""
+        return self.root / "dense"
+
+    @property
+    def dense_done(self) -> Path:
+        """R/dense/dense.json: the dense stage's record (done or skipped), in place once the workspace is."""
+        return self.dense_dir / DENSE_RECORD
 
     # --- visibility
 

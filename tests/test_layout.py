@@ -25,6 +25,8 @@ EXPECTED = [
     ("photos_json", "photos.json"),
     ("photos_csv", "photos.csv"),
     ("filter_part('{part}')", "filter/photos-{part}.json"),
+    ("dense_dir", "dense"),
+    ("dense_done", "dense/dense.json"),
     ("visibility_dir", "visibility"),
     ("visibility_link", "visibility.txt"),
     ("visibility('p0')", "visibility/p0.npz"),

@@ -37,6 +37,10 @@ STAGE_SECTIONS = {
     # the height fields from dense geometry (the GPU stereo keys are the dense_stereo rule's)
     "heights": ("dense.source", "dense.range", "dense.max_share", "dense.long_side", "dense.layers",
                 "dense.smoothness"),
+    # COLMAP PatchMatch stereo on a GPU (rule dense_stereo): its keys of the same section, the
+    # switch dense.stereo left out (the rule runs only when it is on)
+    "dense": ("dense.max_image_size", "dense.photos", "dense.num_*", "dense.window_*", "dense.geom_*",
+              "dense.gpu_*"),
     # device and compilation: read by the texture jobs, but not an input of them (no result changes)
     "compute": ("compute",),
     "output": ("output",),
