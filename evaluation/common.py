@@ -30,6 +30,7 @@ LABELS = {"difftex": "DiffTex (ours)", "difftex-paper": "DiffTex as published (p
           "average": "Averaging (view blending)", "frontal": "Most frontal photo",
           "mrf": "MRF view selection + leveling (LTBC-style)", "texrecon": "texrecon (mvs-texturing)",
           "meshlab-face": "MeshLab per-face raster parameterization", "meshlab-blend": "MeshLab per-texel raster blend",
+          "reprojection": "reprojection (texrecon on the dense mesh, baked)",
           "difftex-dense": "DiffTex with the scene's dense cloud (dense/)",
           "difftex-true-relief": "DiffTex through the true relief (the bound; synthetic scenes)"}
 

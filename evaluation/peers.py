@@ -1,4 +1,4 @@
-"""The peer programs (texrecon, MeshLab per-face, MeshLab per-texel blend) as rows of the tables.
+"""The peer programs (texrecon, MeshLab per-face, MeshLab per-texel blend, reprojection) as rows of the tables.
 
 A peer textures the same scene from the same photos as the other methods: the photos the shared
 filter kept (``OUT/common/photos.json``), into the frames of the shared visibility files (so its
@@ -24,10 +24,12 @@ def is_peer(method: str) -> bool:
     return method in PEERS
 
 
-def unavailable(method: str) -> str:
-    """Why the peer cannot run here ('' when it can)."""
-    from difftex.evaluation.peers import meshlab, texrecon
+def unavailable(method: str, scene: Path | None = None) -> str:
+    """Why the peer cannot run here ('' when it can); reprojection also needs the scene's dense mesh."""
+    from difftex.evaluation.peers import meshlab, reprojection, texrecon
 
+    if method == "reprojection":
+        return reprojection.unavailable_reason(scene)
     return (texrecon if method == "texrecon" else meshlab).unavailable_reason()
 
 
@@ -42,7 +44,7 @@ def run_peer(method: str, scene: Path, r: Path, common: dict, **cfg) -> dict:
     from difftex.evaluation.peers.run import PeerConfig
     from difftex.evaluation.peers.run import run_peer as run
 
-    why = unavailable(method)
+    why = unavailable(method, scene)
     if why:
         return {"method": method, "results": None, "missing": why}
     t0 = time.perf_counter()

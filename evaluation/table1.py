@@ -64,10 +64,11 @@ def main(argv=None) -> int:
     )
     ap.add_argument(
         "--methods", default="difftex,difftex-dense,difftex-true-relief,difftex-paper,average,frontal,mrf,texrecon,"
-        "meshlab-face,meshlab-blend",
+        "meshlab-face,meshlab-blend,reprojection",
         help="difftex-paper: preset paper's optimize section (the published method) at the same texel sizes; "
         "difftex-dense: the heights stage on the scene's dense/ geometry first (not run without it); "
-        "difftex-true-relief: mapped through the synthetic building's true relief (the bound)",
+        "difftex-true-relief: mapped through the synthetic building's true relief (the bound); "
+        "reprojection: texrecon on the scene's dense mesh (dense/), baked onto the proxy (not run without one)",
     )
     ap.add_argument("--optimize", default=None, help="JSON of optimize: overrides (ablations)")
     C.add_table_args(ap, "table1")

@@ -1,9 +1,11 @@
-"""difftex peer: texture a scene with texrecon or MeshLab and write a results folder difftex evaluate scores."""
+"""difftex peer: texture a scene with texrecon, MeshLab or reprojection (texrecon on the dense mesh, baked) and write
+a results folder difftex evaluate scores."""
 
 from __future__ import annotations
 
 NAME = "peer"
-HELP = "texture a scene with a peer program (texrecon, MeshLab per-face or per-texel blend) into a results folder"
+HELP = ("texture a scene with a peer program (texrecon, MeshLab per-face or per-texel blend, reprojection: texrecon on "
+        "the dense mesh baked onto the proxy) into a results folder")
 
 
 def add_arguments(p) -> None:
@@ -22,10 +24,17 @@ def add_arguments(p) -> None:
     p.add_argument(
         "--max-edge", type=float, help="mesh edge bound in scene units (default: 1/20 of the camera distance)"
     )
-    p.add_argument("--oversample", type=int, default=2, help="MeshLab atlas texels per map texel along each axis")
+    p.add_argument("--oversample", type=int, default=2,
+                   help="MeshLab atlas texels per map texel along each axis (reprojection: rays per texel)")
     p.add_argument("--threads", type=int, default=0, help="the peer's threads (texrecon); 0: its default")
     p.add_argument("--timeout", type=float, default=3600.0, help="seconds before the peer is killed")
     p.add_argument("--keep-inputs", action="store_true", help="keep the resampled photos under OUT/work/photos")
+    p.add_argument("--dense-mesh", help="reprojection: the dense mesh (default: the first mesh in SCENE/dense/)")
+    p.add_argument("--max-faces", type=int, default=500_000,
+                   help="reprojection: decimate the dense mesh to at most this many triangles")
+    p.add_argument("--relief", type=float, default=1.0,
+                   help="reprojection: the bake sees surfaces within this many scene units of each polygon's plane "
+                   "(and a fifth of its shorter side)")
 
 
 def run(args) -> int:
@@ -47,6 +56,9 @@ def run(args) -> int:
             threads=args.threads,
             timeout_s=args.timeout,
             keep_inputs=args.keep_inputs,
+            dense_mesh=args.dense_mesh,
+            max_faces=args.max_faces,
+            relief=args.relief,
         )
     except ValueError as exc:
         raise DifftexError(f"difftex peer: {exc}") from None

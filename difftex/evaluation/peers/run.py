@@ -25,7 +25,7 @@ import json
 import os
 import shutil
 import tempfile
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -34,9 +34,10 @@ from difftex.errors import DifftexError
 from difftex.evaluation.peers.measure import Phase, measure_self
 from difftex.layout import Results, visibility_file
 
-PEERS = ("texrecon", "meshlab-face", "meshlab-blend")
+PEERS = ("texrecon", "meshlab-face", "meshlab-blend", "reprojection")
 LABELS = {"texrecon": "texrecon (mvs-texturing)", "meshlab-face": "MeshLab per-face raster parameterization",
-          "meshlab-blend": "MeshLab per-texel raster blend"}
+          "meshlab-blend": "MeshLab per-texel raster blend",
+          "reprojection": "reprojection (texrecon on the dense mesh, baked)"}
 
 
 @dataclass(frozen=True)
@@ -46,11 +47,14 @@ class PeerConfig:
     photo_long_side: int | None = None  # resample photos to this long side (None: their own resolution)
     max_edge: float | None = None  # mesh edge bound in scene units (None: from the camera distance)
     max_edge_rel: float = 1 / 20  # ... as this share of the median camera-to-proxy distance
-    oversample: int = 2  # MeshLab atlases get this many texels per frame texel along each axis
+    oversample: int = 2  # MeshLab atlases get this many texels per frame texel along each axis (reprojection: rays)
     max_texture: int = 8192  # MeshLab atlas side limit
     threads: int = 0  # the peer's threads (texrecon --num_threads); 0: its default
     timeout_s: float = 3600.0
     keep_inputs: bool = False  # keep the resampled photos under work/
+    dense_mesh: str | None = None  # reprojection: the dense mesh (None: the scene's, reprojection.find_mesh)
+    max_faces: int = 500_000  # reprojection: the dense mesh is decimated to at most this many triangles
+    relief: float = 1.0  # reprojection: the bake sees surfaces within this many scene units of the plane
 
     def __post_init__(self):
         if self.photo_long_side is not None and not 16 <= int(self.photo_long_side) <= 65536:
@@ -63,6 +67,8 @@ class PeerConfig:
             raise ValueError(f"oversample must be in 1..8, got {self.oversample}")
         if not self.timeout_s > 0:
             raise ValueError(f"timeout_s must be > 0, got {self.timeout_s}")
+        if not (self.max_faces >= 100 and self.relief > 0):
+            raise ValueError(f"max_faces must be >= 100 and relief > 0, got {self.max_faces}, {self.relief}")
 
 
 # --------------------------------------------------------------------------------------------
@@ -245,15 +251,17 @@ def run_peer(
         The record written to ``out/peer.json``: settings, photos, mesh size, per-polygon
         coverage, and ``prepare`` / ``peer`` / ``import`` phases with their totals.
     """
-    from difftex.evaluation.peers import meshlab, texrecon
+    from difftex.evaluation.peers import meshlab, reprojection, texrecon
     from difftex.geometry.meshing import default_max_edge, proxy_mesh
     from difftex.scene.files import write_json
     from difftex.scene.loading import load_scene
 
     if method not in PEERS:
         raise DifftexError(f"unknown peer '{method}' (known: {', '.join(PEERS)})")
-    runner = texrecon if method == "texrecon" else meshlab
+    runner = {"texrecon": texrecon, "reprojection": reprojection}.get(method, meshlab)
     runner.check_available()
+    if method == "reprojection":  # the scene's dense mesh, or one line saying it has none
+        cfg = replace(cfg, dense_mesh=str(reprojection.dense_mesh_path(scene_dir, cfg.dense_mesh)))
     out = Path(out).absolute()  # the programs run in their own working folders
     out.parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.", suffix=".partial", dir=out.parent))
