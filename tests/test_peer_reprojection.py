@@ -273,3 +273,14 @@ def test_reprojection_end_to_end_matches_the_photos(tmp_path, monkeypatch):
     prog = rec["peer_program"]
     assert prog["dense_mesh"].endswith("dense/meshed-poisson.ply") and prog["dense_faces"]["to_texrecon"] == 80 * 40 * 2
     assert prog["decimation"].startswith("none") and rec["label"].startswith("reprojection")
+
+
+def test_bands_of_rows_bake_the_same_as_one(monkeypatch):
+    tm = analytic_mesh()
+    caster = R.Caster(tm.vertices, tm.faces, "numpy")
+    labels = np.arange(len(tm.faces)) // 2 + 1  # one label a quad: its diagonal is no tie to break
+    whole = R.bake_polygon(tm, caster, FRAME, np.ones(FRAME.shape, bool), 2, 1.0, labels)
+    monkeypatch.setattr(R, "RAY_CHUNK", 2 * 2 * FRAME.width * 3)  # bands of 3 rows (the last of 2)
+    banded = R.bake_polygon(tm, caster, FRAME, np.ones(FRAME.shape, bool), 2, 1.0, labels)
+    for a, b in zip(whole, banded):
+        np.testing.assert_array_equal(a, b)

@@ -337,7 +337,7 @@ def _hits_raster(V: np.ndarray, F: np.ndarray, frame: UVFrame, lo: float, hi: fl
     keep = (h >= lo) & (h <= hi)
     rr, cc, ti, lam, h = rr[keep], cc[keep], ti[keep], lam[keep], h[keep]
     pix = rr * frame.width + cc
-    order = np.lexsort((-h, pix))  # per texel, the highest first
+    order = np.lexsort((sel[ti], -h, pix))  # per texel the highest first; on an edge, the lower face index
     first = order[np.r_[True, pix[order][1:] != pix[order][:-1]]] if len(order) else order
     face[rr[first], cc[first]] = sel[ti[first]]
     bary[rr[first], cc[first]] = lam[first]
@@ -377,13 +377,34 @@ def bake_polygon(
         (texture (H, W, 3) float32, 0 where uncovered; covered (H, W) bool; the dominant photo
         index per texel (H, W), -1 where unknown, or None without labels).
     """
+    lo, hi = relief_bounds(frame, relief)
+    # in bands of rows: a full-density frame at k x k rays a texel holds tens of millions of rays
+    rows = max(1, RAY_CHUNK // (k * k * frame.width))
+    parts = [
+        _bake_band(tm, caster, _band(frame, r, min(rows, frame.height - r)), k, lo, hi, labels)
+        for r in range(0, frame.height, rows)
+    ]
+    tex = np.concatenate([p[0] for p in parts])
+    cov_down = np.concatenate([p[1] for p in parts]) & mask
+    src = np.where(cov_down, np.concatenate([p[2] for p in parts]), -1) if labels is not None else None
+    return np.where(cov_down[..., None], tex, 0.0).astype(np.float32), cov_down, src
+
+
+def _band(frame: UVFrame, row: int, rows: int) -> UVFrame:
+    """Rows ``row`` .. ``row + rows`` of the frame as a frame of their own."""
+    origin = frame.origin + row * frame.texel_size * frame.e_v
+    return UVFrame(origin, frame.e_u, frame.e_v, frame.normal, frame.texel_size, frame.width, rows)
+
+
+def _bake_band(
+    tm: TexturedMesh, caster: Caster, frame: UVFrame, k: int, lo: float, hi: float, labels: np.ndarray | None
+) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+    """:func:`bake_polygon` on one band of rows, without the mask: (texture, covered, sources or None)."""
     from difftex.evaluation.peers.objimport import box_down, fine_frame
     from difftex.geometry.frames import sample_photo
 
-    ff = fine_frame(frame, k)
-    lo, hi = relief_bounds(frame, relief)
-    face, bary, _ = caster.hits(ff, lo, hi)
-    acc = np.zeros((*ff.shape, 4), np.float32)
+    face, bary, _ = caster.hits(fine_frame(frame, k), lo, hi)
+    acc = np.zeros((*face.shape, 4), np.float32)
     mat = np.where(face >= 0, tm.material[np.maximum(face, 0)], -1)
     for m in np.unique(mat[mat >= 0]):
         j = mat == m
@@ -391,15 +412,11 @@ def bake_polygon(
         ih, iw = tm.atlases[m].shape[:2]
         acc[j] = sample_photo(tm.atlases[m], np.stack([uv[:, 0] * iw, (1 - uv[:, 1]) * ih], -1))
     w = acc[..., 3]
-    cov = w >= 0.5
+    cov = w >= 0.5  # as objimport.import_obj: covered where the atlas holds colour
     tex = np.where(cov[..., None], acc[..., :3] / np.maximum(w, 1e-6)[..., None], 0.0).astype(np.float32)
     tex, cov_down = box_down(tex, cov, k)
-    cov_down &= mask
-    src = None
-    if labels is not None:
-        fine = np.where(cov, labels[np.maximum(face, 0)] - 1, -1)
-        src = np.where(cov_down, block_mode(fine, k), -1)
-    return np.where(cov_down[..., None], tex, 0.0).astype(np.float32), cov_down, src
+    src = block_mode(np.where(cov, labels[np.maximum(face, 0)] - 1, -1), k) if labels is not None else None
+    return tex, cov_down, src
 
 
 def block_mode(lab: np.ndarray, k: int) -> np.ndarray:
