@@ -51,7 +51,10 @@ REAL = ("herzjesu-p8", "lund-door", "sceaux-castle")
 SHARED = Path("../shared/data")  # relative to the repository root, where every command runs
 # the published method (difftex-paper: the render loss, long caps) wants a GPU at full density; the
 # trade-off curve holds its row at 512 texels
-ALL_METHODS = "difftex,average,frontal,mrf,texrecon,meshlab-blend,meshlab-face"
+# with and without the survey scene's dense cloud (difftex synth-dense), the true-relief bound,
+# and the reprojection peer (texrecon on the dense mesh, baked)
+ALL_METHODS = ("difftex,difftex-dense,difftex-true-relief,average,frontal,mrf,texrecon,meshlab-blend,meshlab-face,"
+               "reprojection")
 
 
 @dataclass
