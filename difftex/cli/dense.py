@@ -45,9 +45,11 @@ def run(args) -> int:
     from difftex.config import job_threads
     from difftex.scene import mvs
     from difftex.scene.files import write_json
+    from difftex.scene.loading import find_sparse
 
     log = logging.getLogger("difftex.cli.dense")
     cfg = stereo_config(args.config)
+    find_sparse(Path(args.scene))  # a wrong scene is an error with or without CUDA
     out = Path(args.out)
     if not mvs.cuda_available():
         # not an error: a workflow with dense.stereo on a CPU machine goes on without depth maps

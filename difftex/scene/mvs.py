@@ -104,7 +104,7 @@ def read_photo_list(path: str | Path) -> list[str]:
     return [line.strip() for line in text.splitlines() if line.strip() and not line.startswith("#")]
 
 
-def chosen_frames(rec, names: list[str] | None, model_dir: Path) -> list[str]:
+def chosen_photos(rec, names: list[str] | None, model_dir: Path) -> list[str]:
     """The registered photos PatchMatch gets, checked against the model ``rec``.
 
     Args:
@@ -290,7 +290,7 @@ def run_dense_stereo(
     scene_dir, out_dir = Path(scene_dir), Path(out_dir)
     sparse = find_sparse(scene_dir)
     rec = read_reconstruction(sparse)
-    names = chosen_frames(rec, image_names, sparse)
+    names = chosen_photos(rec, image_names, sparse)
     tmp = partial_dir(out_dir)
     if tmp.exists():  # an interrupted run's: start again
         shutil.rmtree(tmp)
