@@ -32,6 +32,8 @@ EXPECTED = [
     ("visibility('p0')", "visibility/p0.npz"),
     ("visibility_summary", "visibility/summary.json"),
     ("visibility_tile('{tile}')", "visibility/tiles/{tile}.json"),
+    ("heights_dir", "heights"),
+    ("heights_tile('{tile}')", "heights/tiles/{tile}.json"),
     ("crops('p0')", "init/p0/crops.npz"),
     ("job_file('initialize', '{job}')", "init/jobs/{job}.json"),
     ("transfers('p0')", "histmatch/p0/transfers.npz"),

@@ -39,10 +39,14 @@ def run(args) -> int:
     if key is None:
         raise DifftexError(f"{args.rows}: neither a tile nor the summary of the difftex visibility stage")
     pids = [r["id"] for r in rows[key] if r.get("photos")]
-    source = find_source(args.scene, cfg.source)
+    from difftex.scene.mvs import workspace_status
+
+    skipped = workspace_status(Path(cfg.source)) == "skipped"  # the GPU stage found no CUDA
+    source = None if skipped else find_source(args.scene, cfg.source)
     done: list[dict] = []
     if source is None:
-        print(f"heights: no dense geometry ({cfg.source}): every polygon keeps its plane", flush=True)
+        why = "the dense stage was skipped" if skipped else f"none in {cfg.source}"
+        print(f"heights: no dense geometry ({why}): every polygon keeps its plane", flush=True)
     else:
         out = Path(args.out_dir)
         done = tile_heights(Path(args.scene), source, [visibility_file(args.visibility_dir, p) for p in pids], cfg,

@@ -91,8 +91,11 @@ REBUILD = products.Rebuild(R, config, SPLIT, VISIBILITY_TILES)
 TILE_ROWS = [str(RES.visibility_tile(tile)) for tile in VISIBILITY_TILES]
 # the heights jobs' lists (an input of every per-polygon job), and the option that hands their
 # folder to the per-polygon commands (with its trailing space; empty without dense geometry)
-HEIGHT_TILES = [str(RES.heights_tile(tile)) for tile in VISIBILITY_TILES] if DENSE else []
-HEIGHTS_ARG = f"--heights-dir '{RES.heights_dir}' " if DENSE else ""
+# With dense.stereo and no dense geometry of the scene's own, the heights come from the
+# dense_stereo rule's depth maps (workflow/rules/dense.smk)
+STEREO = bool(config["dense"]["stereo"] and config["dense"]["source"] == "auto" and DENSE is None)
+HEIGHT_TILES = [str(RES.heights_tile(tile)) for tile in VISIBILITY_TILES] if DENSE or STEREO else []
+HEIGHTS_ARG = f"--heights-dir '{RES.heights_dir}' " if DENSE or STEREO else ""
 
 
 wildcard_constraints:

@@ -7,11 +7,7 @@
 import difftex.scene.mvs as mvs
 
 # the workspace's record, asked for by `all` (empty: the rule does not run)
-DENSE_STEREO = (
-    [str(RES.dense_done)]
-    if config["dense"]["stereo"] and config["dense"]["source"] == "auto" and DENSE is None
-    else []
-)
+DENSE_STEREO = [str(RES.dense_done)] if STEREO else []
 # whether pycolmap has CUDA, a parameter of the rule: a run skipped for want of it runs again once
 # pycolmap-cuda12 is installed (asked only when the rule is wanted: importing pycolmap takes a while)
 DENSE_STEREO_CUDA = mvs.cuda_available() if DENSE_STEREO else False

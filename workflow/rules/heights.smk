@@ -1,13 +1,13 @@
 # Relief from the scene's dense geometry (docs/dense.md): per visibility tile, each polygon's
 # height field along its normal, from a cloud, a mesh or COLMAP depth maps, read once per tile.
-# Only when the scene has dense geometry (DENSE); the per-polygon stages take the tiles' lists
-# as inputs and map the photos through the fields.
+# Only when the scene has dense geometry (DENSE), or the dense_stereo rule makes depth maps
+# (STEREO); the per-polygon stages take the tiles' lists as inputs and map the photos through the fields.
 
 
 rule heights:
     input:
         rows=str(RES.visibility_tile("{tile}")),
-        dense=wf.dense_inputs(DENSE),
+        dense=wf.dense_inputs(DENSE) if DENSE else str(RES.dense_done),
         config=STAGE_CFG["heights"],
     output:
         # the tile's list of its polygons; each R/heights/<pid>.npz is written atomically before it
@@ -15,7 +15,7 @@ rule heights:
     params:
         stage_config=STAGE_TEXT["heights"],
         scene=SCENE,
-        source=DENSE.path if DENSE else "",
+        source=DENSE.path if DENSE else RES.dense_dir,
         out_dir=RES.heights_dir,
         vis_dir=RES.visibility_dir,
     conda:
