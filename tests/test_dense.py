@@ -188,3 +188,42 @@ def test_workflow_with_a_dense_cloud(small_synth_scene, tmp_path):
     assert bad.returncode != 0
     out = bad.stdout + bad.stderr
     assert "fused.ply: not a PLY file" in out and "Traceback" not in out
+
+
+def test_heights_command_warns_for_a_polygon_without_points_and_skips_a_skipped_stage(small_synth_scene, tmp_path):
+    """`difftex heights` on the visibility summary: a polygon with no point near it keeps its
+    plane with one warning line naming the file and the polygon; a GPU stage that was skipped
+    (no CUDA) leaves every polygon its plane."""
+    from difftex.compose.heights import read_heights
+    from difftex.scene.files import read_json
+    from difftex.scene.proxy import load_proxy
+
+    scene = tmp_path / "scene"
+    shutil.copytree(small_synth_scene, scene)
+    cloud = _proxy_cloud(scene, np.random.default_rng(1), depth=0.3)
+    wall = next(p for p in load_proxy(scene / "proxy.obj").polygons if abs(p.normal[2]) < 0.5)
+    near = np.abs((cloud - wall.outer[0]) @ wall.normal) < 0.5  # only that wall's plane keeps its points
+    (scene / "dense").mkdir()
+    write_colmap_ply(scene / "dense" / "fused.ply", cloud[near])
+    run = lambda *a: subprocess.run([sys.executable, "-m", "difftex", *map(str, a)], capture_output=True, text=True)  # noqa: E731
+    assert run("filter", "--quiet", "--scene", scene, "--out", tmp_path / "photos.json").returncode == 0
+    assert run("visibility", "--quiet", "--scene", scene, "--photos", tmp_path / "photos.json",
+               "--out-dir", tmp_path / "vis").returncode == 0
+    out = tmp_path / "heights"
+    r = run("heights", "--scene", scene, "--rows", tmp_path / "vis" / "summary.json", "--visibility-dir",
+            tmp_path / "vis", "--out-dir", out, "--done", out / "done.json")
+    assert r.returncode == 0, r.stderr
+    done = read_json(out / "done.json")
+    assert done["kind"] == "cloud" and len(done["polygons"]) == len(list((tmp_path / "vis").glob("*.npz")))
+    warned = [line for line in r.stderr.splitlines() if "no dense geometry near polygon" in line]
+    assert warned and all(line.startswith("difftex: warning: ") and "fused.ply" in line for line in warned)
+    assert f"'{wall.id}'" not in r.stderr
+    _, h, st = read_heights(out / f"{wall.id}.npz", wall.id)
+    assert st["evidence_share"] > 0.1 and (h < -0.2).any()  # 4000 points over up to 512 x 512 texels
+
+    skipped = tmp_path / "stereo"
+    skipped.mkdir()
+    (skipped / "dense.json").write_text('{"status": "skipped"}')
+    r = run("heights", "--scene", scene, "--rows", tmp_path / "vis" / "summary.json", "--visibility-dir",
+            tmp_path / "vis", "--source", skipped, "--out-dir", tmp_path / "h2", "--done", tmp_path / "h2.json")
+    assert r.returncode == 0 and "the dense stage was skipped" in r.stdout and read_json(tmp_path / "h2.json")["polygons"] == []
