@@ -111,7 +111,8 @@ def test_a_noisy_cloud_without_glass_gives_the_field_within_a_texel(wall):
     pts = noisy(surface_points(0.02, rng), rng, NOISE, outliers=0.03)
     field, stats = height_field(frame, mask, CFG, points=pts)
     found_r, found_b, false = _accuracy(field, truth, frame.texel_size)
-    assert found_r > 0.9 and found_b > 0.9 and false < 0.02
+    # false relief: at most the texel ring around the two boxes (2.5 % of the wall)
+    assert found_r > 0.9 and found_b > 0.9 and false < 0.03
     assert stats["noise"] == pytest.approx(NOISE, rel=0.5)
     assert len(stats["layers"]) == 3
 
@@ -188,3 +189,38 @@ def test_config_checks():
         HeightFieldConfig(range=(0.1, 0.5))
     with pytest.raises(Exception, match="long_side"):
         HeightFieldConfig(long_side=2)
+
+
+def test_a_window_whose_glass_has_no_points_takes_its_frames_layer_not_the_walls(wall):
+    """A sparse cloud (6 cm apart: drone photos' resolution) with no point on the glass and the
+    pane's frame and mullions its only points: the window is a hole in the wall's evidence, and
+    it takes the layer its few points vote for, behind the wall."""
+    frame, mask = wall
+    _, truth = ar.truth(frame)
+    rng = np.random.default_rng(4)
+    field, stats = height_field(frame, mask, CFG, points=noisy(surface_points(0.06, rng), rng, NOISE))
+    found_r, found_b, false = _accuracy(field, truth, frame.texel_size)
+    assert found_r > 0.85 and found_b > 0.85 and false < 0.03
+    assert stats["noise"] == pytest.approx(NOISE, rel=0.5)
+
+
+def test_a_hole_takes_a_layer_behind_the_wall_only():
+    """hole_evidence: a hole amid the wall's evidence with points 0.3 behind the wall on its rim
+    takes that layer; one with points 0.4 in front (an occluder's) stays without evidence; one
+    with too few points for its size too."""
+    from difftex.geometry.frames import UVFrame
+    from difftex.geometry.heightfield import hole_evidence
+
+    fr = UVFrame(np.zeros(3), np.array([1.0, 0, 0]), np.array([0, 0, -1.0]), np.array([0, -1.0, 0]), 0.1, 60, 20)
+    layers = np.array([-0.3, 0.0, 0.4])
+    evidence = np.zeros(fr.shape, np.float32)
+    weight = np.ones(fr.shape)
+    for x0 in (5, 25, 45):  # three 10 x 10 holes
+        weight[5:15, x0 : x0 + 10] = 0
+        evidence[5:15, x0 : x0 + 10] = np.nan
+    pts = [fr.texel_to_world(np.full(20, 10.5), np.linspace(5, 15, 20)) + h * fr.normal for h in (-0.3, 0.4)]
+    pts = np.concatenate([pts[0], pts[1] + 20 * 0.1 * fr.e_u,  # 20 points behind in hole 1, 20 in front in hole 2
+                          fr.texel_to_world(np.array([50.5, 51.5]), np.array([10.5, 10.5])) - 0.3 * fr.normal])
+    ev, w = hole_evidence(pts, fr, np.ones(fr.shape, bool), evidence, weight, layers, 0.05, -1, 1)
+    assert (ev[5:15, 5:15] == -0.3).all() and (w[5:15, 5:15] > 0).all()
+    assert (w[5:15, 25:35] == 0).all() and (w[5:15, 45:55] == 0).all()  # in front; 2 points for 100 texels

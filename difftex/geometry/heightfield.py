@@ -38,6 +38,18 @@ MIN_LAYER_SHARE = 0.005
 MIN_LAYER_TEXELS = 16
 # Texels whose points are fewer than this are weighed down (a lone point is often an outlier).
 FULL_EVIDENCE = 3
+# Coarse texels of this many times the points' spacing hold about its square of points: enough
+# for a median, and for a texel of plain wall to hold two points (the noise estimate).
+POINTS_PER_SIDE = 2.0
+# What leaving the coarse labelling costs a fine texel: less than one point's third (a texel with
+# evidence moves the edge), more than nothing (a texel without follows the coarse region).
+PRIOR_COST = 0.1
+# A hole takes the layer its points vote for with at least this many points, and this many per
+# texel of the hole (a window's frame and mullions give far more; a large unseen patch of wall
+# with a stray point does not), at this weight (below a measured texel's, above the prior's).
+MIN_HOLE_POINTS = 3
+HOLE_DENSITY = 0.1
+HOLE_WEIGHT = 0.5
 
 
 @dataclass(frozen=True)
@@ -192,14 +204,16 @@ def find_layers(values: np.ndarray, tol: float, max_layers: int, lo: float, hi: 
 
 
 def snap_to_layers(
-    evidence: np.ndarray, weight: np.ndarray, layers: np.ndarray, tol: float, smoothness: float
+    evidence: np.ndarray, weight: np.ndarray, layers: np.ndarray, tol: float, smoothness: float,
+    prior: np.ndarray | None = None,
 ) -> np.ndarray:
     """Each texel's layer by alpha-expansion: data cost min(((e - layer) / 2 tol)^2, 1) x weight,
-    Potts cost ``smoothness`` between 4-neighbours of different layers.
+    plus PRIOR_COST off the ``prior`` label where one is given, Potts cost ``smoothness`` between
+    4-neighbours of different layers.
 
     Args:
         evidence: (H, W) heights, NaN without evidence; weight: (H, W) in [0, 1] (0: none);
-        layers: (L,) from :func:`find_layers`.
+        layers: (L,) from :func:`find_layers`; prior: (H, W) int labels (a coarser labelling) or None.
 
     Returns:
         (H, W) int layer index.
@@ -214,16 +228,122 @@ def snap_to_layers(
     # without evidence every layer costs the same but for a hair on the plane: a region cut off
     # from all evidence keeps the plane, one bordered by evidence takes its border's layer
     D += np.where(np.arange(len(layers)) == plane, 0.0, 1e-4)
+    if prior is not None:
+        D += PRIOR_COST * (np.arange(len(layers)) != prior[..., None])
     V = smoothness * (1.0 - np.eye(len(layers)))
-    init = np.argmin(D, axis=-1)
+    init = np.argmin(D, axis=-1) if prior is None else prior
     return np.asarray(fastmin.aexpansion_grid(D.astype(np.float64), V, max_cycles=5, labels=init), np.int64)
+
+
+def cloud_spacing(points: np.ndarray, frame: UVFrame, mask: np.ndarray, lo: float, hi: float) -> float:
+    """The mean distance between the cloud's points over the polygon: sqrt(its area / their number).
+
+    Args:
+        points: (N, 3) world; mask: (H, W) bool at ``frame``.
+
+    Returns:
+        Scene units; inf without points.
+    """
+    tx, ty, h = plane_coordinates(points, frame)
+    inside = (tx >= 0) & (tx < frame.width) & (ty >= 0) & (ty < frame.height) & (h >= lo) & (h <= hi)
+    n = int(mask[ty[inside].astype(np.int64), tx[inside].astype(np.int64)].sum())
+    area = float(mask.sum()) * frame.texel_size**2
+    return float(np.sqrt(area / n)) if n else float("inf")
+
+
+def cloud_field(points: np.ndarray, frame: UVFrame, mask: np.ndarray, cfg: HeightFieldConfig, lo: float, hi: float):
+    """The labelling from a cloud, coarse to fine: where the points are sparser than the texels,
+    the layers and the regions are found at texels of POINTS_PER_SIDE x the points' spacing
+    (enough points per texel for a median and a noise estimate, and windows whose glass has
+    no points are a few texels wide, not a sieve), then the regions' edges are placed at
+    ``frame`` by the points there, the coarse labels a prior where a texel has none.
+
+    Returns:
+        ((L,) layers, (H, W) int labels at ``frame``, the noise, the share of coarse texels with evidence).
+    """
+    spacing = cloud_spacing(points, frame, mask, lo, hi)
+    side = max(frame.width, frame.height) * frame.texel_size
+    coarse = frame
+    if POINTS_PER_SIDE * spacing > frame.texel_size and np.isfinite(spacing):
+        coarse = frame.resized(max(4, int(np.ceil(side / (POINTS_PER_SIDE * spacing)))))
+    cmask = _nearest(mask, frame, coarse)
+    evidence, weight, noise = cloud_evidence(points, coarse, lo, hi)
+    weight = np.where(cmask & np.isfinite(evidence), weight, 0.0)
+    tol = max(3.0 * noise, 0.5 * coarse.texel_size)
+    has = weight > 0
+    share = float(has[cmask].mean()) if cmask.any() else 0.0
+    if not has.any():
+        return np.zeros(1), np.zeros(frame.shape, np.int64), noise, share
+    layers = find_layers(evidence[has], tol, cfg.layers, lo, hi)
+    evidence, weight = hole_evidence(points, coarse, cmask, evidence, weight, layers, tol, lo, hi)
+    label = snap_to_layers(np.where(cmask, evidence, np.nan), weight, layers, tol, cfg.smoothness)
+    if coarse is frame:
+        return layers, label, noise, share
+    prior = _nearest(label, coarse, frame)
+    evidence, weight, _ = cloud_evidence(points, frame, lo, hi)
+    weight = np.where(mask & np.isfinite(evidence), weight, 0.0)
+    fine_tol = max(3.0 * noise, 0.5 * frame.texel_size)
+    return layers, snap_to_layers(evidence, weight, layers, fine_tol, cfg.smoothness, prior), noise, share
+
+
+def hole_evidence(
+    points: np.ndarray, frame: UVFrame, mask: np.ndarray, evidence: np.ndarray, weight: np.ndarray,
+    layers: np.ndarray, tol: float, lo: float, hi: float,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Evidence for the holes: a region of texels without evidence amid a wall the cloud covers
+    is surface dense matching could not reconstruct (a window's glass). Its height is what the
+    few points inside it and on its rim say behind the wall (its frame and mullions, the deep end
+    of its reveals): the layer behind the plane with the most points there, given HOLE_WEIGHT, where
+    they are at least MIN_HOLE_POINTS and HOLE_DENSITY per texel of the hole. Without it the
+    hole would take the wall around it, which holds far more points.
+
+    Args:
+        evidence, weight: (H, W) from :func:`cloud_evidence` (weight 0 outside ``mask``).
+
+    Returns:
+        (evidence, weight) with the holes' texels given their layer.
+    """
+    from scipy import ndimage
+
+    holes, n = ndimage.label(mask & (weight == 0))
+    if n == 0 or len(layers) < 2:
+        return evidence, weight
+    rim = ndimage.grey_dilation(holes, size=3)  # a hole's id on its texels and on the ring around them
+    tx, ty, h = plane_coordinates(points, frame)
+    inside = (tx >= 0) & (tx < frame.width) & (ty >= 0) & (ty < frame.height) & (h >= lo) & (h <= hi)
+    hole = rim[ty[inside].astype(np.int64), tx[inside].astype(np.int64)]
+    near = np.abs(h[inside][:, None] - layers[None]) <= tol
+    layer = np.where(near.any(1), near.argmax(1), -1)
+    plane = int(np.argmin(np.abs(layers)))
+    # only layers behind the wall: glass sits in openings, and what stands out of a facade
+    # (a balcony, a cornice) is solid surface that dense matching reconstructs; points in front
+    # of a hole are an occluder's (a tree before a door)
+    use = (hole > 0) & (layer >= 0) & (layer != plane) & (layers[np.maximum(layer, 0)] < layers[plane])
+    votes = np.zeros((n + 1, len(layers)))
+    np.add.at(votes, (hole[use], layer[use]), 1.0)
+    size = np.bincount(holes.ravel(), minlength=n + 1)
+    best = votes.argmax(1)
+    ok = (votes.max(1) >= np.maximum(MIN_HOLE_POINTS, HOLE_DENSITY * size)) & (np.arange(n + 1) > 0)
+    fill = ok[holes] & (holes > 0)
+    evidence = np.where(fill, layers[best[holes]], evidence)
+    weight = np.where(fill, HOLE_WEIGHT, weight)
+    return evidence, weight
+
+
+def _nearest(arr: np.ndarray, src: UVFrame, dst: UVFrame) -> np.ndarray:
+    """``arr`` at ``src`` resampled to ``dst`` (the same rectangle), nearest texel (as
+    difftex.sampling.texels.resample_nearest, which this layer may not import)."""
+    r = dst.texel_size / src.texel_size
+    ix = np.clip(np.floor((np.arange(dst.width) + 0.5) * r).astype(int), 0, src.width - 1)
+    iy = np.clip(np.floor((np.arange(dst.height) + 0.5) * r).astype(int), 0, src.height - 1)
+    return arr[iy[:, None], ix[None, :]]
 
 
 def height_field(
     frame: UVFrame, mask: np.ndarray, cfg: HeightFieldConfig, points: np.ndarray | None = None,
     mesh: DenseMesh | None = None,
 ) -> tuple[np.ndarray, dict]:
-    """A polygon's height field at ``frame`` from a cloud (``points``) or a ``mesh``.
+    """A polygon's height field at ``frame`` from a cloud (``points``, :func:`cloud_field`) or a ``mesh``.
 
     Args:
         frame: the field's texel grid (a level of the polygon's frame); mask: (H, W) bool, the
@@ -236,24 +356,21 @@ def height_field(
     lo, hi = cfg.bounds(frame)
     if (points is None) == (mesh is None):
         raise ValueError("give points or a mesh")
+    stats: dict = {"range": [lo, hi], "long_side": max(frame.shape)}
     if points is not None:
-        evidence, weight, noise = cloud_evidence(points, frame, lo, hi)
+        layers, label, noise, share = cloud_field(points, frame, mask, cfg, lo, hi)
     else:
-        evidence, noise = mesh_evidence(mesh, frame, lo, hi), 0.0
+        evidence = np.where(mask, mesh_evidence(mesh, frame, lo, hi), np.nan)
         weight = np.isfinite(evidence).astype(np.float64)
-    evidence = np.where(mask, evidence, np.nan)
-    weight = np.where(mask & np.isfinite(evidence), weight, 0.0)
-    # the clusters are told apart at 3 sigma of the points' noise, and never finer than half a
-    # texel (a mesh has no noise; a smaller height difference moves no photo by half a texel
-    # under 45 degrees)
-    tol = max(3.0 * noise, 0.5 * frame.texel_size)
-    has = weight > 0
-    stats = {"evidence_share": float(has[mask].mean()) if mask.any() else 0.0, "noise": noise,
-             "range": [lo, hi], "long_side": max(frame.shape)}
-    if not has.any():
-        return np.zeros(frame.shape, np.float32), {**stats, "layers": [], "reason": "no dense geometry over the polygon"}
-    layers = find_layers(evidence[has], tol, cfg.layers, lo, hi)
-    label = snap_to_layers(evidence, weight, layers, tol, cfg.smoothness)
+        noise, share = 0.0, float(weight[mask].mean()) if mask.any() else 0.0
+        # a mesh has no noise: its layers are told apart at half a texel (a smaller height
+        # difference moves no photo by half a texel under 45 degrees)
+        tol = 0.5 * frame.texel_size
+        layers = find_layers(evidence[weight > 0], tol, cfg.layers, lo, hi) if share else np.zeros(1)
+        label = snap_to_layers(evidence, weight, layers, tol, cfg.smoothness) if share else np.zeros(frame.shape, int)
+    stats.update({"evidence_share": share, "noise": noise})
+    if share == 0:
+        return np.zeros(frame.shape, np.float32), {**stats, "layers": {}, "reason": "no dense geometry over the polygon"}
     h = np.where(mask, layers[label], 0.0).astype(np.float32)
     stats["layers"] = {f"{v:.4g}": float((h[mask] == np.float32(v)).mean()) for v in layers}
     stats["relief_share"] = float((h[mask] != 0).mean()) if mask.any() else 0.0
