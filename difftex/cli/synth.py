@@ -55,6 +55,8 @@ def add_arguments(p) -> None:
     p.add_argument("--sun", action=argparse.BooleanOptionalAction, default=None, help="directional sun besides the sky")
     p.add_argument("--variant", choices=["auto", "llvm_ad_rgb", "scalar_rgb"], help="Mitsuba variant (default auto)")
     p.add_argument("--no-previews", action="store_true", help="skip the contact sheet / overlay / map pictures")
+    p.add_argument("--dense", action="store_true",
+                   help="also write each scene's COLMAP-like dense reconstruction into <scene>/dense/ (as synth-dense)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
 
 
@@ -79,6 +81,8 @@ def run(args) -> int:
     from difftex.synth.presets import DISTRICTS
 
     if args.district is not None or args.preset in DISTRICTS:
+        if args.dense:
+            raise DifftexError("--dense is for building presets; a district has no detailed model to reconstruct")
         return _run_district(args)
     out = Path(args.out) if args.out else Path("data") / "synth" / args.preset
     ov = overrides_from_args(args)
@@ -88,7 +92,23 @@ def run(args) -> int:
     t0 = time.perf_counter()
     generate(args.preset, out, seed=args.seed, progress=not args.quiet, buildings=args.building, **ov)
     print(f"synth: wrote {out} in {time.perf_counter() - t0:.1f} s")
+    if args.dense:
+        from difftex.cli.synth_dense import write_scene_dense
+
+        for scene in scene_dirs(args.preset, out, args.building):
+            write_scene_dense(scene, progress=not args.quiet)
     return 0
+
+
+def scene_dirs(preset: str, out, buildings: list[str] | None) -> list:
+    """The scene folders ``generate`` wrote: ``out`` for a one-building preset, else ``out/<name>``
+    per building asked for (all by default)."""
+    from difftex.synth.presets import get_preset
+
+    specs = get_preset(preset).buildings
+    if len(specs) == 1:
+        return [out]
+    return [out / name for name in (buildings or [b.name for b in specs])]
 
 
 def _run_district(args) -> int:
