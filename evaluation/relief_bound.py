@@ -260,6 +260,7 @@ def main(argv=None) -> int:
         ap.add_argument("--optimize", help="JSON optimize overrides (the relief_* settings)")
         ap.add_argument("--tolerance", type=float, default=0.05, help="scene units")
         ap.add_argument("--dense", help="score the field from the scene's dense geometry (a dense.source: auto, a path)")
+        ap.add_argument("--work", help="unused (evaluation/reproduce.py gives every script one)")
         ap.add_argument("--out", required=True)
         parsed = ap.parse_args(args)
         parsed.argv = args

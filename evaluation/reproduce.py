@@ -81,6 +81,11 @@ def full_plan(threads: int, survey: tuple[str, ...] = SURVEY) -> list[Job]:
     jobs = [Job("table1", f"survey_{b}", "table1",
                 ["--scene", f"data/synth/survey/{b}", "--preset", "default",
                  "--methods", ALL_METHODS, *t], [f"data/synth/survey/{b}"]) for b in survey]
+    for b in survey:  # the field the dense cloud gives, and the sweep from the photos alone
+        jobs.append(Job("relief", f"dense_{b}", "relief_bound", ["--accuracy", "--dense", "auto", "--scene",
+                                                                  f"data/synth/survey/{b}"], [f"data/synth/survey/{b}"]))
+        jobs.append(Job("relief", f"sweep_{b}", "relief_bound", ["--accuracy", "--scene", f"data/synth/survey/{b}"],
+                        [f"data/synth/survey/{b}"]))
     jobs.append(Job("table2", "real_scenes", "table2",
                     ["--scenes", ",".join(str(SHARED / s) for s in REAL),
                      "--preset", "default", "--holdout", "2", *t], [str(SHARED / s) for s in REAL]))
@@ -107,7 +112,8 @@ def smoke_plan(threads: int, tiny: str) -> list[Job]:
     return [
         Job("table1", "survey_tiny", "table1",
             ["--scene", tiny, "--long-side", "128", "--preset", "default",
-             "--methods", "difftex,average,mrf,texrecon,meshlab-blend", *t], [tiny]),
+             "--methods", "difftex,difftex-dense,average,mrf,texrecon,meshlab-blend,reprojection", *t], [tiny]),
+        Job("relief", "dense_tiny", "relief_bound", ["--accuracy", "--dense", "auto", "--scene", tiny], [tiny]),
         Job("table2", "lund_door", "table2",
             ["--scenes", door, "--long-side", "96", "--preset", "default", "--holdout", "1",
              "--render-long-side", "256", "--methods", "difftex,average,texrecon", *t], [door]),
@@ -132,10 +138,15 @@ def scene_commands(jobs: list[Job], tiny: str) -> list[list[str]]:
         if _scene_ready(Path(need)) or not (need == tiny or need.startswith("data/synth/survey/")):
             continue
         if need == tiny:
-            cmds.append(["--preset", "survey-tiny", "--out", tiny])
+            cmds.append(["synth", "--preset", "survey-tiny", "--out", tiny, "--dense"])
         else:  # one building of the survey at a time: another run may be rendering the others
-            cmds.append(["--preset", "survey", "--out", "data/synth/survey", "--building", Path(need).name])
-    return [[sys.executable, "-m", "difftex", "synth", *c, "--quiet"] for c in cmds]
+            cmds.append(["synth", "--preset", "survey", "--out", "data/synth/survey", "--building", Path(need).name,
+                         "--dense"])
+    for need in dict.fromkeys(n for j in jobs for n in j.needs):  # a scene made before synth wrote its cloud
+        synthetic = need == tiny or need.startswith("data/synth/survey/")
+        if synthetic and _scene_ready(Path(need)) and not (ROOT / need / "dense").is_dir():
+            cmds.append(["synth-dense", "--scene", need])
+    return [[sys.executable, "-m", "difftex", *c, "--quiet"] for c in cmds]
 
 
 def _scene_ready(scene: Path) -> bool:

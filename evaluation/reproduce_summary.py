@@ -16,6 +16,7 @@ from pathlib import Path
 TITLES = {
     "table1": "Table 1: synthetic survey buildings against ground truth",
     "table2": "Table 2: real scenes, held-out photos",
+    "relief": "Relief: the height field from the dense cloud and from the photos against the true one",
     "ablation": "Ablation: each loss term and data-quality step off in turn",
     "tradeoff": "Speed/quality trade-off: several resolutions per preset",
     "speed": "Speed: the workflow per preset against texrecon",
