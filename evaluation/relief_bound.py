@@ -231,7 +231,8 @@ def accuracy_main(args) -> int:
         C.header(f"The relief {'from dense geometry' if args.dense else 'sweep'} against the true field: "
                  f"{args.scene.name}", cmd, C.machine(), [
             (f"the field measured from the scene's dense geometry (dense.source {args.dense})" if args.dense else
-             f"optimize overrides {json.dumps(over)}; the sweep's own field with its step limit lifted") + ", at its frame; "
+             f"optimize overrides {json.dumps(over)}; the sweep's own field with its step limit lifted")
+            + ", at its frame; "
             f"within: share of texels within {args.tolerance} of the truth; recess found: share of the recessed "
             "texels (below -depth/2) estimated there; false relief: share of the plane's texels estimated off it."]),
         "| polygon | photos compared | steps | within | recess found | false relief | note |",
@@ -259,7 +260,7 @@ def main(argv=None) -> int:
         ap.add_argument("--max-long-side", type=int, default=512)
         ap.add_argument("--optimize", help="JSON optimize overrides (the relief_* settings)")
         ap.add_argument("--tolerance", type=float, default=0.05, help="scene units")
-        ap.add_argument("--dense", help="score the field from the scene's dense geometry (a dense.source: auto, a path)")
+        ap.add_argument("--dense", help="score the field from the scene's dense geometry (a dense.source, e.g. auto)")
         ap.add_argument("--work", help="unused (evaluation/reproduce.py gives every script one)")
         ap.add_argument("--out", required=True)
         parsed = ap.parse_args(args)

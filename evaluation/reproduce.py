@@ -82,8 +82,9 @@ def full_plan(threads: int, survey: tuple[str, ...] = SURVEY) -> list[Job]:
                 ["--scene", f"data/synth/survey/{b}", "--preset", "default",
                  "--methods", ALL_METHODS, *t], [f"data/synth/survey/{b}"]) for b in survey]
     for b in survey:  # the field the dense cloud gives, and the sweep from the photos alone
-        jobs.append(Job("relief", f"dense_{b}", "relief_bound", ["--accuracy", "--dense", "auto", "--scene",
-                                                                  f"data/synth/survey/{b}"], [f"data/synth/survey/{b}"]))
+        scene = f"data/synth/survey/{b}"
+        jobs.append(Job("relief", f"dense_{b}", "relief_bound", ["--accuracy", "--dense", "auto", "--scene", scene],
+                        [scene]))
         jobs.append(Job("relief", f"sweep_{b}", "relief_bound", ["--accuracy", "--scene", f"data/synth/survey/{b}"],
                         [f"data/synth/survey/{b}"]))
     jobs.append(Job("table2", "real_scenes", "table2",

@@ -4,7 +4,6 @@ file, the bad-input lines, and the workflow with a scene's dense/ folder end to 
 from __future__ import annotations
 
 import shutil
-import struct
 import subprocess
 import sys
 from pathlib import Path
@@ -31,7 +30,8 @@ def write_colmap_ply(path: Path, xyz: np.ndarray) -> None:
     header = ["ply", "format binary_little_endian 1.0", f"element vertex {len(xyz)}"]
     header += [f"property float {n}" for n in COLMAP_VERTEX] + [f"property uchar {c}" for c in ("red", "green", "blue")]
     header.append("end_header")
-    rec = np.zeros(len(xyz), dtype=[*((n, "<f4") for n in COLMAP_VERTEX), ("red", "u1"), ("green", "u1"), ("blue", "u1")])
+    fields = [*((n, "<f4") for n in COLMAP_VERTEX), *((c, "u1") for c in ("red", "green", "blue"))]
+    rec = np.zeros(len(xyz), dtype=fields)
     rec["x"], rec["y"], rec["z"] = xyz.T
     rec["nz"] = 1.0
     rec["red"] = 200
@@ -122,7 +122,8 @@ def test_bad_inputs_are_one_line(tmp_path):
     with pytest.raises(DifftexError, match="nowhere.ply: dense geometry not found"):
         find_source(tmp_path, "nowhere.ply")
     far = np.random.default_rng(0).uniform(0, 1, (1000, 3)) + [500000.0, 6000000.0, 0]
-    with pytest.raises(DifftexError, match=r"far.ply: not in the proxy's frame: the median distance .* is 6\.0\d*e\+06 .* spans 1\.7"):
+    message = r"far.ply: not in the proxy's frame: the median distance .* is 6\.0\d*e\+06 .* spans 1\.7"
+    with pytest.raises(DifftexError, match=message):
         check_frame(far, np.zeros(3), np.ones(3), Path("far.ply"))
     check_frame(far - [500000.0, 6000000.0, 0], np.zeros(3), np.ones(3), Path("near.ply"))
 
@@ -226,4 +227,5 @@ def test_heights_command_warns_for_a_polygon_without_points_and_skips_a_skipped_
     (skipped / "dense.json").write_text('{"status": "skipped"}')
     r = run("heights", "--scene", scene, "--rows", tmp_path / "vis" / "summary.json", "--visibility-dir",
             tmp_path / "vis", "--source", skipped, "--out-dir", tmp_path / "h2", "--done", tmp_path / "h2.json")
-    assert r.returncode == 0 and "the dense stage was skipped" in r.stdout and read_json(tmp_path / "h2.json")["polygons"] == []
+    assert r.returncode == 0 and "the dense stage was skipped" in r.stdout
+    assert read_json(tmp_path / "h2.json")["polygons"] == []

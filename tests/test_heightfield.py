@@ -88,8 +88,8 @@ def _accuracy(field: np.ndarray, truth: np.ndarray, tol: float) -> tuple[float, 
     """(share of recess texels found, of balcony texels found, of plain wall given relief)."""
     rec = truth < 0
     bal = truth > 0
-    return (float((np.abs(field[rec] - truth[rec]) < tol).mean()), float((np.abs(field[bal] - truth[bal]) < tol).mean()),
-            float((np.abs(field[truth == 0]) > tol).mean()))
+    found = [float((np.abs(field[m] - truth[m]) < tol).mean()) for m in (rec, bal)]
+    return found[0], found[1], float((np.abs(field[truth == 0]) > tol).mean())
 
 
 def test_a_mesh_gives_the_true_field(wall):

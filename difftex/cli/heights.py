@@ -26,7 +26,6 @@ def run(args) -> int:
     from difftex.compose.heights import tile_heights
     from difftex.errors import DifftexError
     from difftex.geometry.dense import find_source
-    from difftex.geometry.heightfield import HeightFieldConfig
     from difftex.layout import visibility_file
     from difftex.scene.files import read_json, write_json
 

@@ -46,12 +46,15 @@ def read_geometry(source: DenseSource, box: tuple[np.ndarray, np.ndarray], pad: 
 def polygon_box(frame: UVFrame, lo: float, hi: float) -> tuple[np.ndarray, np.ndarray]:
     """The world box of a polygon's rectangle swept from ``lo`` to ``hi`` along its normal."""
     s = frame.texel_size
-    corners = np.array([frame.origin + a * frame.width * s * frame.e_u + b * frame.height * s * frame.e_v + h * frame.normal
+    u, v = frame.width * s * frame.e_u, frame.height * s * frame.e_v
+    corners = np.array([frame.origin + a * u + b * v + h * frame.normal
                         for a in (0, 1) for b in (0, 1) for h in (lo, hi)])
     return corners.min(0), corners.max(0)
 
 
-def polygon_field(geometry, frame: UVFrame, mask: np.ndarray, cfg: HeightFieldConfig) -> tuple[UVFrame, np.ndarray, dict]:
+def polygon_field(
+    geometry, frame: UVFrame, mask: np.ndarray, cfg: HeightFieldConfig
+) -> tuple[UVFrame, np.ndarray, dict]:
     """One polygon's field from the tile's geometry (points are cut to the polygon's box first).
 
     Args:

@@ -150,7 +150,8 @@ def read_cloud(path: Path) -> np.ndarray:
     try:
         geom = trimesh.load(str(path), file_type="ply", process=False)
     except Exception as exc:  # noqa: BLE001 - trimesh raises many kinds on corrupt files
-        raise DifftexError(f"{path}: unreadable PLY ({str(exc).splitlines()[0] if str(exc) else type(exc).__name__})")
+        why = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+        raise DifftexError(f"{path}: unreadable PLY ({why})") from None
     xyz = np.asarray(getattr(geom, "vertices", np.zeros((0, 3))), np.float64)
     return _finite(xyz, path)
 
@@ -164,11 +165,13 @@ def read_mesh(path: Path) -> DenseMesh:
     try:
         mesh = trimesh.load(str(path), force="mesh", process=False)
     except Exception as exc:  # noqa: BLE001 - trimesh raises many kinds on corrupt files
-        raise DifftexError(f"{path}: unreadable mesh ({str(exc).splitlines()[0] if str(exc) else type(exc).__name__})")
+        why = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+        raise DifftexError(f"{path}: unreadable mesh ({why})") from None
     faces = np.asarray(getattr(mesh, "faces", np.zeros((0, 3))), np.int64).reshape(-1, 3)
     if len(faces) == 0:
         raise DifftexError(f"{path}: a mesh without faces")
-    return DenseMesh(_finite(np.asarray(mesh.vertices, np.float64), path), faces)
+    vertices = np.asarray(mesh.vertices, np.float64)  # type: ignore[attr-defined]  # force="mesh": a Trimesh
+    return DenseMesh(_finite(vertices, path), faces)
 
 
 def _finite(xyz: np.ndarray, path: Path) -> np.ndarray:
@@ -272,8 +275,3 @@ def check_frame(points: np.ndarray, lo: np.ndarray, hi: np.ndarray, path: Path) 
         f"units, the proxy spans {size:.4g} ({100 * near.mean():.2f} % of the points near it); reconstruct it "
         "from the same COLMAP model, or transform it to the proxy's coordinates"
     )
-
-
-def mesh_points(mesh: DenseMesh) -> np.ndarray:
-    """The mesh's vertices (for :func:`check_frame`)."""
-    return mesh.vertices

@@ -159,7 +159,7 @@ def mesh_evidence(mesh: DenseMesh, frame: UVFrame, lo: float, hi: float) -> np.n
     o = (frame.texel_to_world(tx, ty) - centre + hi * frame.normal).reshape(-1, 3).astype(np.float32)
     d = np.broadcast_to(-frame.normal, o.shape).astype(np.float32)
     ray = mi.Ray3f(mi.Point3f(o[:, 0], o[:, 1], o[:, 2]), mi.Vector3f(d[:, 0], d[:, 1], d[:, 2]))
-    ray.maxt = mi.Float(float(hi - lo))
+    ray.maxt = mi.Float(float(hi - lo))  # type: ignore[assignment]  # mitsuba's Float is drjit's
     t = np.asarray(scene.ray_intersect_preliminary(ray).t, np.float64)
     h = np.where(np.isfinite(t) & (t <= hi - lo), hi - t, np.nan)
     return h.reshape(frame.shape).astype(np.float32)
@@ -360,6 +360,7 @@ def height_field(
     if points is not None:
         layers, label, noise, share = cloud_field(points, frame, mask, cfg, lo, hi)
     else:
+        assert mesh is not None
         evidence = np.where(mask, mesh_evidence(mesh, frame, lo, hi), np.nan)
         weight = np.isfinite(evidence).astype(np.float64)
         noise, share = 0.0, float(weight[mask].mean()) if mask.any() else 0.0
@@ -370,7 +371,7 @@ def height_field(
         label = snap_to_layers(evidence, weight, layers, tol, cfg.smoothness) if share else np.zeros(frame.shape, int)
     stats.update({"evidence_share": share, "noise": noise})
     if share == 0:
-        return np.zeros(frame.shape, np.float32), {**stats, "layers": {}, "reason": "no dense geometry over the polygon"}
+        return np.zeros(frame.shape, np.float32), {**stats, "layers": {}, "reason": "no dense geometry near it"}
     h = np.where(mask, layers[label], 0.0).astype(np.float32)
     stats["layers"] = {f"{v:.4g}": float((h[mask] == np.float32(v)).mean()) for v in layers}
     stats["relief_share"] = float((h[mask] != 0).mean()) if mask.any() else 0.0
