@@ -80,10 +80,10 @@ def with_heights(inp, heights_dir):
     """``inp`` with the height field the heights stage wrote for it, where there is one."""
     from pathlib import Path
 
-    from difftex.compose.heights import read_heights
-
     if heights_dir is None or not (Path(heights_dir) / f"{inp.polygon_id}.npz").is_file():
         return inp
+    from difftex.compose.heights import read_heights
+
     frame, heights, _ = read_heights(Path(heights_dir) / f"{inp.polygon_id}.npz", inp.polygon_id)
     inp.dense = (frame, heights)
     return inp

@@ -5,6 +5,8 @@ reads the dense geometry once (difftex.geometry.dense), keeps what lies near its
 writes per polygon ``<out>/<polygon>.npz``: the field's frame, its heights and statistics
 (difftex.geometry.heightfield). The texturing stages map the photos through it
 (difftex.compose.texturing); a polygon without a file keeps its plane.
+
+No torch here: the initialization stage reads these files and must not import it.
 """
 
 from __future__ import annotations
@@ -17,9 +19,8 @@ import numpy as np
 
 from difftex.errors import DifftexError
 from difftex.geometry.dense import DenseMesh, DenseSource, check_frame, read_cloud, read_depth_maps, read_mesh
-from difftex.geometry.frames import UVFrame
-from difftex.geometry.heightfield import HeightFieldConfig, height_field
-from difftex.sampling.texels import level_frame, resample_nearest
+from difftex.geometry.frames import UVFrame, level_frame
+from difftex.geometry.heightfield import HeightFieldConfig, height_field, nearest
 
 log = logging.getLogger(__name__)
 
@@ -64,7 +65,7 @@ def polygon_field(
         (the field's frame, (h, w) float32 heights, statistics).
     """
     small = level_frame(frame, min(cfg.long_side, max(frame.shape)))
-    m = resample_nearest(mask, frame, small)
+    m = nearest(mask, frame, small)
     if isinstance(geometry, DenseMesh):
         return small, *height_field(small, m, cfg, mesh=geometry)
     lo, hi = cfg.bounds(small)

@@ -266,7 +266,7 @@ def cloud_field(points: np.ndarray, frame: UVFrame, mask: np.ndarray, cfg: Heigh
     coarse = frame
     if POINTS_PER_SIDE * spacing > frame.texel_size and np.isfinite(spacing):
         coarse = frame.resized(max(4, int(np.ceil(side / (POINTS_PER_SIDE * spacing)))))
-    cmask = _nearest(mask, frame, coarse)
+    cmask = nearest(mask, frame, coarse)
     evidence, weight, noise = cloud_evidence(points, coarse, lo, hi)
     weight = np.where(cmask & np.isfinite(evidence), weight, 0.0)
     tol = max(3.0 * noise, 0.5 * coarse.texel_size)
@@ -279,7 +279,7 @@ def cloud_field(points: np.ndarray, frame: UVFrame, mask: np.ndarray, cfg: Heigh
     label = snap_to_layers(np.where(cmask, evidence, np.nan), weight, layers, tol, cfg.smoothness)
     if coarse is frame:
         return layers, label, noise, share
-    prior = _nearest(label, coarse, frame)
+    prior = nearest(label, coarse, frame)
     evidence, weight, _ = cloud_evidence(points, frame, lo, hi)
     weight = np.where(mask & np.isfinite(evidence), weight, 0.0)
     fine_tol = max(3.0 * noise, 0.5 * frame.texel_size)
@@ -330,7 +330,7 @@ def hole_evidence(
     return evidence, weight
 
 
-def _nearest(arr: np.ndarray, src: UVFrame, dst: UVFrame) -> np.ndarray:
+def nearest(arr: np.ndarray, src: UVFrame, dst: UVFrame) -> np.ndarray:
     """``arr`` at ``src`` resampled to ``dst`` (the same rectangle), nearest texel (as
     difftex.sampling.texels.resample_nearest, which this layer may not import)."""
     r = dst.texel_size / src.texel_size

@@ -30,6 +30,7 @@ from typing import Any
 import numpy as np
 
 from difftex.errors import DifftexError
+from difftex.layout import DENSE_RECORD
 
 GLASS_FRAME = 0.07  # facades._window's frame width: the glass is an opening's rectangle less it
 COLOUR_SOURCE = "albedo of the detailed model (sRGB, unshaded)"
@@ -495,5 +496,5 @@ def write_dense(scene_dir: str | Path, s: DenseSettings = DenseSettings(), progr
         "seconds": {"model": t_model, "cast": st["cast_s"], "visibility": st["visibility_s"],
                     "mesh": time.perf_counter() - t1, "total": time.perf_counter() - t0},
     }
-    write_json(out / "dense.json", summary)
+    write_json(out / DENSE_RECORD, summary)  # the record, as the GPU stage names its own
     return summary
