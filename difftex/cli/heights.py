@@ -67,13 +67,9 @@ def dense_config(path):
 
     from difftex.config import from_dict, read_config
     from difftex.geometry.heightfield import HeightFieldConfig
+    from difftex.scene.mvs import DenseStereoConfig
 
     data = dict(read_config(path).get("dense") or {}) if path else {}
-    try:
-        from difftex.scene.mvs import DenseStereoConfig
-
-        stereo = {f.name for f in dataclasses.fields(DenseStereoConfig)} | {"stereo"}
-    except ImportError:  # the GPU stage's module is optional to this command
-        stereo = {"stereo", "max_image_size"}
+    stereo = {f.name for f in dataclasses.fields(DenseStereoConfig)} | {"stereo"}
     return from_dict(HeightFieldConfig, {k: v for k, v in data.items() if k not in stereo},
                      where=f"{path}: section 'dense'")

@@ -19,8 +19,8 @@ import numpy as np
 
 from difftex.errors import DifftexError
 from difftex.geometry.dense import DenseMesh, DenseSource, check_frame, read_cloud, read_depth_maps, read_mesh
-from difftex.geometry.frames import UVFrame, level_frame
-from difftex.geometry.heightfield import HeightFieldConfig, height_field, nearest
+from difftex.geometry.frames import UVFrame, level_frame, resample_nearest
+from difftex.geometry.heightfield import HeightFieldConfig, height_field
 
 log = logging.getLogger(__name__)
 
@@ -65,7 +65,7 @@ def polygon_field(
         (the field's frame, (h, w) float32 heights, statistics).
     """
     small = level_frame(frame, min(cfg.long_side, max(frame.shape)))
-    m = nearest(mask, frame, small)
+    m = resample_nearest(mask, frame, small)
     if isinstance(geometry, DenseMesh):
         return small, *height_field(small, m, cfg, mesh=geometry)
     lo, hi = cfg.bounds(small)

@@ -24,9 +24,9 @@ left in a local frame when the proxy is georeferenced).
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Literal
+from typing import Any, Literal
 
 import numpy as np
 
@@ -59,6 +59,21 @@ class DenseMesh:
 
     vertices: np.ndarray
     faces: np.ndarray
+    _scene: Any = field(default=None, init=False, repr=False)
+
+    @property
+    def centre(self) -> np.ndarray:
+        """(3,) the origin of the ray scene's float32 coordinates (UTM coordinates are large)."""
+        return self.vertices.mean(0)
+
+    def scene(self):
+        """Its Mitsuba scene (difftex.geometry.raycast.mitsuba_scene) relative to ``centre``, built
+        once: a tile's polygons all cast against the same mesh."""
+        if self._scene is None:
+            from difftex.geometry.raycast import mitsuba_scene
+
+            self._scene = mitsuba_scene(self.vertices - self.centre, self.faces)
+        return self._scene
 
 
 def ply_elements(path: Path) -> dict[str, int]:

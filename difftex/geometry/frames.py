@@ -318,6 +318,21 @@ def level_sides(target_long: int, start: int, coarse_to_fine: bool, step: float 
     return sides
 
 
+Region = tuple[int, int, int, int]  # (y0, y1, x0, x1): a rectangle of a frame's texels
+
+
+def resample_nearest(arr: np.ndarray, src: UVFrame, dst: UVFrame, region: Region | None = None) -> np.ndarray:
+    """(..., H, W) array of ``src`` to ``dst`` texel centres (same rectangle), nearest texel;
+    ``region``: only that rectangle of ``dst``."""
+    y0, y1, x0, x1 = region if region is not None else (0, dst.height, 0, dst.width)
+    if src.shape == dst.shape and src.texel_size == dst.texel_size:
+        return arr[..., y0:y1, x0:x1] if region is not None else arr
+    r = dst.texel_size / src.texel_size
+    ix = np.clip(np.floor((np.arange(x0, x1) + 0.5) * r).astype(int), 0, src.width - 1)
+    iy = np.clip(np.floor((np.arange(y0, y1) + 0.5) * r).astype(int), 0, src.height - 1)
+    return arr[..., iy[:, None], ix[None, :]]
+
+
 def level_frame(frame: UVFrame, long_side: int) -> UVFrame:
     """The same rectangle as ``frame`` with ``long_side`` texels on its longer side."""
     return frame if long_side == max(frame.shape) else frame.resized(long_side)

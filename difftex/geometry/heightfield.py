@@ -30,7 +30,7 @@ import numpy as np
 
 from difftex.errors import DifftexError
 from difftex.geometry.dense import DenseMesh
-from difftex.geometry.frames import UVFrame
+from difftex.geometry.frames import UVFrame, resample_nearest
 
 # A layer must hold this share of the texels with evidence (and MIN_LAYER_TEXELS): smaller
 # clusters are a sill, a lamp, noise, not a plane of the facade worth its own mapping.
@@ -141,20 +141,10 @@ def mesh_evidence(mesh: DenseMesh, frame: UVFrame, lo: float, hi: float) -> np.n
     Returns:
         (H, W) float32 heights, NaN where the ray misses.
     """
-    import drjit as dr
     import mitsuba as mi
 
-    from difftex.geometry.raycast import MITSUBA_VARIANT
-
-    mi.set_variant(MITSUBA_VARIANT)
-    centre = frame.origin  # float32 precision near the polygon (UTM coordinates are large)
-    V = (mesh.vertices - centre).astype(np.float32)
-    m = mi.Mesh("dense", len(V), len(mesh.faces))
-    params = mi.traverse(m)
-    params["vertex_positions"] = dr.ravel(mi.Point3f(V[:, 0], V[:, 1], V[:, 2]))
-    params["faces"] = mesh.faces.astype(np.uint32).ravel()
-    params.update()
-    scene = mi.load_dict({"type": "scene", "dense": m})
+    scene = mesh.scene()
+    centre = mesh.centre
     tx, ty = frame.centres()
     o = (frame.texel_to_world(tx, ty) - centre + hi * frame.normal).reshape(-1, 3).astype(np.float32)
     d = np.broadcast_to(-frame.normal, o.shape).astype(np.float32)
@@ -266,7 +256,7 @@ def cloud_field(points: np.ndarray, frame: UVFrame, mask: np.ndarray, cfg: Heigh
     coarse = frame
     if POINTS_PER_SIDE * spacing > frame.texel_size and np.isfinite(spacing):
         coarse = frame.resized(max(4, int(np.ceil(side / (POINTS_PER_SIDE * spacing)))))
-    cmask = nearest(mask, frame, coarse)
+    cmask = resample_nearest(mask, frame, coarse)
     evidence, weight, noise = cloud_evidence(points, coarse, lo, hi)
     weight = np.where(cmask & np.isfinite(evidence), weight, 0.0)
     tol = max(3.0 * noise, 0.5 * coarse.texel_size)
@@ -279,7 +269,7 @@ def cloud_field(points: np.ndarray, frame: UVFrame, mask: np.ndarray, cfg: Heigh
     label = snap_to_layers(np.where(cmask, evidence, np.nan), weight, layers, tol, cfg.smoothness)
     if coarse is frame:
         return layers, label, noise, share
-    prior = nearest(label, coarse, frame)
+    prior = resample_nearest(label, coarse, frame)
     evidence, weight, _ = cloud_evidence(points, frame, lo, hi)
     weight = np.where(mask & np.isfinite(evidence), weight, 0.0)
     fine_tol = max(3.0 * noise, 0.5 * frame.texel_size)
@@ -328,15 +318,6 @@ def hole_evidence(
     evidence = np.where(fill, layers[best[holes]], evidence)
     weight = np.where(fill, HOLE_WEIGHT, weight)
     return evidence, weight
-
-
-def nearest(arr: np.ndarray, src: UVFrame, dst: UVFrame) -> np.ndarray:
-    """``arr`` at ``src`` resampled to ``dst`` (the same rectangle), nearest texel (as
-    difftex.sampling.texels.resample_nearest, which this layer may not import)."""
-    r = dst.texel_size / src.texel_size
-    ix = np.clip(np.floor((np.arange(dst.width) + 0.5) * r).astype(int), 0, src.width - 1)
-    iy = np.clip(np.floor((np.arange(dst.height) + 0.5) * r).astype(int), 0, src.height - 1)
-    return arr[iy[:, None], ix[None, :]]
 
 
 def height_field(

@@ -29,6 +29,26 @@ log = logging.getLogger(__name__)
 MITSUBA_VARIANT = "llvm_ad_rgb"
 
 
+def mitsuba_scene(vertices: np.ndarray, faces: np.ndarray):
+    """A Mitsuba scene (LLVM variant) of one triangle mesh, for ray queries.
+
+    Args:
+        vertices: (V, 3), already relative to a nearby centre (they are cast to float32);
+        faces: (F, 3) vertex indices.
+    """
+    import drjit as dr
+    import mitsuba as mi
+
+    mi.set_variant(MITSUBA_VARIANT)
+    V = np.asarray(vertices, np.float32)
+    mesh = mi.Mesh("mesh", len(V), len(faces))
+    params = mi.traverse(mesh)
+    params["vertex_positions"] = dr.ravel(mi.Point3f(V[:, 0], V[:, 1], V[:, 2]))
+    params["faces"] = np.asarray(faces, np.uint32).ravel()
+    params.update()
+    return mi.load_dict({"type": "scene", "mesh": mesh})
+
+
 @functools.lru_cache(maxsize=1)
 def mitsuba_available() -> bool:
     """Whether Mitsuba's LLVM variant loads (it needs libLLVM, Debian's libllvm19)."""
@@ -87,10 +107,6 @@ class ProxyCaster:
                 self._planes = _planar(self.proxy)
 
     def _build_mitsuba(self) -> None:
-        import drjit as dr
-        import mitsuba as mi
-
-        mi.set_variant(MITSUBA_VARIANT)
         Vs: list[np.ndarray] = []
         Fs: list[np.ndarray] = []
         owner: list[np.ndarray] = []
@@ -101,14 +117,7 @@ class ProxyCaster:
             Fs.append(t + n)
             owner.append(np.full(len(t), i, np.int32))
             n += len(v)
-        V = np.concatenate(Vs).astype(np.float32)
-        F = np.concatenate(Fs).astype(np.uint32)
-        mesh = mi.Mesh("proxy", len(V), len(F))
-        params = mi.traverse(mesh)
-        params["vertex_positions"] = dr.ravel(mi.Point3f(V[:, 0], V[:, 1], V[:, 2]))
-        params["faces"] = F.ravel()
-        params.update()
-        self._scene = mi.load_dict({"type": "scene", "proxy": mesh})
+        self._scene = mitsuba_scene(np.concatenate(Vs), np.concatenate(Fs))
         self._tri_polygon = np.concatenate(owner)
 
     def cast(self, origin: np.ndarray, dirs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

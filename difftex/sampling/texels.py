@@ -13,7 +13,8 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from difftex.geometry.frames import UVFrame, level_frame, texel_homography  # noqa: F401  (level_frame: re-exported)
+# level_frame, resample_nearest and Region: re-exported (the texel grids' helpers live with the frames)
+from difftex.geometry.frames import Region, UVFrame, level_frame, resample_nearest, texel_homography  # noqa: F401
 from difftex.scene.camera import Photo
 
 # Texel spacing of the exact projections that the distortion displacement is interpolated from
@@ -23,18 +24,6 @@ DISTORTION_GRID = 8
 
 # --------------------------------------------------------------------------------------------
 # Resolution levels of one UV frame
-
-
-def resample_nearest(arr: np.ndarray, src: UVFrame, dst: UVFrame, region: Region | None = None) -> np.ndarray:
-    """(..., H, W) array of ``src`` to ``dst`` texel centres (same rectangle), nearest texel;
-    ``region``: only that rectangle of ``dst``."""
-    y0, y1, x0, x1 = region if region is not None else (0, dst.height, 0, dst.width)
-    if src.shape == dst.shape and src.texel_size == dst.texel_size:
-        return arr[..., y0:y1, x0:x1] if region is not None else arr
-    r = dst.texel_size / src.texel_size
-    ix = np.clip(np.floor((np.arange(x0, x1) + 0.5) * r).astype(int), 0, src.width - 1)
-    iy = np.clip(np.floor((np.arange(y0, y1) + 0.5) * r).astype(int), 0, src.height - 1)
-    return arr[..., iy[:, None], ix[None, :]]
 
 
 # --------------------------------------------------------------------------------------------
@@ -67,7 +56,6 @@ def _exact_pixels(frame: UVFrame, photo: Photo, tx: np.ndarray, ty: np.ndarray) 
     return pix
 
 
-Region = tuple[int, int, int, int]  # (y0, y1, x0, x1): a rectangle of a frame's texels
 
 
 def texel_map(

@@ -265,19 +265,9 @@ class Caster:
         self._scene: Any = self._mitsuba_scene() if backend == "mitsuba" and len(self.faces) else None
 
     def _mitsuba_scene(self):
-        import drjit as dr
-        import mitsuba as mi
+        from difftex.geometry.raycast import mitsuba_scene
 
-        from difftex.geometry.raycast import MITSUBA_VARIANT
-
-        mi.set_variant(MITSUBA_VARIANT)
-        V = (self.vertices - self.centre).astype(np.float32)
-        m = mi.Mesh("dense", len(V), len(self.faces))
-        params = mi.traverse(m)
-        params["vertex_positions"] = dr.ravel(mi.Point3f(V[:, 0], V[:, 1], V[:, 2]))
-        params["faces"] = self.faces.astype(np.uint32).ravel()
-        params.update()
-        return mi.load_dict({"type": "scene", "dense": m})
+        return mitsuba_scene(self.vertices - self.centre, self.faces)
 
     def hits(self, frame: UVFrame, lo: float, hi: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """The first surface along -n from height ``hi`` down to ``lo`` at every texel centre.
